@@ -1,0 +1,1 @@
+"""Command-line interface of o3dsoft (installed as o3dsoft.cli)."""

@@ -1,0 +1,202 @@
+"""The ``o3dsoft`` command line: thin click commands over the library."""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import click
+import numpy as np
+
+from .. import __version__
+from ..errors import O3dsoftError
+
+
+def _friendly_errors(fn):
+    """Print o3dsoft's own errors as one line on stderr and exit 1 (failure) or 2 (usage)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except O3dsoftError as e:
+            click.echo(f"Error: {e}", err=True)
+            sys.exit(e.exit_code)
+        except KeyboardInterrupt:
+            click.echo("Interrupted.", err=True)
+            sys.exit(130)
+
+    return wrapper
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "--version", prog_name="o3dsoft")
+def main() -> None:
+    """o3dsoft: rigid registration of 3D point clouds (learned coarse stage + Open3D ICP)."""
+
+
+@main.command()
+@click.argument("source", type=click.Path(path_type=Path))
+@click.argument("target", type=click.Path(path_type=Path))
+@click.option("--gt", "gt_path", type=click.Path(path_type=Path), help="Ground-truth T_target_source (4x4 text or .npy): print the errors against it.")
+@click.option("--out", "out_path", type=click.Path(path_type=Path), help="Write the transformed source here (.ply .pcd .xyz .xyzn .xyzrgb .pts .npy).")
+@click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
+@click.option("--weights", type=click.Path(path_type=Path), help="TorchScript model file (default: the shipped model).")
+@click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")
+@click.option("--icp-distance", type=click.FloatRange(min=0, min_open=True), default=0.1, show_default=True, help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.")
+@click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
+@click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
+@click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
+@click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
+@click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
+@_friendly_errors
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, mesh_points, device, render_path):
+    """Register SOURCE onto TARGET; print T_target_source and how well it fits.
+
+    SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
+    STL, PLY with faces), sampled on their faces.
+    """
+    from .. import io
+    from ..coarse import load_model
+    from ..metrics import pair_errors
+    from ..pipeline import RegisterConfig, register as run_register
+    from ..refine import ICPConfig
+
+    for opt, p in (("--out", out_path), ("--render", render_path)):
+        if p is not None and p.suffix == "":
+            raise click.UsageError(f"{opt} {p}: give a file name with an extension")
+    if out_path is not None:
+        io._extension(out_path, io.WRITE_EXTENSIONS, "--out")
+    t0 = time.perf_counter()
+    src = io.read_points(source, mesh_points=mesh_points)
+    tgt = io.read_points(target, mesh_points=mesh_points)
+    T_gt = io.read_transform(gt_path) if gt_path is not None else None
+    read_ms = (time.perf_counter() - t0) * 1000.0
+    config = RegisterConfig(
+        num_points=num_points,
+        refine=not no_refine,
+        icp=ICPConfig(distance=icp_distance, absolute=icp_absolute),
+        weights=str(weights) if weights else None,
+        device=device,
+    )
+    t0 = time.perf_counter()
+    model = load_model(config.weights, config.device)
+    load_ms = (time.perf_counter() - t0) * 1000.0
+    result = run_register(src, tgt, config, model=model, source_name=str(source), target_name=str(target))
+    result.timings_ms = {"read": read_ms, "load_model": load_ms, **result.timings_ms}
+    result.timings_ms["total"] += read_ms + load_ms
+
+    if out_path is not None:
+        T = result.transformation
+        io.write_points(out_path, src @ T[:3, :3].T + T[:3, 3])
+    if save_transform is not None:
+        io.write_transform(save_transform, result.transformation)
+    if render_path is not None:
+        from ..render import render_registration
+
+        panels = [("input", None), ("network", result.coarse_transformation)]
+        if config.refine:
+            panels.append(("network + ICP", result.transformation))
+        render_registration(render_path, src, tgt, panels)
+
+    errors = None
+    if T_gt is not None:
+        errors = {"final": pair_errors(result.transformation, T_gt), "coarse": pair_errors(result.coarse_transformation, T_gt)}
+    model_info = {"path": str(model.path), "trained": model.meta.get("info", {})}
+    if as_json:
+        payload = {"source": str(source), "target": str(target), "model": model_info, **result.to_dict()}
+        if errors is not None:
+            payload["errors"] = {k: _errors_dict(e) for k, e in errors.items()}
+        click.echo(json.dumps(payload, indent=2))
+    else:
+        click.echo(_format_result(source, target, result, errors, model_info, config.refine))
+
+
+def _errors_dict(e) -> dict:
+    d = e._asdict()
+    d["euler_abs_deg"] = e.euler_abs_deg.tolist()
+    d["translation_abs"] = e.translation_abs.tolist()
+    return d
+
+
+def _format_result(source, target, result, errors, model_info, refined: bool) -> str:
+    T = result.transformation
+    lines = [
+        f"o3dsoft register  {source} -> {target}",
+        f"  points: source {result.num_source}, target {result.num_target} (after cleaning); scale {result.scale:.4g} units",
+        f"  model:  {model_info['path']}",
+        "",
+        "T_target_source (maps the source onto the target):",
+        *("  " + " ".join(f"{v: .6f}" for v in row) for row in T),
+        "",
+        f"  fitness      {result.fitness:.4f}   share of source points within {result.correspondence_distance:.4g} units of the target (0-1, higher is better)",
+        f"  inlier RMSE  {result.inlier_rmse:.4g}   units, over those points (lower is better)",
+        f"  confidence   {result.confidence:.4f}   mean network weight w_i (0-1, higher is better)",
+    ]
+    if errors is not None:
+        f, c = errors["final"], errors["coarse"]
+        stage = "network + ICP" if refined else "network"
+        lines += [
+            "",
+            "Errors against the ground truth (lower is better):",
+            f"  {'':14s} {'rotation':>12s} {'translation':>14s} {'|R-Rgt|_1':>10s} {'|R-Rgt|_2':>10s} {'|t-tgt|_1':>10s} {'|t-tgt|_2':>10s}",
+        ]
+        rows = [("network", c)] + ([(stage, f)] if refined else [])
+        for name, e in rows:
+            lines.append(
+                f"  {name:14s} {e.rotation_deg:>8.4f} deg {e.translation:>8.3g} units {e.rotation_l1:>10.6f} {e.rotation_l2:>10.6f} {e.translation_l1:>10.6f} {e.translation_l2:>10.6f}"
+            )
+    t = result.timings_ms
+    lines += ["", "Time per stage (ms, lower is better): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items())]
+    return "\n".join(lines)
+
+
+@main.command()
+@click.option("--data", type=click.Path(path_type=Path), help="ModelNet40 folder (official HDF5 layout); default $O3DSOFT_DATA.")
+@click.option("--protocol", default="paper", show_default=True, help="Pair protocol (paper, dcp, wide45, so3, ...).")
+@click.option("--epochs", type=click.IntRange(min=1), default=5, show_default=True)
+@click.option("--batch-size", type=click.IntRange(min=1), default=10, show_default=True)
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--device", default="cpu", show_default=True)
+@click.option("--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config.")
+@click.option("--separate-encoders", is_flag=True, help="One encoder per cloud instead of a shared one.")
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=Path("runs/train"), show_default=True)
+@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt.")
+@click.option("--max-steps", type=click.IntRange(min=1), default=None, help="Stop after this many steps (quick runs).")
+@click.option("--limit-train", type=click.IntRange(min=1), default=None, help="Use only the first N training shapes.")
+@click.option("--eval-pairs", type=click.IntRange(min=0), default=300, show_default=True, help="Test pairs evaluated after each epoch.")
+@_friendly_errors
+def train(data, protocol, epochs, batch_size, lr, seed, device, radius, separate_encoders, out_dir, resume, max_steps, limit_train, eval_pairs):
+    """Train the network on ModelNet40 and export TorchScript + a model card into OUT."""
+    from dataclasses import replace
+
+    from ..data import get_protocol
+    from ..model import NetConfig
+    from ..train import TrainConfig, train as run_train
+
+    get_protocol(protocol)
+    net = NetConfig(shared_encoder=not separate_encoders)
+    if radius is not None:
+        net = replace(net, radius=radius)
+    config = TrainConfig(
+        data=str(data) if data else None, protocol=protocol, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
+        device=device, out=str(out_dir), eval_pairs=eval_pairs, max_steps=max_steps, limit_train=limit_train, net=net,
+    )
+    run_train(config, resume=resume, log=lambda m: click.echo(m, err=True))
+
+
+@main.command()
+@_friendly_errors
+def bench():
+    """Benchmark methods on ModelNet40 protocols (not available in this version)."""
+    raise O3dsoftError("'o3dsoft bench' is not available in this version yet")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

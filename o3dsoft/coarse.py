@@ -1,0 +1,143 @@
+"""Coarse stage: the soft-alignment network, run from a TorchScript file.
+
+A model file is a TorchScript archive whose ``forward(source (B, N, 3), target (B, M, 3))``
+returns ``(R (B, 3, 3), t (B, 3), w (B, N))`` on normalised clouds, with an extra file
+``o3dsoft.json`` describing it (format version, network config, how it was trained). The default
+model ships inside the package (``o3dsoft/weights/``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Dict, NamedTuple, Optional, Union
+
+import numpy as np
+import torch
+
+from .errors import InputError
+from .model import NetConfig, SoftAlignNet
+
+FORMAT = "o3dsoft-softalign"
+FORMAT_VERSION = 1
+META_NAME = "o3dsoft.json"
+DEFAULT_WEIGHTS_NAME = "o3dsoft_default.pt"
+
+
+def default_weights_path() -> Path:
+    """The model shipped with the package."""
+    return Path(str(resources.files("o3dsoft.weights").joinpath(DEFAULT_WEIGHTS_NAME)))
+
+
+def sha256_of(path: Union[str, Path]) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def export_torchscript(model: SoftAlignNet, config: NetConfig, path: Union[str, Path], info: Optional[Dict[str, Any]] = None) -> Path:
+    """Script `model` (in eval mode, on the CPU) and write it atomically with its metadata.
+
+    Args:
+        model: a trained network.
+        config: its architecture settings (stored in the file).
+        path: where to write the ``.pt`` file.
+        info: extra facts to store (training protocol, epochs...).
+    Returns:
+        The path written.
+    """
+    path = Path(path)
+    was_training = model.training
+    model = model.eval()
+    device = next(model.parameters()).device
+    scripted = torch.jit.script(model.cpu())
+    meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "net": config.to_dict(), "info": info or {}}
+    tmp = path.with_name(path.name + ".tmp")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.jit.save(scripted, str(tmp), _extra_files={META_NAME: json.dumps(meta)})
+    tmp.replace(path)
+    model.to(device).train(was_training)
+    return path
+
+
+@dataclass
+class CoarseModel:
+    """A loaded TorchScript soft-alignment model and what its file says about it."""
+
+    module: torch.jit.ScriptModule
+    meta: Dict[str, Any]
+    path: Path
+    device: torch.device
+
+    @property
+    def config(self) -> NetConfig:
+        return NetConfig.from_dict(self.meta["net"])
+
+    def run(self, source: torch.Tensor, target: torch.Tensor):
+        """Raw network call: (B, N, 3), (B, M, 3) normalised clouds -> (R, t, w)."""
+        with torch.no_grad():
+            return self.module(source.to(self.device), target.to(self.device))
+
+
+def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.device] = "cpu") -> CoarseModel:
+    """Load a TorchScript model file (the shipped default when `path` is None).
+
+    Raises:
+        InputError: the file is missing, is not a TorchScript archive, or is not an o3dsoft model.
+    """
+    path = Path(path) if path is not None else default_weights_path()
+    if not path.is_file():
+        raise InputError(f"{path}: weights file not found")
+    try:
+        device = torch.device(device)
+    except RuntimeError as e:
+        raise InputError(f"invalid device {device!r}: {e}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device 'cuda' was asked for but this torch build sees no CUDA GPU")
+    extra = {META_NAME: ""}
+    try:
+        module = torch.jit.load(str(path), map_location=device, _extra_files=extra)
+    except Exception as e:  # torch raises RuntimeError or ValueError, with long C++ traces
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InputError(f"{path}: not a readable TorchScript model file ({first})") from None
+    try:
+        meta = json.loads(extra[META_NAME])
+    except json.JSONDecodeError:
+        meta = None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise InputError(f"{path}: a TorchScript file, but not an o3dsoft model (no {META_NAME} with format {FORMAT!r})")
+    if meta.get("format_version", 0) > FORMAT_VERSION:
+        raise InputError(f"{path}: model format version {meta['format_version']} is newer than this o3dsoft supports ({FORMAT_VERSION})")
+    module.eval()
+    return CoarseModel(module, meta, path, device)
+
+
+class CoarseEstimate(NamedTuple):
+    """Coarse stage output in the normalised frame: T (4, 4) float64 and weights w (N,) in [1/M, 1]."""
+
+    transform: np.ndarray
+    weights: np.ndarray
+
+
+def estimate(model: CoarseModel, source: np.ndarray, target: np.ndarray) -> CoarseEstimate:
+    """Run the network on one normalised pair.
+
+    Args:
+        model: a loaded model.
+        source: (N, 3) normalised source points, N >= the model's K.
+        target: (M, 3) normalised target points, M >= K.
+    Returns:
+        CoarseEstimate with T_target_source in the normalised frame.
+    """
+    src = torch.as_tensor(np.ascontiguousarray(source), dtype=torch.float32).unsqueeze(0)
+    tgt = torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0)
+    R, t, w = model.run(src, tgt)
+    T = np.eye(4)
+    T[:3, :3] = R[0].double().cpu().numpy()
+    T[:3, 3] = t[0].double().cpu().numpy()
+    return CoarseEstimate(T, w[0].float().cpu().numpy())

@@ -1,0 +1,305 @@
+"""ModelNet40 and the benchmark protocols of the literature (DESIGN section 4).
+
+One definition of every protocol serves training and benchmarking. Every pair is drawn from a
+generator seeded by (seed, index) alone, so a pair never depends on which worker made it or on
+what was drawn before, and a run can be repeated digit for digit.
+
+Nothing is ever downloaded: with no data present the error says where to get it and how to point
+o3dsoft at it (``--data PATH`` or the ``O3DSOFT_DATA`` environment variable).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .errors import InputError
+
+DATA_ENV = "O3DSOFT_DATA"
+_HOW_TO_GET = (
+    "ModelNet40 in the modelnet40_ply_hdf5_2048 layout (ply_data_{train,test}*.h5, shape_names.txt) "
+    "is published by the PointNet authors; download and unpack it yourself, then pass its folder "
+    f"with --data PATH or set {DATA_ENV}=PATH"
+)
+
+
+# --------------------------------------------------------------------------------------------
+# Protocols
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Protocol:
+    """How a registration pair is made from one shape.
+
+    Attributes:
+        name: the protocol's name.
+        rotation: "euler" (each axis angle uniform in [angle_min, angle_max] degrees, R = Rx Ry Rz)
+            or "so3" (uniform on SO(3)).
+        angle_min, angle_max: Euler angle range in degrees.
+        translation: each component of t uniform in [-translation, translation].
+        noise_std, noise_clip: Gaussian noise added to each cloud independently (0 = none).
+        crop_keep: fraction of each cloud kept by its own random half-space (1 = no crop).
+        num_points: points per cloud after cropping (None = all points of the shape).
+        categories: "all", "seen" (labels 0-19) or "unseen" (labels 20-39) for the test split;
+            training on an "unseen" protocol uses the seen half.
+    """
+
+    name: str
+    rotation: str = "euler"
+    angle_min: float = 0.0
+    angle_max: float = 45.0
+    translation: float = 0.5
+    noise_std: float = 0.0
+    noise_clip: float = 0.0
+    crop_keep: float = 1.0
+    num_points: Optional[int] = None
+    categories: str = "all"
+
+
+PROTOCOLS: Dict[str, Protocol] = {
+    p.name: p
+    for p in (
+        Protocol("paper", angle_min=-22.5, angle_max=22.5, translation=0.25),
+        Protocol("dcp"),
+        Protocol("dcp-unseen", categories="unseen"),
+        Protocol("dcp-noise", noise_std=0.01, noise_clip=0.05),
+        Protocol("rpmnet-crop", noise_std=0.01, noise_clip=0.05, crop_keep=0.7, num_points=717),
+        Protocol("so3", rotation="so3"),
+        Protocol("so3-crop", rotation="so3", noise_std=0.01, noise_clip=0.05, crop_keep=0.7, num_points=717),
+        # The range the shipped default model is trained on: paper's +-22.5 and DCP's 0-45 inside.
+        Protocol("wide45", angle_min=-45.0, angle_max=45.0, translation=0.5),
+    )
+}
+
+
+def get_protocol(name: str) -> Protocol:
+    """The protocol of that name; InputError listing the valid names otherwise."""
+    try:
+        return PROTOCOLS[name]
+    except KeyError:
+        raise InputError(f"unknown protocol {name!r}; valid: {', '.join(PROTOCOLS)}") from None
+
+
+def euler_to_matrix(angles_deg: np.ndarray) -> np.ndarray:
+    """R = Rx(a) Ry(b) Rz(c) for angles (a, b, c) in degrees; (3,) -> (3, 3)."""
+    a, b, c = np.radians(angles_deg)
+    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
+    rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
+    return rx @ ry @ rz
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A rotation uniform on SO(3), from a normalised 4-D Gaussian quaternion; (3, 3)."""
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _crop(points: np.ndarray, keep: float, rng: np.random.Generator) -> np.ndarray:
+    """Keep the fraction `keep` of points farthest along a random direction (a random half-space)."""
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    order = np.argsort(-(points @ direction), kind="stable")
+    return points[np.sort(order[: max(1, int(round(keep * len(points))))])]
+
+
+def _resample(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    replace = len(points) < n
+    return points[rng.choice(len(points), size=n, replace=replace)]
+
+
+def _noise(points: np.ndarray, p: Protocol, rng: np.random.Generator) -> np.ndarray:
+    if p.noise_std <= 0:
+        return points
+    eps = np.clip(rng.normal(scale=p.noise_std, size=points.shape), -p.noise_clip, p.noise_clip)
+    return points + eps
+
+
+class Pair(NamedTuple):
+    """One registration problem: target ~ transform @ source.
+
+    source: (N, 3) float32; target: (M, 3) float32 (shuffled); transform: (4, 4) float64
+    T_target_source; index: pair index; label: category of the shape; angle: the rotation angle
+    of the ground truth in degrees.
+    """
+
+    source: np.ndarray
+    target: np.ndarray
+    transform: np.ndarray
+    index: int
+    label: int
+    angle: float
+
+
+def make_pair(points: np.ndarray, protocol: Protocol, seed: int, index: int, label: int = -1) -> Pair:
+    """Build the pair number `index` of a protocol from one shape, deterministically.
+
+    Args:
+        points: (N, 3) the shape.
+        protocol: how to perturb it.
+        seed: run seed; with `index` it fixes every random draw.
+        index: pair index (usually the shape's index in its split).
+        label: category, carried along.
+    """
+    rng = np.random.default_rng([seed, index])
+    p = protocol
+    if p.rotation == "so3":
+        R = random_rotation(rng)
+    else:
+        R = euler_to_matrix(rng.uniform(p.angle_min, p.angle_max, size=3))
+    t = rng.uniform(-p.translation, p.translation, size=3)
+    src = points.astype(np.float64)
+    tgt = src.copy()
+    if p.crop_keep < 1.0:
+        src = _crop(src, p.crop_keep, rng)
+        tgt = _crop(tgt, p.crop_keep, rng)
+    if p.num_points is not None:
+        src = _resample(src, p.num_points, rng)
+        tgt = _resample(tgt, p.num_points, rng)
+    src = _noise(src, p, rng)
+    tgt = _noise(tgt, p, rng)
+    tgt = tgt @ R.T + t
+    tgt = tgt[rng.permutation(len(tgt))]
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2))))
+    return Pair(src.astype(np.float32), tgt.astype(np.float32), T, index, label, angle)
+
+
+# --------------------------------------------------------------------------------------------
+# ModelNet40
+# --------------------------------------------------------------------------------------------
+class Shapes(NamedTuple):
+    """A split of ModelNet40: points (S, N, 3) float32, labels (S,) int64, names (S,) and categories."""
+
+    points: np.ndarray
+    labels: np.ndarray
+    names: List[str]
+    categories: List[str]
+
+
+def resolve_data_root(path: Optional[str]) -> Path:
+    """The ModelNet40 folder: the given path, else $O3DSOFT_DATA, else an InputError saying how to get it."""
+    chosen = path or os.environ.get(DATA_ENV)
+    if not chosen:
+        raise InputError(f"no ModelNet40 data given. {_HOW_TO_GET}")
+    root = Path(chosen).expanduser()
+    if not root.is_dir():
+        raise InputError(f"{root}: no such folder. {_HOW_TO_GET}")
+    return root
+
+
+def load_modelnet40(root: Path, split: str, categories: str = "all") -> Shapes:
+    """Read one split of ModelNet40 from the official HDF5 layout (any points per shape).
+
+    Args:
+        root: the folder with ply_data_{split}*.h5 and shape_names.txt.
+        split: "train" or "test".
+        categories: "all", "seen" (labels 0-19) or "unseen" (labels 20-39).
+    Raises:
+        InputError: no h5 files, missing shape names, wrong keys or shapes.
+    """
+    import h5py
+
+    if split not in ("train", "test"):
+        raise InputError(f"split must be 'train' or 'test', got {split!r}")
+    names_file = root / "shape_names.txt"
+    files = sorted(root.glob(f"ply_data_{split}*.h5"), key=lambda f: _trailing_int(f.stem))
+    if not files or not names_file.is_file():
+        raise InputError(f"{root}: no ModelNet40 {split} split here (ply_data_{split}*.h5 and shape_names.txt). {_HOW_TO_GET}")
+    categories_list = [line.strip() for line in names_file.read_text().splitlines() if line.strip()]
+    points, labels, names = [], [], []
+    for f in files:
+        try:
+            with h5py.File(f, "r") as h5:
+                if "data" not in h5 or "label" not in h5:
+                    raise InputError(f"{f}: expected datasets 'data' and 'label', found {sorted(h5.keys())}")
+                data = np.asarray(h5["data"], dtype=np.float32)
+                label = np.asarray(h5["label"]).reshape(-1).astype(np.int64)
+        except OSError as e:
+            raise InputError(f"{f}: not a readable HDF5 file ({e})") from None
+        if data.ndim != 3 or data.shape[2] < 3 or len(label) != len(data):
+            raise InputError(f"{f}: 'data' must be (S, N, 3) with one label per shape, got {data.shape} and {label.shape}")
+        points.append(data[:, :, :3])
+        labels.append(label)
+        id_file = root / f"ply_data_{split}_{_trailing_int(f.stem)}_id2file.json"
+        names += json.loads(id_file.read_text()) if id_file.is_file() else [f"{f.name}:{i}" for i in range(len(data))]
+    pts = np.concatenate(points)
+    lab = np.concatenate(labels)
+    if lab.max(initial=0) >= len(categories_list):
+        raise InputError(f"{root}: labels go up to {lab.max()} but shape_names.txt lists {len(categories_list)} categories")
+    keep = _category_mask(lab, categories)
+    return Shapes(pts[keep], lab[keep], [n for n, k in zip(names, keep) if k], categories_list)
+
+
+def _category_mask(labels: np.ndarray, categories: str) -> np.ndarray:
+    if categories == "all":
+        return np.ones(len(labels), dtype=bool)
+    if categories == "seen":
+        return labels < 20
+    if categories == "unseen":
+        return labels >= 20
+    raise InputError(f"categories must be 'all', 'seen' or 'unseen', got {categories!r}")
+
+
+def _trailing_int(stem: str) -> int:
+    digits = ""
+    for ch in reversed(stem):
+        if not ch.isdigit():
+            break
+        digits = ch + digits
+    return int(digits) if digits else 0
+
+
+class PairDataset:
+    """Map-style dataset of protocol pairs over one split; pair i is a pure function of (seed, i).
+
+    Usable with torch's DataLoader (any number of workers): ``__getitem__`` never touches global
+    random state and never changes the dataset.
+    """
+
+    def __init__(self, shapes: Shapes, protocol: Protocol, seed: int = 0) -> None:
+        self.shapes = shapes
+        self.protocol = protocol
+        self.seed = seed
+
+    def __len__(self) -> int:
+        return len(self.shapes.points)
+
+    def __getitem__(self, index: int) -> Pair:
+        return make_pair(self.shapes.points[index], self.protocol, self.seed, int(index), int(self.shapes.labels[index]))
+
+
+def split_categories(protocol: Protocol, split: str) -> str:
+    """Which categories a split uses under a protocol (unseen protocols train on the seen half)."""
+    if protocol.categories == "unseen":
+        return "unseen" if split == "test" else "seen"
+    return protocol.categories
+
+
+def load_pairs(root: Optional[str], split: str, protocol: Protocol, seed: int = 0) -> PairDataset:
+    """The pairs of a protocol over a split of the ModelNet40 found at `root` (or $O3DSOFT_DATA)."""
+    shapes = load_modelnet40(resolve_data_root(root), split, split_categories(protocol, split))
+    return PairDataset(shapes, protocol, seed)
+
+
+def stack_pairs(pairs: Sequence[Pair]) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(B, N, 3) sources, (B, M, 3) targets and (B, 4, 4) transforms of same-sized pairs."""
+    return (
+        np.stack([p.source for p in pairs]),
+        np.stack([p.target for p in pairs]),
+        np.stack([p.transform for p in pairs]),
+    )

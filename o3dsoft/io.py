@@ -1,0 +1,253 @@
+"""Reading and writing point clouds and transforms.
+
+Point clouds are read through Open3D: PLY, PCD, XYZ, XYZN, XYZRGB, PTS as points, and meshes
+(OFF, OBJ, STL, and PLY/GLB/GLTF with faces) sampled uniformly on their faces, as the paper did;
+plus NumPy ``.npy`` arrays of shape (N, 3). Transforms are 4x4 text (whitespace or comma
+separated) or ``.npy``. Every writer writes to a temporary file and renames it, so a failure
+never leaves a half-written output.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, Union
+
+import numpy as np
+
+from .errors import InputError, UsageError
+
+PathLike = Union[str, Path]
+
+POINT_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
+MESH_ONLY_EXTENSIONS = (".off", ".obj", ".stl", ".glb", ".gltf", ".fbx")
+READ_EXTENSIONS = POINT_EXTENSIONS + MESH_ONLY_EXTENSIONS + (".npy",)
+WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".npy")
+DEFAULT_MESH_POINTS = 20_000
+
+
+def _o3d():
+    from ._open3d import open3d
+
+    return open3d
+
+
+def _extension(path: Path, allowed, what: str) -> str:
+    ext = path.suffix.lower()
+    if ext not in allowed:
+        raise UsageError(f"{path}: unknown extension {ext or '(none)'!r} for {what}; expected one of {', '.join(allowed)}")
+    return ext
+
+
+def _check_readable(path: Path) -> None:
+    if not path.exists():
+        raise UsageError(f"{path}: no such file")
+    if path.is_dir():
+        raise UsageError(f"{path}: is a folder, not a file")
+    if not os.access(path, os.R_OK):
+        raise InputError(f"{path}: permission denied")
+
+
+def sample_mesh(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """n points uniformly distributed over the area of a triangle mesh (deterministic for a seed).
+
+    Args:
+        vertices: (V, 3); faces: (F, 3) vertex indices.
+    Returns:
+        (n, 3) float64 points.
+    """
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    points, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(points, dtype=np.float64)
+
+
+def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: int = 0) -> np.ndarray:
+    """Read a point cloud, or sample a mesh, as an (N, 3) float64 array.
+
+    A PLY with faces is read as a mesh and sampled; without faces, as points. Non-finite rows are
+    kept (the pipeline's clean stage drops and counts them).
+
+    Args:
+        path: the file.
+        mesh_points: how many points to sample on a mesh's faces.
+        seed: seed of the mesh sampling.
+    Raises:
+        UsageError: missing file or unknown extension.
+        InputError: unreadable content, no points, or a mesh format with no faces.
+    """
+    path = Path(path)
+    ext = _extension(path, READ_EXTENSIONS, "a point cloud")
+    _check_readable(path)
+    if ext == ".npy":
+        return _read_npy_points(path)
+    o3d = _o3d()
+    if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
+        mesh = o3d.io.read_triangle_mesh(str(path))
+        vertices = np.asarray(mesh.vertices)
+        faces = np.asarray(mesh.triangles)
+        if len(faces) > 0:
+            if len(vertices) == 0:
+                raise InputError(f"{path}: mesh has faces but no vertices")
+            return sample_mesh(vertices, faces, mesh_points, seed)
+        if ext in MESH_ONLY_EXTENSIONS:
+            if len(vertices) == 0:
+                raise InputError(f"{path}: could not read any vertex or face; is it a valid {ext[1:].upper()} file?")
+            raise InputError(f"{path}: mesh has {len(vertices)} vertices but no faces; points are sampled on faces, so a mesh needs at least one")
+    cloud = o3d.io.read_point_cloud(str(path), format="auto")
+    points = np.asarray(cloud.points, dtype=np.float64)
+    if len(points) == 0:
+        raise InputError(f"{path}: parsed to 0 points; is it a valid {ext[1:].upper()} point cloud?")
+    return points
+
+
+def _read_npy_points(path: Path) -> np.ndarray:
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except Exception as e:  # numpy raises ValueError/OSError/EOFError for bad files
+        raise InputError(f"{path}: not a readable .npy array ({e})") from None
+    if arr.ndim != 2 or arr.shape[1] != 3 or not np.issubdtype(arr.dtype, np.number):
+        raise InputError(f"{path}: expected a numeric array of shape (N, 3), got {arr.dtype} {arr.shape}")
+    if len(arr) == 0:
+        raise InputError(f"{path}: parsed to 0 points")
+    return arr.astype(np.float64)
+
+
+@contextmanager
+def atomic_output(path: PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; rename it to `path` only if the block succeeds.
+
+    The temporary name keeps the extension, so writers that pick a format by extension work.
+    Raises InputError if the folder does not exist or is not writable.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise InputError(f"{path}: cannot write, folder {folder} does not exist")
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=folder)
+    except OSError as e:
+        raise InputError(f"{path}: cannot write ({e.strerror})") from None
+    os.close(fd)
+    tmp = Path(tmp_name)
+    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual mode
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except OSError as e:
+        raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_points(path: PathLike, points: np.ndarray) -> Path:
+    """Write (N, 3) points to any of the point formats (by extension), atomically."""
+    path = Path(path)
+    ext = _extension(path, WRITE_EXTENSIONS, "writing points")
+    points = np.asarray(points, dtype=np.float64)
+    with atomic_output(path) as tmp:
+        if ext == ".npy":
+            with open(tmp, "wb") as f:
+                np.save(f, points)
+        else:
+            o3d = _o3d()
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+            if not o3d.io.write_point_cloud(str(tmp), cloud):
+                raise InputError(f"{path}: Open3D could not write this file")
+    return path
+
+
+def read_transform(path: PathLike) -> np.ndarray:
+    """Read a rigid 4x4 transform from text (whitespace/comma separated) or .npy.
+
+    A 3x4 [R | t] text is accepted too (the last row is implied).
+
+    Raises:
+        UsageError: missing file.
+        InputError: names the line and what was wrong: non-numeric value, wrong shape, or not a
+            rigid transform (R not orthonormal with det +1 within 1e-4, last row not 0 0 0 1).
+    """
+    path = Path(path)
+    _check_readable(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            T = np.load(path, allow_pickle=False)
+        except Exception as e:
+            raise InputError(f"{path}: not a readable .npy array ({e})") from None
+        if not np.issubdtype(T.dtype, np.number):
+            raise InputError(f"{path}: expected a numeric 4x4 array, got dtype {T.dtype}")
+        T = T.astype(np.float64)
+    else:
+        T = _parse_matrix_text(path)
+    if T.shape == (3, 4):
+        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+    if T.shape != (4, 4):
+        raise InputError(f"{path}: expected a 4x4 transform (or 3x4 [R|t]), got shape {T.shape}")
+    check_rigid(T, str(path))
+    return T
+
+
+def _parse_matrix_text(path: Path) -> np.ndarray:
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file; expected 4 lines of 4 numbers") from None
+    rows = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        content = line.split("#", 1)[0].replace(",", " ").split()
+        if not content:
+            continue
+        try:
+            rows.append([float(v) for v in content])
+        except ValueError:
+            bad = next(v for v in content if not _is_float(v))
+            raise InputError(f"{path}, line {lineno}: {bad!r} is not a number; expected 4 numbers per line") from None
+        if len(rows[-1]) != 4:
+            raise InputError(f"{path}, line {lineno}: {len(rows[-1])} values; expected 4 per line")
+    if not rows:
+        raise InputError(f"{path}: empty; expected 4 lines of 4 numbers")
+    return np.array(rows, dtype=np.float64)
+
+
+def _is_float(v: str) -> bool:
+    try:
+        float(v)
+        return True
+    except ValueError:
+        return False
+
+
+def check_rigid(T: np.ndarray, name: str = "transform", tol: float = 1e-4) -> None:
+    """Raise InputError unless T is a finite rigid 4x4 transform (rotation + translation)."""
+    if not np.isfinite(T).all():
+        raise InputError(f"{name}: contains NaN or inf")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tol):
+        raise InputError(f"{name}: last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    R = T[:3, :3]
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > tol:
+        raise InputError(f"{name}: not a rigid transform; the 3x3 block is not orthonormal (|R^T R - I| = {err:.2g})")
+    if np.linalg.det(R) < 0:
+        raise InputError(f"{name}: not a rigid transform; the 3x3 block is a reflection (det = -1)")
+
+
+def write_transform(path: PathLike, T: np.ndarray) -> Path:
+    """Write a 4x4 transform as text (any extension but .npy) or .npy, atomically."""
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        if path.suffix.lower() == ".npy":
+            with open(tmp, "wb") as f:
+                np.save(f, np.asarray(T, dtype=np.float64))
+        else:
+            np.savetxt(tmp, np.asarray(T, dtype=np.float64), fmt="%.10f")
+    return path

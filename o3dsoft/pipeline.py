@@ -1,0 +1,181 @@
+"""``register``: the whole pipeline, one commented stage per line.
+
+    clean (drop NaN/inf, duplicates) -> sample N points for the net -> normalise (centre, one scale)
+    -> coarse net (TorchScript) -> map back -> refine (Open3D point-to-point ICP, full resolution)
+
+Each stage is a function of its own module (:mod:`o3dsoft.preprocess`, :mod:`o3dsoft.coarse`,
+:mod:`o3dsoft.refine`) and can be called alone.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Dict, Optional, Union
+
+import numpy as np
+
+from . import coarse as coarse_stage
+from . import refine as refine_stage
+from .errors import InputError
+from .preprocess import clean_points, denormalise_transform, normalise_pair, normalisation_for, sample_points
+
+CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud"]  # noqa: F821
+
+
+@dataclass(frozen=True)
+class RegisterConfig:
+    """Settings of :func:`register` (dumped next to every result).
+
+    Attributes:
+        num_points: points sampled from each cloud for the network.
+        refine: run ICP after the network.
+        icp: settings of the fine stage.
+        weights: TorchScript model file; None for the shipped default.
+        device: torch device of the network ("cpu", "cuda", "cuda:1"...).
+        seed: seed of the point sampling (the same input gives the same result).
+    """
+
+    num_points: int = 1024
+    refine: bool = True
+    icp: refine_stage.ICPConfig = field(default_factory=refine_stage.ICPConfig)
+    weights: Optional[str] = None
+    device: str = "cpu"
+    seed: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class RegistrationResult:
+    """The result of registering a source cloud onto a target cloud.
+
+    Attributes:
+        transformation: (4, 4) float64 T_target_source: p_target = T @ p_source.
+        fitness: share of source points with a target point within `correspondence_distance`
+            after the final transform (0-1, higher is better).
+        inlier_rmse: RMS distance of those point pairs (cloud units, lower is better).
+        coarse_transformation: (4, 4) the network's estimate, before ICP.
+        confidence: mean of the network's per-point weights w_i = max_j W_ij (0-1, higher means
+            the network matched points more decisively; low values flag a doubtful coarse stage).
+        correspondence_distance: the ICP / scoring distance used (cloud units).
+        scale: the common scale the clouds were normalised by (cloud units).
+        timings_ms: wall time of each stage in milliseconds (lower is better).
+        num_source, num_target: points after cleaning.
+        removed: rows dropped by cleaning, per cloud: {"source_non_finite": ..., ...}.
+    """
+
+    transformation: np.ndarray
+    fitness: float
+    inlier_rmse: float
+    coarse_transformation: np.ndarray
+    confidence: float
+    correspondence_distance: float
+    scale: float
+    timings_ms: Dict[str, float]
+    num_source: int
+    num_target: int
+    removed: Dict[str, int]
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (arrays as nested lists)."""
+        d = asdict(self)
+        d["transformation"] = self.transformation.tolist()
+        d["coarse_transformation"] = self.coarse_transformation.tolist()
+        return d
+
+
+def as_points(cloud: CloudLike, name: str) -> np.ndarray:
+    """An Open3D PointCloud or an (N, 3) array-like -> (N, 3) float64 array."""
+    if hasattr(cloud, "points") and not isinstance(cloud, np.ndarray):
+        return np.asarray(cloud.points, dtype=np.float64)
+    arr = np.asarray(cloud)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name}: expected points of shape (N, 3), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise InputError(f"{name}: expected numeric points, got dtype {arr.dtype}")
+    return arr.astype(np.float64, copy=False)
+
+
+def register(
+    source: CloudLike,
+    target: CloudLike,
+    config: RegisterConfig = RegisterConfig(),
+    model: Optional[coarse_stage.CoarseModel] = None,
+    source_name: str = "source",
+    target_name: str = "target",
+) -> RegistrationResult:
+    """Find T_target_source, the rigid transform that maps `source` onto `target`.
+
+    Args:
+        source: (N, 3) array or Open3D PointCloud, any units and position.
+        target: (M, 3) array or Open3D PointCloud, same units as source.
+        config: pipeline settings.
+        model: an already loaded model (else loaded from ``config.weights``).
+        source_name, target_name: how to call the clouds in error messages (e.g. file names).
+    Returns:
+        RegistrationResult.
+    Raises:
+        InputError: a cloud is degenerate (too few points, identical or collinear points) or the
+            weights file is unusable.
+    """
+    timings: Dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[stage] = (now - clock) * 1000.0
+        clock = now
+
+    # Load the network (callers registering many pairs pass it in, loaded once).
+    if model is None:
+        model = coarse_stage.load_model(config.weights, config.device)
+        lap("load_model")
+    k = model.config.k
+
+    # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds.
+    src = clean_points(as_points(source, source_name), source_name, min_points=k)
+    tgt = clean_points(as_points(target, target_name), target_name, min_points=k)
+    lap("clean")
+
+    # Sample the network's input and normalise the pair (own centroids, one common scale).
+    norm = normalisation_for(src.points, tgt.points)
+    src_net = sample_points(src.points, config.num_points, seed=config.seed)
+    tgt_net = sample_points(tgt.points, config.num_points, seed=config.seed + 1)
+    src_net, tgt_net, _ = normalise_pair(src_net, tgt_net, norm)
+    lap("sample_normalise")
+
+    # Coarse: the soft-alignment network, then back to the original frames.
+    estimate = coarse_stage.estimate(model, src_net, tgt_net)
+    T_coarse = denormalise_transform(estimate.transform, norm)
+    lap("coarse")
+
+    # Refine: point-to-point ICP at full resolution (or just score the coarse estimate).
+    distance = config.icp.distance_for(norm.scale)
+    if config.refine:
+        fine = refine_stage.icp(src.points, tgt.points, T_coarse, distance, config.icp)
+    else:
+        fine = refine_stage.evaluate(src.points, tgt.points, T_coarse, distance, config.icp.max_points)
+    lap("refine")
+    timings["total"] = sum(timings.values())
+
+    return RegistrationResult(
+        transformation=fine.transformation,
+        fitness=fine.fitness,
+        inlier_rmse=fine.inlier_rmse,
+        coarse_transformation=T_coarse,
+        confidence=float(np.mean(estimate.weights)),
+        correspondence_distance=distance,
+        scale=norm.scale,
+        timings_ms=timings,
+        num_source=len(src.points),
+        num_target=len(tgt.points),
+        removed={
+            "source_non_finite": src.non_finite,
+            "source_duplicates": src.duplicates,
+            "target_non_finite": tgt.non_finite,
+            "target_duplicates": tgt.duplicates,
+        },
+    )
