@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any, Dict, NamedTuple, Optional, Union
+from typing import Any, Dict, Iterator, NamedTuple, Optional, Union
 
 import numpy as np
 import torch
@@ -25,6 +27,14 @@ FORMAT = "o3dsoft-softalign"
 FORMAT_VERSION = 1
 META_NAME = "o3dsoft.json"
 DEFAULT_WEIGHTS_NAME = "o3dsoft_default.pt"
+
+
+@contextmanager
+def _quiet_jit() -> Iterator[None]:
+    """Silence torch's deprecation notice for TorchScript, the format this project ships."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="`torch.jit", category=DeprecationWarning)
+        yield
 
 
 def default_weights_path() -> Path:
@@ -55,11 +65,13 @@ def export_torchscript(model: SoftAlignNet, config: NetConfig, path: Union[str, 
     was_training = model.training
     model = model.eval()
     device = next(model.parameters()).device
-    scripted = torch.jit.script(model.cpu())
+    with _quiet_jit():
+        scripted = torch.jit.script(model.cpu())
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "net": config.to_dict(), "info": info or {}}
     tmp = path.with_name(path.name + ".tmp")
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.jit.save(scripted, str(tmp), _extra_files={META_NAME: json.dumps(meta)})
+    with _quiet_jit():
+        torch.jit.save(scripted, str(tmp), _extra_files={META_NAME: json.dumps(meta)})
     tmp.replace(path)
     model.to(device).train(was_training)
     return path
@@ -101,7 +113,8 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
         raise InputError("device 'cuda' was asked for but this torch build sees no CUDA GPU")
     extra = {META_NAME: ""}
     try:
-        module = torch.jit.load(str(path), map_location=device, _extra_files=extra)
+        with _quiet_jit():
+            module = torch.jit.load(str(path), map_location=device, _extra_files=extra)
     except Exception as e:  # torch raises RuntimeError or ValueError, with long C++ traces
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise InputError(f"{path}: not a readable TorchScript model file ({first})") from None

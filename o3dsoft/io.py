@@ -24,7 +24,7 @@ PathLike = Union[str, Path]
 POINT_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_ONLY_EXTENSIONS = (".off", ".obj", ".stl", ".glb", ".gltf", ".fbx")
 READ_EXTENSIONS = POINT_EXTENSIONS + MESH_ONLY_EXTENSIONS + (".npy",)
-WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".npy")
+WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy")
 DEFAULT_MESH_POINTS = 20_000
 
 
@@ -95,6 +95,8 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
             return sample_mesh(vertices, faces, mesh_points, seed)
         if ext in MESH_ONLY_EXTENSIONS:
             if len(vertices) == 0:
+                vertices = _vertices_without_faces(path)
+            if len(vertices) == 0:
                 raise InputError(f"{path}: could not read any vertex or face; is it a valid {ext[1:].upper()} file?")
             raise InputError(f"{path}: mesh has {len(vertices)} vertices but no faces; points are sampled on faces, so a mesh needs at least one")
     cloud = o3d.io.read_point_cloud(str(path), format="auto")
@@ -102,6 +104,17 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
     if len(points) == 0:
         raise InputError(f"{path}: parsed to 0 points; is it a valid {ext[1:].upper()} point cloud?")
     return points
+
+
+def _vertices_without_faces(path: Path) -> np.ndarray:
+    """Vertices of a mesh file that Open3D refused (it rejects meshes with no faces), via trimesh."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(str(path), process=False, force="mesh")
+        return np.asarray(mesh.vertices)
+    except Exception:  # any parse failure means: no usable vertices
+        return np.zeros((0, 3))
 
 
 def _read_npy_points(path: Path) -> np.ndarray:
@@ -162,6 +175,8 @@ def write_points(path: PathLike, points: np.ndarray) -> Path:
         else:
             o3d = _o3d()
             cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+            if ext == ".xyzn":  # the format has normals; estimate them from 30 neighbours
+                cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
             if not o3d.io.write_point_cloud(str(tmp), cloud):
                 raise InputError(f"{path}: Open3D could not write this file")
     return path

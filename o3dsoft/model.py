@@ -292,6 +292,25 @@ class Encoder(nn.Module):
         return x
 
 
+class LiteralEncoder(nn.Module):
+    """:class:`Encoder` built from the paper's literal layers; same interface, for tests and benchmarks."""
+
+    def __init__(self, channels: Tuple[int, ...]) -> None:
+        super().__init__()
+        dims = [3] + list(channels)
+        self.layers = nn.ModuleList([LiteralEdgeLayer(dims[i], dims[i + 1]) for i in range(len(channels))])
+
+    def forward(self, points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        x = points.transpose(1, 2)
+        for layer in self.layers:
+            x = layer(x, idx)
+        return x.transpose(1, 2)
+
+    def load_into(self, fast: Encoder) -> None:
+        for lit, f in zip(self.layers, fast.layers):
+            lit.load_into(f)
+
+
 class SoftAlignNet(nn.Module):
     """Soft-alignment registration network: returns (R, t, w) with target ~ R source + t.
 

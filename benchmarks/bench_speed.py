@@ -1,0 +1,131 @@
+"""Speed and memory of the network: fast exact layers vs the paper's literal conv2d layers.
+
+    python benchmarks/bench_speed.py [--data ../shared/data/modelnet40_ply_hdf5_1024] [--steps 5]
+        [--literal-steps 2] [--inference-runs 30] [--weights weights/o3dsoft_default.pt]
+
+Measures, in one run on the same batches (protocol `paper`, batch 10, N = 1024, K = 32):
+- training steps per second (forward + backward + Adam) of the fast form and of the literal form,
+  medians over the steps after one warm-up step, and their ratio;
+- peak resident memory of a fast training step (a separate process, so that the literal form's
+  peak does not hide it);
+- the coarse stage on one 1024-point pair through the TorchScript file: median latency.
+Times are wall-clock on whatever machine runs it; compare ratios, not absolute values, across runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = REPO.parent / "shared" / "data" / "modelnet40_ply_hdf5_1024"
+
+
+def _batches(data: str, steps: int, batch_size: int):
+    from o3dsoft.data import get_protocol, load_pairs
+    from o3dsoft.train import normalised_batch
+
+    pairs = load_pairs(data, "train", get_protocol("paper"))
+    return [normalised_batch([pairs[i] for i in range(s * batch_size, (s + 1) * batch_size)]) for s in range(steps)]
+
+
+def _step_times(net, batches) -> list:
+    from o3dsoft.model import registration_loss
+
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    times = []
+    for src, tgt, R_gt, t_gt in batches:
+        t0 = time.perf_counter()
+        R, t, _ = net(src, tgt)
+        loss = registration_loss(R, t, R_gt, t_gt)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        times.append(time.perf_counter() - t0)
+    return times[1:] if len(times) > 1 else times  # first step warms up allocators
+
+
+def train_speed(data: str, steps: int, literal_steps: int, batch_size: int = 10) -> dict:
+    from o3dsoft.model import LiteralEncoder, NetConfig, SoftAlignNet
+
+    batches = _batches(data, max(steps, literal_steps) + 1, batch_size)
+    torch.manual_seed(0)
+    fast = SoftAlignNet(NetConfig())
+    fast_times = _step_times(fast, batches[: steps + 1])
+    torch.manual_seed(0)
+    literal = SoftAlignNet(NetConfig())
+    literal.encoder_p = literal.encoder_q = LiteralEncoder(NetConfig().channels)
+    literal_times = _step_times(literal, batches[: literal_steps + 1])
+    f, l = statistics.median(fast_times), statistics.median(literal_times)
+    return {
+        "batch_size": batch_size,
+        "fast_step_s_median": f,
+        "literal_step_s_median": l,
+        "fast_pairs_per_s": batch_size / f,
+        "literal_pairs_per_s": batch_size / l,
+        "speedup": l / f,
+        "fast_steps_timed": len(fast_times),
+        "literal_steps_timed": len(literal_times),
+    }
+
+
+def fast_peak_memory(data: str, steps: int) -> float:
+    """Peak RSS (GB) of a process that only runs fast training steps."""
+    code = (
+        "import sys, resource; sys.path.insert(0, %r); "
+        "from benchmarks.bench_speed import _batches, _step_times; "
+        "from o3dsoft.model import SoftAlignNet, NetConfig; "
+        "_step_times(SoftAlignNet(NetConfig()), _batches(%r, %d, 10)); "
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
+    ) % (str(REPO), data, steps)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
+    return int(out.stdout.strip().splitlines()[-1]) / 1024**2  # KB -> GB
+
+
+def inference_latency(weights: str | None, runs: int, data: str) -> dict:
+    from o3dsoft.coarse import estimate, load_model
+    from o3dsoft.data import get_protocol, load_pairs
+    from o3dsoft.preprocess import normalise_pair
+
+    model = load_model(weights)
+    pairs = load_pairs(data, "test", get_protocol("paper"))
+    times = []
+    for i in range(runs + 3):
+        p = pairs[i]
+        s, t, _ = normalise_pair(p.source, p.target)
+        t0 = time.perf_counter()
+        estimate(model, s, t)
+        times.append(time.perf_counter() - t0)
+    warm = times[3:]  # TorchScript's profiling executor optimises during the first calls
+    return {"first_call_ms": times[0] * 1000, "median_ms": statistics.median(warm) * 1000, "p90_ms": float(np.percentile(warm, 90)) * 1000, "runs": len(warm)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(DEFAULT_DATA))
+    ap.add_argument("--steps", type=int, default=5)
+    ap.add_argument("--literal-steps", type=int, default=2)
+    ap.add_argument("--inference-runs", type=int, default=30)
+    ap.add_argument("--weights", default=None)
+    ap.add_argument("--skip-train", action="store_true")
+    args = ap.parse_args()
+    report = {"torch": torch.__version__, "threads": torch.get_num_threads()}
+    if not args.skip_train:
+        report["train"] = train_speed(args.data, args.steps, args.literal_steps)
+        report["train"]["fast_peak_rss_gb"] = fast_peak_memory(args.data, args.steps)
+        report["train"]["epoch_minutes_estimate"] = 9843 / report["train"]["fast_pairs_per_s"] / 60
+    report["inference"] = inference_latency(args.weights, args.inference_runs, args.data)
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,51 @@
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from o3dsoft.coarse import export_torchscript
+from o3dsoft.data import euler_to_matrix
+from o3dsoft.model import NetConfig, SoftAlignNet
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("O3DSOFT_SHARED_DATA", REPO.parent / "shared" / "data"))
+MODELNET = SHARED_DATA / "modelnet40_ply_hdf5_1024"
+BUNNY = SHARED_DATA / "stanford_bunny"
+EXAMPLES = REPO / "examples" / "data"
+
+TINY = NetConfig(k=8, radius=0.3, channels=(8, 16, 16, 16, 32))
+
+
+@pytest.fixture(scope="session")
+def modelnet_root() -> Path:
+    if not (MODELNET / "shape_names.txt").is_file():
+        pytest.skip(f"ModelNet40 not found at {MODELNET}")
+    return MODELNET
+
+
+@pytest.fixture(scope="session")
+def tiny_model_path(tmp_path_factory) -> Path:
+    """A small, untrained network exported to TorchScript (fast to load and run)."""
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("weights") / "tiny.pt"
+    return export_torchscript(SoftAlignNet(TINY), TINY, path, info={"note": "untrained test model"})
+
+
+def random_transform(rng: np.random.Generator, max_angle: float = 45.0, max_t: float = 0.5) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = euler_to_matrix(rng.uniform(-max_angle, max_angle, size=3))
+    T[:3, 3] = rng.uniform(-max_t, max_t, size=3)
+    return T
+
+
+def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def blob(rng: np.random.Generator, n: int = 300) -> np.ndarray:
+    """A non-symmetric random 3-D shape: an anisotropic Gaussian blob."""
+    return rng.normal(size=(n, 3)) * np.array([1.0, 0.6, 0.3])

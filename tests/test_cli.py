@@ -1,0 +1,101 @@
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from o3dsoft.cli.main import main
+from o3dsoft.io import read_points, read_transform, write_points, write_transform
+
+from .conftest import apply, blob, random_transform
+
+
+@pytest.fixture
+def pair_files(tmp_path):
+    rng = np.random.default_rng(0)
+    src = blob(rng, 400)
+    T = random_transform(rng, max_angle=6.0, max_t=0.1)
+    write_points(tmp_path / "src.ply", src)
+    write_points(tmp_path / "tgt.pcd", apply(T, src))
+    write_transform(tmp_path / "gt.txt", T)
+    return tmp_path, src, T
+
+
+def run(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args], catch_exceptions=False)
+    return result
+
+
+def test_help_and_version():
+    for cmd in ([], ["register"], ["train"], ["bench"]):
+        r = run(*cmd, "--help")
+        assert r.exit_code == 0 and "Usage:" in r.output
+    r = run("--version")
+    assert r.exit_code == 0 and "o3dsoft, version" in r.output
+
+
+def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_path):
+    d, src, T = pair_files
+    r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--gt", d / "gt.txt",
+            "--icp-distance", "0.5", "--out", d / "aligned.xyz", "--save-transform", d / "T.txt", "--render", d / "fig.png")
+    assert r.exit_code == 0, r.output
+    assert "T_target_source" in r.output and "higher is better" in r.output and "lower is better" in r.output
+    assert "network + ICP" in r.output and "deg" in r.output
+    assert np.allclose(read_transform(d / "T.txt"), T, atol=1e-5)
+    assert np.allclose(read_points(d / "aligned.xyz"), apply(T, src), atol=1e-4)
+    assert (d / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_register_json(pair_files, tiny_model_path):
+    d, _, T = pair_files
+    r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--gt", d / "gt.txt", "--json", "--icp-distance", "0.5")
+    assert r.exit_code == 0, r.output
+    payload = json.loads(r.output)
+    assert np.allclose(payload["transformation"], T, atol=1e-5)
+    assert payload["errors"]["final"]["rotation_deg"] < 1e-3
+    assert {"fitness", "inlier_rmse", "confidence", "coarse_transformation", "timings_ms"} <= set(payload)
+
+
+def test_no_refine(pair_files, tiny_model_path):
+    d, _, _ = pair_files
+    r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--no-refine", "--json")
+    payload = json.loads(r.output)
+    assert payload["transformation"] == payload["coarse_transformation"]
+
+
+@pytest.mark.parametrize(
+    "make,args,code,message",
+    [
+        (None, ["missing.ply", "tgt.pcd"], 2, "missing.ply: no such file"),
+        (lambda d: (d / "a.abc").write_text("1 2 3"), ["a.abc", "tgt.pcd"], 2, "unknown extension '.abc'"),
+        (lambda d: (d / "e.xyz").write_text(""), ["e.xyz", "tgt.pcd"], 1, "e.xyz: parsed to 0 points"),
+        (lambda d: (d / "few.xyz").write_text("0 0 0\n1 0 0\n0 1 0\n"), ["few.xyz", "tgt.pcd"], 1, "few.xyz: 3 distinct finite points; at least 8"),
+        (lambda d: (d / "nan.xyz").write_text("nan 0 0\n" * 20), ["nan.xyz", "tgt.pcd"], 1, "nan.xyz: 0 distinct finite points"),
+        (lambda d: (d / "same.xyz").write_text("1 1 1\n" * 20), ["same.xyz", "tgt.pcd"], 1, "same.xyz: 1 distinct finite points"),
+        (lambda d: (d / "line.xyz").write_text("".join(f"{i} {i} 0\n" for i in range(20))), ["line.xyz", "tgt.pcd"], 1, "line.xyz: all points lie on one line"),
+        (lambda d: (d / "m.off").write_text("OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n"), ["m.off", "tgt.pcd"], 1, "m.off: mesh has 3 vertices but no faces"),
+        (lambda d: (d / "bad.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 q 0\n0 0 0 1\n"), ["src.ply", "tgt.pcd", "--gt", "bad.txt"], 1, "bad.txt, line 3: 'q' is not a number"),
+        (lambda d: (d / "skew.txt").write_text("1 1 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"), ["src.ply", "tgt.pcd", "--gt", "skew.txt"], 1, "skew.txt: not a rigid transform"),
+        (lambda d: (d / "w.pt").write_bytes(b"junk"), ["src.ply", "tgt.pcd", "--weights", "w.pt"], 1, "w.pt: not a readable TorchScript model file"),
+        (None, ["src.ply", "tgt.pcd", "--out", "no_dir/out.ply"], 1, "folder no_dir does not exist"),
+        (None, ["src.ply", "tgt.pcd", "--out", "out.off"], 2, "unknown extension '.off'"),
+        (None, ["src.ply", "tgt.pcd", "--points", "0"], 2, "Invalid value for '--points'"),
+    ],
+)
+def test_bad_input_clear_error_no_traceback_no_output(pair_files, tiny_model_path, monkeypatch, make, args, code, message):
+    d, _, _ = pair_files
+    monkeypatch.chdir(d)
+    if make is not None:
+        make(d)
+    before = set(p.name for p in d.rglob("*"))
+    extra = [] if "--weights" in args else ["--weights", str(tiny_model_path)]
+    r = CliRunner().invoke(main, ["register", *args, *extra])
+    assert r.exit_code == code, r.output
+    assert message in r.output
+    assert "Traceback" not in r.output
+    assert set(p.name for p in d.rglob("*")) == before  # nothing half-written
+
+
+def test_bench_not_available_is_an_error():
+    r = run("bench")
+    assert r.exit_code == 1 and "not available" in r.output

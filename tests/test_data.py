@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+
+from o3dsoft.data import PROTOCOLS, Protocol, get_protocol, load_modelnet40, load_pairs, make_pair, resolve_data_root
+from o3dsoft.errors import InputError
+from o3dsoft.metrics import rotation_error_deg
+
+from .conftest import apply, blob
+
+
+@pytest.fixture
+def shape():
+    return blob(np.random.default_rng(0), 1024).astype(np.float32)
+
+
+@pytest.mark.parametrize("name", sorted(PROTOCOLS))
+def test_pairs_follow_their_protocol(shape, name):
+    p = get_protocol(name)
+    pair = make_pair(shape, p, seed=7, index=3)
+    again = make_pair(shape, p, seed=7, index=3)
+    assert np.array_equal(pair.source, again.source) and np.array_equal(pair.target, again.target)
+    other = make_pair(shape, p, seed=7, index=4)
+    assert not np.array_equal(pair.transform, other.transform)
+    n = p.num_points or len(shape)
+    assert pair.source.shape == (n, 3) and pair.target.shape == (n, 3)
+    R, t = pair.transform[:3, :3], pair.transform[:3, 3]
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0)
+    assert (np.abs(t) <= p.translation).all()
+    if p.rotation == "euler":
+        assert pair.angle <= np.sqrt(3) * max(abs(p.angle_min), abs(p.angle_max)) + 1e-6
+    if p.noise_std == 0 and p.crop_keep == 1:
+        # Same points, shuffled: each target point is a transformed source point, order differs.
+        moved = apply(pair.transform, pair.source.astype(np.float64))
+        assert not np.allclose(moved, pair.target, atol=1e-4)
+        assert np.allclose(np.sort(moved, axis=0), np.sort(pair.target, axis=0), atol=1e-4)
+
+
+def test_crop_keeps_seventy_percent_and_noise_is_clipped(shape):
+    pair = make_pair(shape, get_protocol("rpmnet-crop"), seed=0, index=0)
+    assert pair.source.shape == (717, 3)
+    nearest_dist = np.min(np.linalg.norm(pair.source[:, None] - shape[None], axis=2), axis=1)
+    assert nearest_dist.max() <= 0.05 * np.sqrt(3) + 1e-6  # noise is clipped to +-0.05 per axis
+    assert nearest_dist.mean() > 0.005  # and there is noise
+
+
+def test_protocol_rotation_ranges(shape):
+    angles = [make_pair(shape, get_protocol("paper"), 0, i).transform for i in range(200)]
+    max_err = max(rotation_error_deg(T[:3, :3], np.eye(3)) for T in angles)
+    assert max_err < 22.5 * np.sqrt(3)
+    so3 = [rotation_error_deg(make_pair(shape, get_protocol("so3"), 0, i).transform[:3, :3], np.eye(3)) for i in range(200)]
+    assert max(so3) > 120  # uniform on SO(3) reaches large angles
+
+
+def test_unknown_protocol_lists_valid():
+    with pytest.raises(InputError, match="unknown protocol 'nope'; valid: paper, dcp"):
+        get_protocol("nope")
+
+
+def test_modelnet_splits_and_categories(modelnet_root):
+    test = load_modelnet40(modelnet_root, "test")
+    assert test.points.shape == (2468, 1024, 3)
+    assert len(test.categories) == 40 and test.categories[0] == "airplane"
+    assert len(test.names) == 2468 and test.names[2] == "airplane/airplane_0631.ply"
+    unseen = load_modelnet40(modelnet_root, "test", "unseen")
+    assert (unseen.labels >= 20).all() and 0 < len(unseen.labels) < 2468
+    pairs = load_pairs(str(modelnet_root), "test", get_protocol("dcp-unseen"))
+    assert (pairs.shapes.labels >= 20).all()
+    train_pairs = load_pairs(str(modelnet_root), "train", get_protocol("dcp-unseen"))
+    assert (train_pairs.shapes.labels < 20).all()
+
+
+def test_missing_data_says_how_to_get_it(tmp_path, monkeypatch):
+    monkeypatch.delenv("O3DSOFT_DATA", raising=False)
+    with pytest.raises(InputError, match="O3DSOFT_DATA"):
+        resolve_data_root(None)
+    with pytest.raises(InputError, match="no such folder"):
+        resolve_data_root(str(tmp_path / "nope"))
+    with pytest.raises(InputError, match="no ModelNet40 test split here"):
+        load_modelnet40(tmp_path, "test")
+
+
+def test_wrong_h5_keys(tmp_path):
+    import h5py
+
+    (tmp_path / "shape_names.txt").write_text("a\nb\n")
+    with h5py.File(tmp_path / "ply_data_test0.h5", "w") as f:
+        f["points"] = np.zeros((2, 10, 3))
+    with pytest.raises(InputError, match="expected datasets 'data' and 'label'"):
+        load_modelnet40(tmp_path, "test")

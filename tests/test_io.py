@@ -1,0 +1,121 @@
+import numpy as np
+import pytest
+import trimesh
+
+from o3dsoft.errors import InputError, UsageError
+from o3dsoft.io import read_points, read_transform, sample_mesh, write_points, write_transform
+
+from .conftest import blob
+
+
+@pytest.fixture
+def pts():
+    return blob(np.random.default_rng(0), 200)
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy"])
+def test_point_formats_round_trip(tmp_path, pts, ext):
+    path = write_points(tmp_path / f"cloud{ext}", pts)
+    back = read_points(path)
+    assert back.shape == pts.shape
+    assert np.allclose(back, pts, atol=1e-5)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
+
+
+@pytest.mark.parametrize("ext", [".off", ".stl", ".obj", ".ply"])
+def test_meshes_are_sampled_on_faces(tmp_path, ext):
+    box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    path = tmp_path / f"box{ext}"
+    box.export(path)
+    points = read_points(path, mesh_points=3000)
+    assert points.shape == (3000, 3)
+    # Every sample lies on the box's surface: on one of its faces, inside the others' bounds.
+    half = np.array([1.0, 0.5, 0.25])
+    assert (np.abs(points) <= half + 1e-6).all()
+    assert np.isclose(np.abs(points) / half, 1.0, atol=1e-5).any(axis=1).all()
+    # Uniform over area: the two 2 x 1 faces hold 4 of the 7 units of area, so ~4 / 7 of the points.
+    share = np.isclose(np.abs(points[:, 2]), 0.25, atol=1e-6).mean()
+    assert share == pytest.approx(4 / 7, abs=0.04)
+    assert np.array_equal(points, read_points(path, mesh_points=3000))  # deterministic
+
+
+def test_sample_mesh_seeded():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=float)
+    f = np.array([[0, 1, 2]])
+    a, b = sample_mesh(v, f, 100, seed=1), sample_mesh(v, f, 100, seed=2)
+    assert not np.array_equal(a, b)
+    assert (a[:, 2] == 0).all() and (a[:, 0] + a[:, 1] <= 1 + 1e-9).all()
+
+
+def test_missing_file_and_unknown_extension(tmp_path):
+    with pytest.raises(UsageError, match="no such file"):
+        read_points(tmp_path / "nope.ply")
+    (tmp_path / "cloud.abc").write_text("1 2 3\n")
+    with pytest.raises(UsageError, match="unknown extension '.abc'"):
+        read_points(tmp_path / "cloud.abc")
+
+
+def test_empty_files(tmp_path):
+    (tmp_path / "empty.xyz").write_text("")
+    with pytest.raises(InputError, match="empty.xyz: parsed to 0 points"):
+        read_points(tmp_path / "empty.xyz")
+    (tmp_path / "garbage.ply").write_text("this is not a ply file\n")
+    with pytest.raises(InputError, match="garbage.ply: parsed to 0 points"):
+        read_points(tmp_path / "garbage.ply")
+
+
+def test_mesh_without_faces(tmp_path):
+    (tmp_path / "nofaces.off").write_text("OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n")
+    with pytest.raises(InputError, match="nofaces.off: mesh has 3 vertices but no faces"):
+        read_points(tmp_path / "nofaces.off")
+
+
+def test_bad_npy(tmp_path):
+    np.save(tmp_path / "bad.npy", np.zeros((5, 2)))
+    with pytest.raises(InputError, match=r"shape \(N, 3\)"):
+        read_points(tmp_path / "bad.npy")
+    (tmp_path / "corrupt.npy").write_bytes(b"\x93NUMPY garbage")
+    with pytest.raises(InputError, match="not a readable .npy"):
+        read_points(tmp_path / "corrupt.npy")
+
+
+def test_transform_text_formats(tmp_path):
+    T = np.eye(4)
+    T[:3, 3] = [1, 2, 3]
+    (tmp_path / "ws.txt").write_text("1 0 0 1\n0 1 0 2\n0 0 1 3\n0 0 0 1\n")
+    (tmp_path / "comma.txt").write_text("# a comment\n1,0,0,1\n0,1,0,2\n0,0,1,3\n0,0,0,1\n")
+    (tmp_path / "rt.txt").write_text("1 0 0 1\n0 1 0 2\n0 0 1 3\n")
+    for name in ("ws.txt", "comma.txt", "rt.txt"):
+        assert np.array_equal(read_transform(tmp_path / name), T)
+    write_transform(tmp_path / "t.npy", T)
+    write_transform(tmp_path / "t.txt", T)
+    assert np.allclose(read_transform(tmp_path / "t.npy"), T)
+    assert np.allclose(read_transform(tmp_path / "t.txt"), T)
+
+
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ("1 0 0 0\n0 1 x 0\n0 0 1 0\n0 0 0 1\n", r"line 2: 'x' is not a number"),
+        ("1 0 0\n0 1 0\n0 0 1\n", r"line 1: 3 values; expected 4"),
+        ("1 0 0 0\n0 1 0 0\n", r"shape \(2, 4\)"),
+        ("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "not orthonormal"),
+        ("1 0 0 0\n0 1 0 0\n0 0 -1 0\n0 0 0 1\n", "reflection"),
+        ("1 0 0 0\n0 1 0 0\n0 0 1 0\n1 0 0 1\n", "last row"),
+        ("", "empty"),
+    ],
+)
+def test_malformed_transforms(tmp_path, text, match):
+    path = tmp_path / "T.txt"
+    path.write_text(text)
+    with pytest.raises(InputError, match=match) as err:
+        read_transform(path)
+    assert "T.txt" in str(err.value)
+
+
+def test_unwritable_output_leaves_nothing(tmp_path, pts):
+    with pytest.raises(InputError, match="does not exist"):
+        write_points(tmp_path / "missing_dir" / "out.ply", pts)
+    with pytest.raises(UsageError, match="unknown extension"):
+        write_points(tmp_path / "out.off", pts)
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,56 @@
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from o3dsoft.data import euler_to_matrix, random_rotation
+from o3dsoft.metrics import matrix_to_euler_deg, modified_chamfer_distance, pair_errors, rotation_error_deg, summarise
+
+from .conftest import apply, blob
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(-89, 89), st.floats(-89, 89), st.floats(-179, 179))
+def test_euler_round_trip(a, b, c):
+    assert np.allclose(matrix_to_euler_deg(euler_to_matrix(np.array([a, b, c]))), [a, b, c], atol=1e-6)
+
+
+@pytest.mark.parametrize("angle", [1e-4, 0.01, 1.0, 30.0, 179.0])
+def test_rotation_error_exact_angle(angle):
+    R = euler_to_matrix(np.array([0.0, 0.0, angle]))
+    assert rotation_error_deg(R, np.eye(3)) == pytest.approx(angle, rel=1e-6)
+
+
+def test_rotation_error_resolves_tiny_angles_in_float32():
+    R = euler_to_matrix(np.array([0.0, 0.0, 0.005])).astype(np.float32)
+    assert rotation_error_deg(R, np.eye(3, dtype=np.float32)) == pytest.approx(0.005, rel=1e-2)
+
+
+def test_pair_errors_values():
+    T_gt = np.eye(4)
+    T_est = np.eye(4)
+    T_est[:3, :3] = euler_to_matrix(np.array([0.0, 2.0, 0.0]))
+    T_est[:3, 3] = [0.03, -0.04, 0.0]
+    e = pair_errors(T_est, T_gt)
+    assert e.rotation_deg == pytest.approx(2.0)
+    assert e.translation == pytest.approx(0.05)
+    assert e.translation_l1 == pytest.approx(0.07)
+    assert np.allclose(e.euler_abs_deg, [0, 2, 0])
+    assert e.rotation_l2 == pytest.approx(np.linalg.norm(T_est[:3, :3] - np.eye(3)))
+    s = summarise([e, pair_errors(T_gt, T_gt)])
+    assert s["recall_1deg"] == 0.5 and s["recall_5deg"] == 0.5
+    assert s["euler_rmse_deg"] == pytest.approx(math.sqrt(4 / 6))
+
+
+def test_chamfer_zero_at_ground_truth_and_grows():
+    rng = np.random.default_rng(0)
+    src = blob(rng, 200)
+    T = np.eye(4)
+    T[:3, :3] = random_rotation(rng)
+    tgt = apply(T, src)
+    assert modified_chamfer_distance(src, tgt, T, T) == pytest.approx(0.0, abs=1e-12)
+    T_off = T.copy()
+    T_off[:3, 3] += 0.1
+    assert modified_chamfer_distance(src, tgt, T_off, T) > 0.005

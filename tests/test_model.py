@@ -1,0 +1,170 @@
+import pytest
+import torch
+
+from o3dsoft.model import (
+    EdgeLayer,
+    Encoder,
+    LiteralEdgeLayer,
+    NetConfig,
+    SoftAlignNet,
+    ball_query,
+    count_parameters,
+    gather_max,
+    neighbour_multiplicity,
+    registration_loss,
+)
+
+from .conftest import TINY
+
+
+def _cloud(b=2, n=60, seed=0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(b, n, 3, generator=g, dtype=dtype) * 2 - 1
+
+
+def test_ball_query_self_first_radius_and_padding():
+    pts = _cloud(n=80)
+    idx = ball_query(pts, 8, 0.4)
+    assert idx.shape == (2, 80, 8)
+    assert torch.equal(idx[:, :, 0], torch.arange(80).expand(2, 80))
+    d = torch.linalg.norm(torch.gather(pts.unsqueeze(1).expand(-1, 80, -1, -1), 2, idx.unsqueeze(-1).expand(-1, -1, -1, 3)) - pts.unsqueeze(2), dim=-1)
+    assert (d <= 0.4 + 1e-9).all()  # every neighbour (or padding copy of the point) lies inside r
+    # An isolated point has only itself: its neighbourhood is K copies of it.
+    far = torch.cat([pts[:1], torch.tensor([[[50.0, 50, 50]]], dtype=pts.dtype)], dim=1)
+    idx_far = ball_query(far, 8, 0.4)
+    assert (idx_far[0, -1] == 80).all()
+
+
+def test_ball_query_rejects_k_above_n():
+    with pytest.raises(ValueError, match="exceeds the number of points"):
+        ball_query(_cloud(n=5), 8, 0.3)
+
+
+def test_multiplicity_sums_to_nk():
+    idx = ball_query(_cloud(n=50), 6, 0.5)
+    m = neighbour_multiplicity(idx, 50)
+    assert torch.allclose(m.sum(dim=1), torch.full((2,), 300.0))
+
+
+def test_gather_max_matches_naive_and_gradients():
+    z = torch.randn(3, 40, 7, dtype=torch.float64, requires_grad=True)
+    idx = torch.randint(0, 40, (3, 40, 5))
+    naive = torch.stack([z[b][idx[b]].amax(dim=1) for b in range(3)])
+    out = gather_max(z, idx)
+    assert torch.equal(out, naive)
+    g = torch.randn_like(out)
+    (gz,) = torch.autograd.grad(out, z, g)
+    (gz_naive,) = torch.autograd.grad(naive, z, g)
+    assert torch.allclose(gz, gz_naive)
+
+
+@pytest.mark.parametrize("c_in,c_out", [(3, 16), (16, 32)])
+def test_fast_layer_equals_literal_conv2d_layer(c_in, c_out):
+    torch.manual_seed(0)
+    lit = LiteralEdgeLayer(c_in, c_out).double()
+    fast = EdgeLayer(c_in, c_out).double()
+    with torch.no_grad():  # non-trivial BN affine parameters, including negative scales
+        lit.bn.weight.uniform_(-1.5, 1.5)
+        lit.bn.bias.uniform_(-0.5, 0.5)
+    lit.load_into(fast)
+    x = _cloud(b=3, n=70, dtype=torch.float64) if c_in == 3 else torch.randn(3, 70, c_in, dtype=torch.float64)
+    idx = ball_query(_cloud(b=3, n=70), 10, 0.5)
+    m = neighbour_multiplicity(idx, 70, torch.float64)
+    x1 = x.clone().requires_grad_(True)
+    x2 = x.clone().requires_grad_(True)
+    for _ in range(2):  # two training steps: running statistics accumulate identically
+        out_lit = lit(x1.transpose(1, 2), idx).transpose(1, 2)
+        out_fast = fast(x2, idx, m)
+    assert torch.allclose(out_lit, out_fast, atol=1e-5, rtol=0)
+    g = torch.randn_like(out_lit)
+    out_lit.backward(g)
+    out_fast.backward(g)
+    assert torch.allclose(x1.grad, x2.grad, atol=1e-5, rtol=0)
+    assert torch.allclose(lit.conv.weight.grad[:, :, 0, 0], fast.linear.weight.grad, atol=1e-5, rtol=0)
+    assert torch.allclose(lit.conv.bias.grad, fast.linear.bias.grad, atol=1e-5, rtol=0)
+    assert torch.allclose(lit.bn.weight.grad, fast.bn.weight.grad, atol=1e-5, rtol=0)
+    assert torch.allclose(lit.bn.bias.grad, fast.bn.bias.grad, atol=1e-5, rtol=0)
+    assert torch.allclose(lit.bn.running_mean, fast.bn.running_mean, atol=1e-10)
+    assert torch.allclose(lit.bn.running_var, fast.bn.running_var, atol=1e-10)
+    assert int(lit.bn.num_batches_tracked) == int(fast.bn.num_batches_tracked) == 2
+    lit.eval()
+    fast.eval()
+    assert torch.allclose(lit(x.transpose(1, 2), idx).transpose(1, 2), fast(x, idx, m), atol=1e-5, rtol=0)
+
+
+def test_float32_fast_layer_agrees_with_literal():
+    torch.manual_seed(1)
+    lit, fast = LiteralEdgeLayer(3, 64), EdgeLayer(3, 64)
+    lit.load_into(fast)
+    x = _cloud(b=2, n=128, dtype=torch.float32)
+    idx = ball_query(x, 16, 0.4)
+    out_lit = lit(x.transpose(1, 2), idx).transpose(1, 2)
+    out_fast = fast(x, idx, neighbour_multiplicity(idx, 128))
+    assert torch.allclose(out_lit, out_fast, atol=1e-5, rtol=1e-5)
+
+
+def test_parameter_counts():
+    # One encoder: 238,976 conv + 2,432 BatchNorm parameters; plus the learnt temperature.
+    assert count_parameters(Encoder((64, 128, 256, 256, 512))) == 241_408
+    assert count_parameters(SoftAlignNet(NetConfig())) == 241_409
+    assert count_parameters(SoftAlignNet(NetConfig(shared_encoder=False))) == 2 * 241_408 + 1
+    assert count_parameters(SoftAlignNet(NetConfig(learn_temperature=False))) == 241_408
+
+
+def test_scripted_model_equals_eager():
+    torch.manual_seed(0)
+    net = SoftAlignNet(TINY).eval()
+    scripted = torch.jit.script(net)
+    src, tgt = _cloud(n=64, dtype=torch.float32), _cloud(n=50, seed=1, dtype=torch.float32)
+    for a, b in zip(net(src, tgt), scripted(src, tgt)):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_outputs_shapes_and_ranges():
+    net = SoftAlignNet(TINY).eval()
+    R, t, w = net(_cloud(n=64, dtype=torch.float32), _cloud(n=50, seed=1, dtype=torch.float32))
+    assert R.shape == (2, 3, 3) and t.shape == (2, 3) and w.shape == (2, 64)
+    assert torch.allclose(torch.det(R), torch.ones(2), atol=1e-5)
+    assert ((w >= 1 / 50 - 1e-6) & (w <= 1 + 1e-6)).all()
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_training_steps_reduce_loss_without_nan(shared):
+    torch.manual_seed(0)
+    net = SoftAlignNet(NetConfig(k=8, radius=0.3, channels=(16, 16, 32, 32, 32), shared_encoder=shared))
+    opt = torch.optim.Adam(net.parameters(), lr=1e-2)
+    src = _cloud(b=4, n=64, dtype=torch.float32)
+    c, s = torch.cos(torch.tensor(0.3)), torch.sin(torch.tensor(0.3))
+    R_gt = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]]).expand(4, 3, 3)
+    tgt = src @ R_gt.transpose(1, 2)
+    t_gt = torch.zeros(4, 3)
+    losses = []
+    for _ in range(15):
+        R, t, _ = net(src, tgt)
+        loss = registration_loss(R, t, R_gt, t_gt)
+        opt.zero_grad()
+        loss.backward()
+        assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0]
+
+
+def test_fast_encoder_equals_literal_encoder():
+    from o3dsoft.model import LiteralEncoder
+
+    torch.manual_seed(3)
+    channels = (8, 16, 16, 16, 24)
+    lit, fast = LiteralEncoder(channels).double(), Encoder(channels).double()
+    lit.load_into(fast)
+    pts = _cloud(b=2, n=90, dtype=torch.float64)
+    idx = ball_query(pts, 12, 0.4)
+    p1, p2 = pts.clone().requires_grad_(True), pts.clone().requires_grad_(True)
+    out_lit, out_fast = lit(p1, idx), fast(p2, idx)
+    assert torch.allclose(out_lit, out_fast, atol=1e-5, rtol=0)
+    g = torch.randn_like(out_lit)
+    out_lit.backward(g)
+    out_fast.backward(g)
+    assert torch.allclose(p1.grad, p2.grad, atol=1e-5, rtol=0)
+    for a, b in zip(lit.layers, fast.layers):
+        assert torch.allclose(a.conv.weight.grad[:, :, 0, 0], b.linear.weight.grad, atol=1e-5, rtol=0)

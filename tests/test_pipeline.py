@@ -1,0 +1,100 @@
+import numpy as np
+import pytest
+
+import o3dsoft
+from o3dsoft.coarse import load_model
+from o3dsoft.errors import InputError
+from o3dsoft.metrics import pair_errors
+from o3dsoft.pipeline import RegisterConfig, register
+from o3dsoft.refine import ICPConfig, downsample
+
+from .conftest import apply, blob, random_transform
+
+
+def _pair(seed=0, n=400, max_angle=8.0, units=1.0):
+    rng = np.random.default_rng(seed)
+    src = blob(rng, n) * units
+    T = random_transform(rng, max_angle=max_angle, max_t=0.2)
+    T[:3, 3] *= units
+    return src, apply(T, src), T
+
+
+def test_register_small_motion_recovered_after_icp(tiny_model_path):
+    # Within ICP's basin the pipeline must be exact, whatever the coarse stage says.
+    src, tgt, T = _pair()
+    cfg = RegisterConfig(weights=str(tiny_model_path), icp=ICPConfig(distance=0.5))
+    res = register(src, tgt, cfg)
+    e = pair_errors(res.transformation, T)
+    assert e.rotation_deg < 1e-3 and e.translation < 1e-4
+    assert res.fitness == pytest.approx(1.0)
+    assert res.inlier_rmse < 1e-5
+    assert res.transformation.shape == (4, 4) and res.transformation.dtype == np.float64
+    assert 0.0 < res.confidence <= 1.0
+    assert set(res.timings_ms) >= {"clean", "sample_normalise", "coarse", "refine", "total"}
+
+
+@pytest.mark.parametrize("units", [1e-3, 1.0, 1e3])
+def test_any_units_and_open3d_input(tiny_model_path, units):
+    src, tgt, T = _pair(seed=1, units=units)
+    from o3dsoft.refine import to_open3d
+
+    res = o3dsoft.register(to_open3d(src), to_open3d(tgt), RegisterConfig(weights=str(tiny_model_path), icp=ICPConfig(distance=0.5)))
+    e = pair_errors(res.transformation, T)
+    assert e.rotation_deg < 1e-3 and e.translation < 1e-4 * units
+    assert res.scale == pytest.approx(np.linalg.norm(src - src.mean(0), axis=1).max(), rel=1e-6)
+
+
+def test_no_refine_reports_the_coarse_estimate(tiny_model_path):
+    src, tgt, _ = _pair(seed=2)
+    res = register(src, tgt, RegisterConfig(weights=str(tiny_model_path), refine=False))
+    assert np.array_equal(res.transformation, res.coarse_transformation)
+
+
+def test_cleaning_is_reported(tiny_model_path):
+    src, tgt, T = _pair(seed=3)
+    dirty = np.vstack([src, [[np.nan, 0, 0]], src[:5]])
+    res = register(dirty, tgt, RegisterConfig(weights=str(tiny_model_path), icp=ICPConfig(distance=0.5)))
+    assert res.removed["source_non_finite"] == 1 and res.removed["source_duplicates"] == 5
+    assert res.num_source == len(src)
+    assert pair_errors(res.transformation, T).rotation_deg < 1e-3
+
+
+def test_deterministic(tiny_model_path):
+    src, tgt, _ = _pair(seed=4)
+    cfg = RegisterConfig(weights=str(tiny_model_path))
+    assert np.array_equal(register(src, tgt, cfg).transformation, register(src, tgt, cfg).transformation)
+
+
+@pytest.mark.parametrize(
+    "cloud,match",
+    [
+        (np.zeros((100, 3)), "source: 1 distinct finite points"),
+        (np.random.default_rng(0).normal(size=(5, 3)), "source: 5 distinct finite points; at least 8"),
+        (np.outer(np.arange(100.0), [1, 1, 0]), "source: all points lie on one line"),
+        (np.zeros((10, 2)), r"source: expected points of shape \(N, 3\)"),
+    ],
+)
+def test_bad_clouds(tiny_model_path, cloud, match):
+    with pytest.raises(InputError, match=match):
+        register(cloud, blob(np.random.default_rng(1), 100), RegisterConfig(weights=str(tiny_model_path)))
+
+
+def test_bad_weights(tmp_path):
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    with pytest.raises(InputError, match="junk.pt: not a readable TorchScript model file"):
+        load_model(tmp_path / "junk.pt")
+    import torch
+
+    other = torch.jit.script(torch.nn.Linear(3, 3))
+    other.save(str(tmp_path / "other.pt"))
+    with pytest.raises(InputError, match="other.pt: a TorchScript file, but not an o3dsoft model"):
+        load_model(tmp_path / "other.pt")
+    with pytest.raises(InputError, match="weights file not found"):
+        load_model(tmp_path / "missing.pt")
+
+
+def test_downsample_bounds_large_clouds():
+    pts = np.random.default_rng(0).uniform(-1, 1, size=(300_000, 3)) * [1, 1, 0.01]
+    down = downsample(pts, 50_000)
+    assert 10_000 < len(down) <= 50_000
+    assert downsample(pts[:1000], 50_000) is not None and len(downsample(pts[:1000], 50_000)) == 1000

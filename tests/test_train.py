@@ -1,0 +1,68 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from o3dsoft.cli.main import main
+from o3dsoft.coarse import load_model, sha256_of
+from o3dsoft.errors import InputError
+from o3dsoft.train import TrainConfig, train
+
+from .conftest import TINY
+
+
+def _config(root, out, **kw):
+    base = dict(data=str(root), protocol="paper", out=str(out), limit_train=40, eval_pairs=10, net=TINY, epochs=1, batch_size=4)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_train_exports_a_usable_model_and_card(modelnet_root, tmp_path):
+    path = train(_config(modelnet_root, tmp_path, max_steps=3), log=lambda m: None)
+    card = json.loads((tmp_path / "model_card.json").read_text())
+    assert card["sha256"] == sha256_of(path)
+    assert card["steps"] == 3 and card["parameters"] > 0
+    assert card["history"][0]["test"]["pairs"] == 10
+    assert json.loads((tmp_path / "config.json").read_text())["protocol"] == "paper"
+    model = load_model(path)
+    assert model.config.k == TINY.k
+
+
+def test_resume_continues_exactly(modelnet_root, tmp_path):
+    # 4 steps in one go == 2 steps, stop, resume for 2 more.
+    train(_config(modelnet_root, tmp_path / "a", max_steps=4, eval_pairs=0), log=lambda m: None)
+    train(_config(modelnet_root, tmp_path / "b", max_steps=2, eval_pairs=0), log=lambda m: None)
+    train(_config(modelnet_root, tmp_path / "b", max_steps=4, eval_pairs=0), resume=True, log=lambda m: None)
+    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    assert a["state"]["global_step"] == b["state"]["global_step"] == 4
+    for k, v in a["model"].items():
+        assert torch.allclose(v.float(), b["model"][k].float(), atol=1e-6), k
+
+
+def test_resume_errors(modelnet_root, tmp_path):
+    with pytest.raises(InputError, match="no checkpoint to resume from"):
+        train(_config(modelnet_root, tmp_path, max_steps=1), resume=True)
+    (tmp_path / "checkpoint.pt").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="unreadable checkpoint"):
+        train(_config(modelnet_root, tmp_path, max_steps=1), resume=True)
+    train(_config(modelnet_root, tmp_path / "c", max_steps=1, eval_pairs=0), log=lambda m: None)
+    with pytest.raises(InputError, match="different protocol"):
+        train(_config(modelnet_root, tmp_path / "c", max_steps=2, protocol="dcp"), resume=True)
+
+
+def test_train_cli_smoke(modelnet_root, tmp_path):
+    r = CliRunner().invoke(main, ["train", "--data", str(modelnet_root), "--out", str(tmp_path), "--max-steps", "1",
+                                  "--limit-train", "4", "--batch-size", "2", "--eval-pairs", "0", "--epochs", "1"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "model.pt").is_file() and (tmp_path / "model_card.json").is_file()
+
+
+def test_train_cli_missing_data(tmp_path, monkeypatch):
+    monkeypatch.delenv("O3DSOFT_DATA", raising=False)
+    r = CliRunner().invoke(main, ["train", "--out", str(tmp_path / "o"), "--max-steps", "1"])
+    assert r.exit_code == 1 and "O3DSOFT_DATA" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(main, ["train", "--protocol", "bogus"])
+    assert r.exit_code == 1 and "unknown protocol 'bogus'" in r.output
