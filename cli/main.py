@@ -66,6 +66,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     from ..metrics import pair_errors
     from ..pipeline import RegisterConfig, register as run_register
     from ..refine import ICPConfig
+    from ..transforms import apply_transform
 
     for opt, p in (("--out", out_path), ("--render", render_path)):
         if p is not None and p.suffix == "":
@@ -92,8 +93,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     result.timings_ms["total"] += read_ms + load_ms
 
     if out_path is not None:
-        T = result.transformation
-        io.write_points(out_path, src @ T[:3, :3].T + T[:3, 3])
+        io.write_points(out_path, apply_transform(result.transformation, src))
     if save_transform is not None:
         io.write_transform(save_transform, result.transformation)
     if render_path is not None:

@@ -6,7 +6,7 @@
 import numpy as np
 
 import o3dsoft
-from o3dsoft.data import euler_to_matrix
+from o3dsoft.transforms import euler_to_matrix
 
 
 def main() -> None:

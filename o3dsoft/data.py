@@ -11,7 +11,6 @@ o3dsoft at it (``--data PATH`` or the ``O3DSOFT_DATA`` environment variable).
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 
 from .errors import InputError
+from .transforms import euler_to_matrix, random_rotation, rotation_angle_deg
 
 DATA_ENV = "O3DSOFT_DATA"
 _HOW_TO_GET = (
@@ -83,28 +83,6 @@ def get_protocol(name: str) -> Protocol:
         return PROTOCOLS[name]
     except KeyError:
         raise InputError(f"unknown protocol {name!r}; valid: {', '.join(PROTOCOLS)}") from None
-
-
-def euler_to_matrix(angles_deg: np.ndarray) -> np.ndarray:
-    """R = Rx(a) Ry(b) Rz(c) for angles (a, b, c) in degrees; (3,) -> (3, 3)."""
-    a, b, c = np.radians(angles_deg)
-    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
-    ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
-    rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
-    return rx @ ry @ rz
-
-
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """A rotation uniform on SO(3), from a normalised 4-D Gaussian quaternion; (3, 3)."""
-    q = rng.normal(size=4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def _crop(points: np.ndarray, keep: float, rng: np.random.Generator) -> np.ndarray:
@@ -175,8 +153,7 @@ def make_pair(points: np.ndarray, protocol: Protocol, seed: int, index: int, lab
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = t
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2))))
-    return Pair(src.astype(np.float32), tgt.astype(np.float32), T, index, label, angle)
+    return Pair(src.astype(np.float32), tgt.astype(np.float32), T, index, label, rotation_angle_deg(R))
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,6 +11,8 @@ from typing import Dict, NamedTuple, Optional
 
 import numpy as np
 
+from .transforms import matrix_to_euler_deg
+
 
 def _split(T: np.ndarray):
     T = np.asarray(T, dtype=np.float64)
@@ -28,15 +30,6 @@ def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
     """
     d = np.linalg.norm(np.asarray(R_est, np.float64) - np.asarray(R_gt, np.float64))
     return math.degrees(2.0 * math.asin(min(1.0, d / (2.0 * math.sqrt(2.0)))))
-
-
-def matrix_to_euler_deg(R: np.ndarray) -> np.ndarray:
-    """Angles (a, b, c) in degrees with R = Rx(a) Ry(b) Rz(c), as DCP reports them (its 'zyx')."""
-    R = np.asarray(R, dtype=np.float64)
-    b = math.asin(max(-1.0, min(1.0, R[0, 2])))
-    a = math.atan2(-R[1, 2], R[2, 2])
-    c = math.atan2(-R[0, 1], R[0, 0])
-    return np.degrees([a, b, c])
 
 
 class PairErrors(NamedTuple):

@@ -12,12 +12,9 @@ from typing import Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .io import atomic_output
+from .transforms import apply_transform
 
 _MAX_DRAWN = 4000  # points per cloud and panel; more only slows the drawing down
-
-
-def _transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
 
 
 def render_registration(
@@ -40,7 +37,7 @@ def render_registration(
     rng = np.random.default_rng(0)
     src = source[rng.choice(len(source), min(len(source), _MAX_DRAWN), replace=False)]
     tgt = target[rng.choice(len(target), min(len(target), _MAX_DRAWN), replace=False)]
-    moved = [(title, src if T is None else _transform(src, T)) for title, T in panels]
+    moved = [(title, src if T is None else apply_transform(T, src)) for title, T in panels]
     allpts = np.vstack([tgt] + [m for _, m in moved])
     centre = (allpts.max(0) + allpts.min(0)) / 2
     half = (allpts.max(0) - allpts.min(0)).max() / 2

@@ -13,19 +13,7 @@ from typing import Dict, Union
 import numpy as np
 
 from .errors import InputError
-
-
-def quaternion_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
-    """Rotation matrix (3, 3) of a quaternion given as (x, y, z, w); normalised first."""
-    q = np.array([qw, qx, qy, qz], dtype=np.float64)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+from .transforms import quaternion_to_matrix
 
 
 def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from o3dsoft.coarse import export_torchscript
-from o3dsoft.data import euler_to_matrix
+from o3dsoft.transforms import apply_transform, euler_to_matrix
 from o3dsoft.model import NetConfig, SoftAlignNet
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,8 +42,7 @@ def random_transform(rng: np.random.Generator, max_angle: float = 45.0, max_t: f
     return T
 
 
-def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
+apply = apply_transform
 
 
 def blob(rng: np.random.Generator, n: int = 300) -> np.ndarray:

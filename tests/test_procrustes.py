@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from o3dsoft.procrustes import _RotationFromCovariance, rotation_from_covariance, weighted_procrustes
-from o3dsoft.data import random_rotation
+from o3dsoft.transforms import random_rotation
 
 
 def _random_problem(seed, b=4, n=50):
