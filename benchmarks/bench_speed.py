@@ -1,11 +1,12 @@
 """Speed and memory of the network: fast exact layers vs the paper's literal conv2d layers.
 
-    python benchmarks/bench_speed.py [--data ../shared/data/modelnet40_ply_hdf5_1024] [--steps 5]
+    python -m benchmarks.bench_speed [--data ../shared/data/modelnet40_ply_hdf5_1024] [--steps 5]
         [--literal-steps 2] [--inference-runs 30] [--weights weights/o3dsoft_default.pt]
 
 Measures, in one run on the same batches (protocol `paper`, batch 10, N = 1024, K = 32):
-- training steps per second (forward + backward + Adam) of the fast form and of the literal form,
-  medians over the steps after one warm-up step, and their ratio;
+- training steps per second (forward + backward + Adam) of the fast form (shared encoder, and
+  separate encoders) and of the literal form, medians over the steps after one warm-up step, and
+  the literal / fast ratio;
 - peak resident memory of a fast training step (a separate process, so that the literal form's
   peak does not hide it);
 - the coarse stage on one 1024-point pair through the TorchScript file: median latency.
@@ -62,6 +63,8 @@ def train_speed(data: str, steps: int, literal_steps: int, batch_size: int = 10)
     fast = SoftAlignNet(NetConfig())
     fast_times = _step_times(fast, batches[: steps + 1])
     torch.manual_seed(0)
+    separate_times = _step_times(SoftAlignNet(NetConfig(shared_encoder=False)), batches[: steps + 1])
+    torch.manual_seed(0)
     literal = SoftAlignNet(NetConfig())
     literal.encoder_p = literal.encoder_q = LiteralEncoder(NetConfig().channels)
     literal_times = _step_times(literal, batches[: literal_steps + 1])
@@ -69,6 +72,7 @@ def train_speed(data: str, steps: int, literal_steps: int, batch_size: int = 10)
     return {
         "batch_size": batch_size,
         "fast_step_s_median": f,
+        "fast_separate_encoders_step_s_median": statistics.median(separate_times),
         "literal_step_s_median": l,
         "fast_pairs_per_s": batch_size / f,
         "literal_pairs_per_s": batch_size / l,

@@ -1,6 +1,6 @@
 """Accuracy of a model on ModelNet40 test pairs: the network alone and followed by ICP.
 
-    python benchmarks/eval_model.py [--weights weights/o3dsoft_default.pt] [--protocol paper dcp]
+    python -m benchmarks.eval_model [--weights weights/o3dsoft_default.pt] [--protocol paper dcp]
         [--limit 300] [--data ../shared/data/modelnet40_ply_hdf5_1024] [--seed 0]
 
 Prints one JSON object per protocol and stage with the summary of o3dsoft.metrics.summarise

@@ -134,6 +134,8 @@ def register(
         model = coarse_stage.load_model(config.weights, config.device)
         lap("load_model")
     k = model.config.k
+    if config.num_points < k:
+        raise InputError(f"num_points={config.num_points} is below the network's neighbourhood size K={k}")
 
     # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds.
     src = clean_points(as_points(source, source_name), source_name, min_points=k)

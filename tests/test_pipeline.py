@@ -79,6 +79,18 @@ def test_bad_clouds(tiny_model_path, cloud, match):
         register(cloud, blob(np.random.default_rng(1), 100), RegisterConfig(weights=str(tiny_model_path)))
 
 
+def test_num_points_below_k_rejected(tiny_model_path):
+    src, tgt, _ = _pair()
+    with pytest.raises(InputError, match="num_points=4 is below the network's neighbourhood size K=8"):
+        register(src, tgt, RegisterConfig(weights=str(tiny_model_path), num_points=4))
+
+
+def test_hundred_point_clouds(tiny_model_path):
+    src, tgt, T = _pair(seed=5, n=100)
+    res = register(src, tgt, RegisterConfig(weights=str(tiny_model_path), icp=ICPConfig(distance=0.5)))
+    assert pair_errors(res.transformation, T).rotation_deg < 1e-3
+
+
 def test_bad_weights(tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(InputError, match="junk.pt: not a readable TorchScript model file"):
