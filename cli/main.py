@@ -7,10 +7,8 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Optional
 
 import click
-import numpy as np
 
 from .. import __version__
 from ..errors import O3dsoftError
@@ -72,7 +70,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
         if p is not None and p.suffix == "":
             raise click.UsageError(f"{opt} {p}: give a file name with an extension")
     if out_path is not None:
-        io._extension(out_path, io.WRITE_EXTENSIONS, "--out")
+        io.check_extension(out_path, io.WRITE_EXTENSIONS, "--out")
     t0 = time.perf_counter()
     src = io.read_points(source, mesh_points=mesh_points)
     tgt = io.read_points(target, mesh_points=mesh_points)

@@ -34,7 +34,7 @@ def _o3d():
     return open3d
 
 
-def _extension(path: Path, allowed, what: str) -> str:
+def check_extension(path: Path, allowed, what: str) -> str:
     ext = path.suffix.lower()
     if ext not in allowed:
         raise UsageError(f"{path}: unknown extension {ext or '(none)'!r} for {what}; expected one of {', '.join(allowed)}")
@@ -80,7 +80,7 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         InputError: unreadable content, no points, or a mesh format with no faces.
     """
     path = Path(path)
-    ext = _extension(path, READ_EXTENSIONS, "a point cloud")
+    ext = check_extension(path, READ_EXTENSIONS, "a point cloud")
     _check_readable(path)
     if ext == ".npy":
         return _read_npy_points(path)
@@ -166,7 +166,7 @@ def _umask() -> int:
 def write_points(path: PathLike, points: np.ndarray) -> Path:
     """Write (N, 3) points to any of the point formats (by extension), atomically."""
     path = Path(path)
-    ext = _extension(path, WRITE_EXTENSIONS, "writing points")
+    ext = check_extension(path, WRITE_EXTENSIONS, "writing points")
     points = np.asarray(points, dtype=np.float64)
     with atomic_output(path) as tmp:
         if ext == ".npy":

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from o3dsoft.data import PROTOCOLS, Protocol, get_protocol, load_modelnet40, load_pairs, make_pair, resolve_data_root
+from o3dsoft.data import PROTOCOLS, get_protocol, load_modelnet40, load_pairs, make_pair, resolve_data_root
 from o3dsoft.errors import InputError
 from o3dsoft.metrics import rotation_error_deg
 
