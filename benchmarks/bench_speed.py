@@ -7,8 +7,7 @@ Measures, in one run on the same batches (protocol `paper`, batch 10, N = 1024, 
 - training steps per second (forward + backward + Adam) of the fast form (shared encoder, and
   separate encoders) and of the literal form, medians over the steps after one warm-up step, and
   the literal / fast ratio;
-- peak resident memory of a fast training step (a separate process, so that the literal form's
-  peak does not hide it);
+- peak resident memory of training with each form (a fresh process each, one or two steps);
 - the coarse stage on one 1024-point pair through the TorchScript file: median latency.
 Times are wall-clock on whatever machine runs it; compare ratios, not absolute values, across runs.
 """
@@ -17,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import statistics
 import subprocess
 import sys
@@ -55,18 +55,13 @@ def _step_times(net, batches) -> list:
 
 
 def train_speed(data: str, steps: int, literal_steps: int, batch_size: int = 10) -> dict:
-    from o3dsoft.model import LiteralEncoder, NetConfig, SoftAlignNet
+    from o3dsoft.model import NetConfig, SoftAlignNet
 
     batches = _batches(data, max(steps, literal_steps) + 1, batch_size)
-    torch.manual_seed(0)
-    fast = SoftAlignNet(NetConfig())
-    fast_times = _step_times(fast, batches[: steps + 1])
+    fast_times = _step_times(_network(literal=False), batches[: steps + 1])
     torch.manual_seed(0)
     separate_times = _step_times(SoftAlignNet(NetConfig(shared_encoder=False)), batches[: steps + 1])
-    torch.manual_seed(0)
-    literal = SoftAlignNet(NetConfig())
-    literal.encoder_p = literal.encoder_q = LiteralEncoder(NetConfig().channels)
-    literal_times = _step_times(literal, batches[: literal_steps + 1])
+    literal_times = _step_times(_network(literal=True), batches[: literal_steps + 1])
     f, l = statistics.median(fast_times), statistics.median(literal_times)
     return {
         "batch_size": batch_size,
@@ -81,17 +76,34 @@ def train_speed(data: str, steps: int, literal_steps: int, batch_size: int = 10)
     }
 
 
-def fast_peak_memory(data: str, steps: int) -> float:
-    """Peak RSS (GB) of a process that only runs fast training steps."""
+def peak_rss_gb() -> float:
+    """This process's peak resident memory in GB (VmHWM; ru_maxrss would carry a parent's peak over exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024**2  # kB -> GB
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+
+
+def peak_memory(data: str, steps: int, literal: bool) -> float:
+    """Peak RSS (GB) of a fresh process that runs training steps of one form only."""
     code = (
-        "import sys, resource; sys.path.insert(0, %r); "
-        "from benchmarks.bench_speed import _batches, _step_times; "
-        "from o3dsoft.model import SoftAlignNet, NetConfig; "
-        "_step_times(SoftAlignNet(NetConfig()), _batches(%r, %d, 10)); "
-        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
-    ) % (str(REPO), data, steps)
+        "import sys; sys.path.insert(0, %r); "
+        "from benchmarks.bench_speed import _batches, _step_times, _network, peak_rss_gb; "
+        "_step_times(_network(%r), _batches(%r, %d, 10)); "
+        "print(peak_rss_gb())"
+    ) % (str(REPO), literal, data, steps)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
-    return int(out.stdout.strip().splitlines()[-1]) / 1024**2  # KB -> GB
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def _network(literal: bool):
+    from o3dsoft.model import LiteralEncoder, NetConfig, SoftAlignNet
+
+    torch.manual_seed(0)
+    net = SoftAlignNet(NetConfig())
+    if literal:
+        net.encoder_p = net.encoder_q = LiteralEncoder(NetConfig().channels)
+    return net
 
 
 def inference_latency(weights: str | None, runs: int, data: str) -> dict:
@@ -124,7 +136,8 @@ def main() -> None:
     report = {"torch": torch.__version__, "threads": torch.get_num_threads()}
     if not args.skip_train:
         report["train"] = train_speed(args.data, args.steps, args.literal_steps)
-        report["train"]["fast_peak_rss_gb"] = fast_peak_memory(args.data, args.steps)
+        report["train"]["fast_peak_rss_gb"] = peak_memory(args.data, 2, literal=False)
+        report["train"]["literal_peak_rss_gb"] = peak_memory(args.data, 1, literal=True)
         report["train"]["epoch_minutes_estimate"] = 9843 / report["train"]["fast_pairs_per_s"] / 60
     report["inference"] = inference_latency(args.weights, args.inference_runs, args.data)
     print(json.dumps(report, indent=2))

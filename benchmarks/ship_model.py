@@ -3,8 +3,9 @@ training record and its accuracy measured here, on ModelNet40 test pairs.
 
     python -m benchmarks.ship_model RUN_DIR [--limit 300] [--protocol paper dcp wide45] [--note TEXT]
 
-RUN_DIR is an `o3dsoft train` output folder (model.pt, model_card.json). Writes
-weights/o3dsoft_default.pt and weights/o3dsoft_default.json.
+RUN_DIR is an `o3dsoft train` output folder (checkpoint.pt, model_card.json). The model is
+exported again from the checkpoint with the current code. Writes weights/o3dsoft_default.pt and
+weights/o3dsoft_default.json.
 """
 
 from __future__ import annotations
@@ -12,13 +13,13 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import shutil
 from pathlib import Path
 
 import torch
 
 from benchmarks.eval_model import DEFAULT_DATA, evaluate_protocol
 from o3dsoft.coarse import DEFAULT_WEIGHTS_NAME, load_model, sha256_of
+from o3dsoft.train import export_checkpoint
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
 
@@ -34,9 +35,8 @@ def main() -> None:
 
     card = json.loads((args.run_dir / "model_card.json").read_text())
     target = WEIGHTS / DEFAULT_WEIGHTS_NAME
-    tmp = target.with_name(target.name + ".tmp")
-    shutil.copyfile(args.run_dir / card["model_file"], tmp)
-    tmp.replace(target)
+    # Re-exported from the checkpoint, so that the shipped file carries the current inference code.
+    export_checkpoint(args.run_dir / "checkpoint.pt", target)
     model = load_model(target)
     evaluation = [evaluate_protocol(model, args.data, p, args.limit, seed=0) for p in args.protocol]
     card.update(

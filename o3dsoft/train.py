@@ -107,6 +107,19 @@ def evaluate(model: SoftAlignNet, pairs: PairDataset, limit: Optional[int], devi
     return summarise(errors)
 
 
+def export_checkpoint(checkpoint: Path, out: Path) -> Path:
+    """Export the model of a training checkpoint to a TorchScript file with the current code."""
+    try:
+        ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    except Exception as e:
+        raise InputError(f"{checkpoint}: unreadable checkpoint ({e})") from None
+    net = NetConfig.from_dict(ckpt["config"]["net"])
+    model = SoftAlignNet(net)
+    model.load_state_dict(ckpt["model"])
+    info = {"protocol": ckpt["config"]["protocol"], "epochs_completed": ckpt["state"]["epoch"]}
+    return export_torchscript(model, net, out, info=info)
+
+
 def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> Path:
     """Train, checkpoint, evaluate, and export TorchScript + model card into ``config.out``.
 
