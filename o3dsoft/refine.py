@@ -6,9 +6,11 @@ parts of one cloud with no partner in the other (partial overlap) stop biasing t
 bundled bunny scans, from 10 starts perturbed by up to 8 degrees, the median rotation error was
 2.7 degrees with the single distance 0.1 and 0.48 degrees with the schedule 0.1 / 0.03 / 0.01.
 
-Clouds larger than ``max_points`` are voxel-downsampled first (to between about a half and all of
-``max_points``), which keeps ICP's time bounded for scans of millions of points while leaving
-enough points for sub-voxel accuracy.
+Clouds larger than ``max_points`` (default 100,000) are voxel-downsampled first, which keeps ICP's
+time bounded for scans of millions of points. Measured on a 1,000,000-point synthetic surface
+(a stretched torus, 1-2 m across, moved by 28 degrees; 2-core machine): refine took 17.9 s with
+the limit at 200,000 points (rotation error 0.003 degrees), 6.0 s at 100,000 (0.005 degrees) and
+5.1 s at 50,000 (0.04 degrees).
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ class ICPConfig:
     max_iterations: int = 100
     relative_fitness: float = 1e-7
     relative_rmse: float = 1e-7
-    max_points: int = 200_000
+    max_points: int = 100_000
 
     def distance_for(self, scale: float) -> float:
         """The correspondence distance in cloud units for a pair of this scale."""
@@ -106,7 +108,7 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
     return ICPResult(T, float(scored.fitness), float(scored.inlier_rmse))
 
 
-def evaluate(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, max_points: int = 200_000) -> ICPResult:
+def evaluate(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, max_points: int = 100_000) -> ICPResult:
     """Score a transform without optimising it (Open3D's evaluate_registration)."""
     result = o3d.pipelines.registration.evaluate_registration(
         to_open3d(downsample(source, max_points)),

@@ -44,3 +44,16 @@ def test_register_arrays_example_recovers_its_transform():
     line = next(l for l in r.stdout.splitlines() if l.startswith("rotation error"))
     rot = float(line.split()[2])
     assert rot < 0.01
+
+
+def test_model_file_runs_with_torch_alone(tmp_path):
+    # No o3dsoft import in the child: the TorchScript file must carry everything it runs.
+    code = (
+        "import sys, torch; m = torch.jit.load(sys.argv[1]); m.eval(); "
+        "x = torch.rand(1, 200, 3) * 2 - 1; R, t, w = m(x, x.flip(1)); "
+        "assert R.shape == (1, 3, 3) and t.shape == (1, 3) and w.shape == (1, 200); "
+        "assert not [k for k in sys.modules if k.split('.')[0] == 'o3dsoft']; print('ok')"
+    )
+    r = subprocess.run([sys.executable, "-c", code, str(default_weights_path())], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "ok"

@@ -91,6 +91,21 @@ def test_hundred_point_clouds(tiny_model_path):
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
 
 
+def test_large_clouds_are_downsampled_for_icp_and_still_exact(tiny_model_path):
+    rng = np.random.default_rng(7)
+    d = rng.normal(size=(300_000, 3))
+    src = d / np.linalg.norm(d, axis=1, keepdims=True) * [1.0, 0.6, 0.3] * 500.0  # an ellipsoid, in mm
+    T = random_transform(rng, max_angle=5.0, max_t=0.1)
+    T[:3, 3] *= 500.0
+    cfg = RegisterConfig(weights=str(tiny_model_path), icp=ICPConfig(distance=0.3, max_points=30_000))
+    res = register(src, apply(T, src), cfg)
+    e = pair_errors(res.transformation, T)
+    # Both clouds are voxel-downsampled to <= 30,000 points (voxels of ~7 mm on this 1 m surface);
+    # ICP must still land far below the voxel size.
+    assert e.rotation_deg < 0.5 and e.translation < 1.0
+    assert res.num_source == 300_000
+
+
 def test_bad_weights(tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(InputError, match="junk.pt: not a readable TorchScript model file"):
