@@ -103,11 +103,6 @@ def neighbour_multiplicity(idx: torch.Tensor, n: int, dtype: torch.dtype = torch
     return counts.scatter_add_(1, flat, torch.ones(flat.shape, dtype=dtype, device=idx.device))
 
 
-# Rows handled per step of the gather-max loops (`chunk`): small enough for the working set of a
-# step to stay in cache, large enough for the Python overhead to vanish (512 measured best of
-# 128 / 512 / 2048 on the 2-core development machine).
-
-
 def _flatten_neighbours(idx: torch.Tensor, n: int) -> torch.Tensor:
     """(B, N, K) per-cloud indices -> (B*N, K) indices into the (B*N, C) stacked rows."""
     b = idx.shape[0]
@@ -116,7 +111,11 @@ def _flatten_neighbours(idx: torch.Tensor, n: int) -> torch.Tensor:
 
 
 def _gather_max_rows(rows: torch.Tensor, flat: torch.Tensor, chunk: int = 512) -> torch.Tensor:
-    """max_k rows[flat[:, k]] for (M, C) rows and (M, K) indices, chunked; scriptable."""
+    """max_k rows[flat[:, k]] for (M, C) rows and (M, K) indices, `chunk` rows at a time.
+
+    Chunks keep a step's working set in cache: 512 rows measured fastest of 128 / 512 / 2048 on
+    the 2-core development machine for training-sized batches (B = 10).
+    """
     outs: List[torch.Tensor] = []
     for s in range(0, flat.shape[0], chunk):
         f = flat[s : s + chunk]
