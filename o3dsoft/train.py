@@ -23,7 +23,7 @@ from .data import Pair, PairDataset, get_protocol, load_pairs
 from .errors import InputError
 from .metrics import pair_errors, summarise
 from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss
-from .preprocess import normalise_pair, normalise_transform
+from .preprocess import denormalise_transform, normalisation_for, normalise_pair, normalise_transform
 
 
 @dataclass
@@ -86,8 +86,6 @@ def _save_atomic(obj, path: Path) -> None:
 
 def evaluate(model: SoftAlignNet, pairs: PairDataset, limit: Optional[int], device: torch.device, batch_size: int = 10) -> Dict[str, float]:
     """Coarse-stage errors of `model` on the first `limit` pairs (in the original frame)."""
-    from .preprocess import denormalise_transform, normalisation_for
-
     n = len(pairs) if limit is None else min(limit, len(pairs))
     was_training = model.training
     model.eval()
