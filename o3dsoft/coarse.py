@@ -22,6 +22,7 @@ import torch
 
 from .errors import InputError
 from .model import NetConfig, SoftAlignNet
+from .transforms import rigid
 
 FORMAT = "o3dsoft-softalign"
 FORMAT_VERSION = 1
@@ -150,7 +151,5 @@ def estimate(model: CoarseModel, source: np.ndarray, target: np.ndarray) -> Coar
     src = torch.as_tensor(np.ascontiguousarray(source), dtype=torch.float32).unsqueeze(0)
     tgt = torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0)
     R, t, w = model.run(src, tgt)
-    T = np.eye(4)
-    T[:3, :3] = R[0].double().cpu().numpy()
-    T[:3, 3] = t[0].double().cpu().numpy()
+    T = rigid(R[0].double().cpu().numpy(), t[0].double().cpu().numpy())
     return CoarseEstimate(T, w[0].float().cpu().numpy())

@@ -19,7 +19,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 
 from .errors import InputError
-from .transforms import euler_to_matrix, random_rotation, rotation_angle_deg
+from .transforms import euler_to_matrix, random_rotation, rigid, rotation_angle_deg
 
 DATA_ENV = "O3DSOFT_DATA"
 _HOW_TO_GET = (
@@ -150,10 +150,7 @@ def make_pair(points: np.ndarray, protocol: Protocol, seed: int, index: int, lab
     tgt = _noise(tgt, p, rng)
     tgt = tgt @ R.T + t
     tgt = tgt[rng.permutation(len(tgt))]
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return Pair(src.astype(np.float32), tgt.astype(np.float32), T, index, label, rotation_angle_deg(R))
+    return Pair(src.astype(np.float32), tgt.astype(np.float32), rigid(R, t), index, label, rotation_angle_deg(R))
 
 
 # --------------------------------------------------------------------------------------------

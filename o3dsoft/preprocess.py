@@ -11,6 +11,7 @@ from typing import NamedTuple, Optional, Tuple
 import numpy as np
 
 from .errors import InputError
+from .transforms import rigid
 
 
 class CleanReport(NamedTuple):
@@ -120,16 +121,10 @@ def denormalise_transform(T_norm: np.ndarray, norm: Normalisation) -> np.ndarray
     With x' = (x - c) / s on both sides, q' = R p' + t' becomes q = R p + (c_t - R c_s + s t').
     """
     R = T_norm[:3, :3]
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = norm.target_centroid - R @ norm.source_centroid + norm.scale * T_norm[:3, 3]
-    return T
+    return rigid(R, norm.target_centroid - R @ norm.source_centroid + norm.scale * T_norm[:3, 3])
 
 
 def normalise_transform(T: np.ndarray, norm: Normalisation) -> np.ndarray:
     """The inverse of :func:`denormalise_transform`: a transform between original clouds -> normalised."""
     R = T[:3, :3]
-    T_norm = np.eye(4)
-    T_norm[:3, :3] = R
-    T_norm[:3, 3] = (T[:3, 3] + R @ norm.source_centroid - norm.target_centroid) / norm.scale
-    return T_norm
+    return rigid(R, (T[:3, 3] + R @ norm.source_centroid - norm.target_centroid) / norm.scale)

@@ -108,7 +108,9 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
     return ICPResult(T, float(scored.fitness), float(scored.inlier_rmse))
 
 
-def evaluate(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, max_points: int = 100_000) -> ICPResult:
+def evaluate(
+    source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, max_points: int = ICPConfig.max_points
+) -> ICPResult:
     """Score a transform without optimising it (Open3D's evaluate_registration)."""
     result = o3d.pipelines.registration.evaluate_registration(
         to_open3d(downsample(source, max_points)),

@@ -13,7 +13,7 @@ from typing import Dict, Union
 import numpy as np
 
 from .errors import InputError
-from .transforms import quaternion_to_matrix
+from .transforms import quaternion_to_matrix, rigid
 
 
 def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
@@ -34,10 +34,7 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
             tx, ty, tz, qx, qy, qz, qw = (float(v) for v in parts[2:])
         except ValueError:
             raise InputError(f"{path}, line {lineno}: non-numeric pose values") from None
-        T = np.eye(4)
-        T[:3, :3] = quaternion_to_matrix(qx, qy, qz, qw).T
-        T[:3, 3] = (tx, ty, tz)
-        poses[parts[1]] = T
+        poses[parts[1]] = rigid(quaternion_to_matrix(qx, qy, qz, qw).T, np.array([tx, ty, tz]))
     if not poses:
         raise InputError(f"{path}: no 'bmesh' lines")
     return poses

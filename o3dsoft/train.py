@@ -24,6 +24,7 @@ from .errors import InputError
 from .metrics import pair_errors, summarise
 from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss
 from .preprocess import denormalise_transform, normalisation_for, normalise_pair, normalise_transform
+from .transforms import rigid
 
 
 @dataclass
@@ -96,21 +97,23 @@ def evaluate(model: SoftAlignNet, pairs: PairDataset, limit: Optional[int], devi
             src, tgt, _, _ = normalised_batch(batch)
             R, t, _ = model(src.to(device), tgt.to(device))
             for j, p in enumerate(batch):
-                T = np.eye(4)
-                T[:3, :3] = R[j].double().cpu().numpy()
-                T[:3, 3] = t[j].double().cpu().numpy()
-                T = denormalise_transform(T, normalisation_for(p.source, p.target))
+                T_norm = rigid(R[j].double().cpu().numpy(), t[j].double().cpu().numpy())
+                T = denormalise_transform(T_norm, normalisation_for(p.source, p.target))
                 errors.append(pair_errors(T, p.transform))
     model.train(was_training)
     return summarise(errors)
 
 
+def _load_checkpoint(path: Path, device: torch.device) -> dict:
+    try:
+        return torch.load(path, map_location=device, weights_only=False)
+    except Exception as e:  # torch raises many types for truncated or foreign files
+        raise InputError(f"{path}: unreadable checkpoint ({e})") from None
+
+
 def export_checkpoint(checkpoint: Path, out: Path) -> Path:
     """Export the model of a training checkpoint to a TorchScript file with the current code."""
-    try:
-        ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise InputError(f"{checkpoint}: unreadable checkpoint ({e})") from None
+    ckpt = _load_checkpoint(checkpoint, torch.device("cpu"))
     net = NetConfig.from_dict(ckpt["config"]["net"])
     model = SoftAlignNet(net)
     model.load_state_dict(ckpt["model"])
@@ -137,10 +140,7 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     if resume:
         if not ckpt_path.is_file():
             raise InputError(f"{ckpt_path}: no checkpoint to resume from")
-        try:
-            ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
-        except Exception as e:
-            raise InputError(f"{ckpt_path}: unreadable checkpoint ({e})") from None
+        ckpt = _load_checkpoint(ckpt_path, device)
         saved = ckpt["config"]
         mismatched = [k for k in ("protocol", "batch_size", "seed", "net") if saved.get(k) != config.to_dict()[k]]
         if mismatched:

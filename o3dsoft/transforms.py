@@ -10,6 +10,14 @@ import math
 import numpy as np
 
 
+def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The (4, 4) float64 transform of a (3, 3) rotation and a (3,) translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
 def apply_transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(N, 3) points mapped by a (4, 4) transform."""
     return points @ T[:3, :3].T + T[:3, 3]
