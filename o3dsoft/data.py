@@ -22,9 +22,11 @@ from .errors import InputError
 from .transforms import euler_to_matrix, random_rotation, rigid, rotation_angle_deg
 
 DATA_ENV = "O3DSOFT_DATA"
+DEFAULT_POINTS_PER_SHAPE = 1024
 _HOW_TO_GET = (
-    "ModelNet40 in the modelnet40_ply_hdf5_2048 layout (ply_data_{train,test}*.h5, shape_names.txt) "
-    "is published by the PointNet authors; download and unpack it yourself, then pass its folder "
+    "ModelNet40 in the modelnet40_ply_hdf5_2048 layout (ply_data_{train,test}*.h5, shape_names.txt), "
+    "published by the PointNet authors, or the ModelNet40 OFF meshes (<category>/{train,test}/*.off) "
+    "from Princeton's ModelNet page; download and unpack it yourself, then pass its folder "
     f"with --data PATH or set {DATA_ENV}=PATH"
 )
 
@@ -176,24 +178,48 @@ def resolve_data_root(path: Optional[str]) -> Path:
     return root
 
 
-def load_modelnet40(root: Path, split: str, categories: str = "all") -> Shapes:
-    """Read one split of ModelNet40 from the official HDF5 layout (any points per shape).
+def load_modelnet40(root: Path, split: str, categories: str = "all", points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE) -> Shapes:
+    """Read one split of ModelNet40 from the official HDF5 layout or from a folder of OFF meshes.
+
+    The layout is recognised from the folder's content: ``ply_data_{split}*.h5`` with
+    ``shape_names.txt`` (modelnet40_ply_hdf5_2048, or our 1024-point copy), or
+    ``<category>/{split}/*.off`` (the ModelNet40 meshes, sampled uniformly on their faces).
 
     Args:
-        root: the folder with ply_data_{split}*.h5 and shape_names.txt.
+        root: the data folder.
         split: "train" or "test".
         categories: "all", "seen" (labels 0-19) or "unseen" (labels 20-39).
+        points_per_shape: points per shape: the first N of each HDF5 shape (as DCP and its
+            successors take 1024 of the 2048), or N samples on each mesh. None: all HDF5 points.
     Raises:
-        InputError: no h5 files, missing shape names, wrong keys or shapes.
+        InputError: neither layout found, missing shape names, wrong keys or shapes, a shape with
+            fewer points than asked for, an unreadable mesh.
     """
-    import h5py
-
     if split not in ("train", "test"):
         raise InputError(f"split must be 'train' or 'test', got {split!r}")
+    if any(root.glob(f"ply_data_{split}*.h5")):
+        shapes = _load_hdf5(root, split)
+    elif any(root.glob(f"*/{split}/*.off")):
+        shapes = _load_off_folder(root, split, points_per_shape or DEFAULT_POINTS_PER_SHAPE)
+    else:
+        raise InputError(f"{root}: no ModelNet40 {split} split here (ply_data_{split}*.h5 and shape_names.txt, or <category>/{split}/*.off). {_HOW_TO_GET}")
+    if points_per_shape is not None:
+        if shapes.points.shape[1] < points_per_shape:
+            raise InputError(f"{root}: shapes have {shapes.points.shape[1]} points, fewer than the {points_per_shape} asked for")
+        shapes = shapes._replace(points=shapes.points[:, :points_per_shape])
+    if shapes.labels.max(initial=0) >= len(shapes.categories):
+        raise InputError(f"{root}: labels go up to {shapes.labels.max()} but there are {len(shapes.categories)} categories")
+    keep = _category_mask(shapes.labels, categories)
+    return Shapes(shapes.points[keep], shapes.labels[keep], [n for n, k in zip(shapes.names, keep) if k], shapes.categories)
+
+
+def _load_hdf5(root: Path, split: str) -> Shapes:
+    import h5py
+
     names_file = root / "shape_names.txt"
+    if not names_file.is_file():
+        raise InputError(f"{root}: ply_data_{split}*.h5 found but no shape_names.txt beside them. {_HOW_TO_GET}")
     files = sorted(root.glob(f"ply_data_{split}*.h5"), key=lambda f: _trailing_int(f.stem))
-    if not files or not names_file.is_file():
-        raise InputError(f"{root}: no ModelNet40 {split} split here (ply_data_{split}*.h5 and shape_names.txt). {_HOW_TO_GET}")
     categories_list = [line.strip() for line in names_file.read_text().splitlines() if line.strip()]
     points, labels, names = [], [], []
     for f in files:
@@ -207,16 +233,46 @@ def load_modelnet40(root: Path, split: str, categories: str = "all") -> Shapes:
             raise InputError(f"{f}: not a readable HDF5 file ({e})") from None
         if data.ndim != 3 or data.shape[2] < 3 or len(label) != len(data):
             raise InputError(f"{f}: 'data' must be (S, N, 3) with one label per shape, got {data.shape} and {label.shape}")
+        if points and data.shape[1] != points[0].shape[1]:
+            raise InputError(f"{f}: {data.shape[1]} points per shape, but {files[0].name} has {points[0].shape[1]}")
         points.append(data[:, :, :3])
         labels.append(label)
         id_file = root / f"ply_data_{split}_{_trailing_int(f.stem)}_id2file.json"
         names += json.loads(id_file.read_text()) if id_file.is_file() else [f"{f.name}:{i}" for i in range(len(data))]
-    pts = np.concatenate(points)
-    lab = np.concatenate(labels)
-    if lab.max(initial=0) >= len(categories_list):
-        raise InputError(f"{root}: labels go up to {lab.max()} but shape_names.txt lists {len(categories_list)} categories")
-    keep = _category_mask(lab, categories)
-    return Shapes(pts[keep], lab[keep], [n for n, k in zip(names, keep) if k], categories_list)
+    return Shapes(np.concatenate(points), np.concatenate(labels), names, categories_list)
+
+
+def _load_off_folder(root: Path, split: str, n: int) -> Shapes:
+    """Sample n points on each mesh of <category>/<split>/*.off, centred and scaled into the unit sphere.
+
+    Categories are the sorted folder names (ModelNet40's shape_names.txt order). Mesh i of the
+    sorted list is sampled with seed i, so the points repeat from run to run.
+    """
+    import trimesh
+
+    from .io import sample_mesh
+
+    categories_list = sorted(d.name for d in root.iterdir() if d.is_dir() and any((d / split).glob("*.off")))
+    points, labels, names = [], [], []
+    for label, category in enumerate(categories_list):
+        for f in sorted((root / category / split).glob("*.off")):
+            try:
+                # trimesh also reads ModelNet's known malformed header ("OFF490 518 0" on one line).
+                mesh = trimesh.load(str(f), file_type="off", process=False, force="mesh")
+                vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+            except Exception as e:  # trimesh raises many types on malformed files
+                raise InputError(f"{f}: not a readable OFF mesh ({e})") from None
+            if len(faces) == 0 or not np.isfinite(vertices).all():
+                raise InputError(f"{f}: the mesh has no faces or non-finite vertices; points are sampled on faces")
+            pts = sample_mesh(vertices, faces, n, seed=len(points))
+            pts -= pts.mean(axis=0)
+            radius = np.linalg.norm(pts, axis=1).max()
+            if radius <= 0:
+                raise InputError(f"{f}: all faces have zero area")
+            points.append((pts / radius).astype(np.float32))
+            labels.append(label)
+            names.append(f"{category}/{split}/{f.name}")
+    return Shapes(np.stack(points), np.asarray(labels, dtype=np.int64), names, categories_list)
 
 
 def _category_mask(labels: np.ndarray, categories: str) -> np.ndarray:
@@ -264,9 +320,10 @@ def split_categories(protocol: Protocol, split: str) -> str:
     return protocol.categories
 
 
-def load_pairs(root: Optional[str], split: str, protocol: Protocol, seed: int = 0) -> PairDataset:
+def load_pairs(root: Optional[str], split: str, protocol: Protocol, seed: int = 0,
+               points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE) -> PairDataset:
     """The pairs of a protocol over a split of the ModelNet40 found at `root` (or $O3DSOFT_DATA)."""
-    shapes = load_modelnet40(resolve_data_root(root), split, split_categories(protocol, split))
+    shapes = load_modelnet40(resolve_data_root(root), split, split_categories(protocol, split), points_per_shape)
     return PairDataset(shapes, protocol, seed)
 
 

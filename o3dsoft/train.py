@@ -35,6 +35,12 @@ class TrainConfig:
         data: ModelNet40 folder (None: $O3DSOFT_DATA).
         protocol: pair protocol for training and evaluation.
         epochs, batch_size, lr: the paper's 5, 10, 1e-3 by default.
+        lr_schedule: "constant" (the paper's) or "cosine" (per step from ``lr`` down to ``lr_min``
+            at the end of the last epoch).
+        lr_min: final learning rate of the cosine schedule.
+        grad_clip: clip the gradients' total L2 norm to this value (None: no clipping, the paper's).
+        init: start from the model weights of this training checkpoint instead of a random
+            initialisation (fine-tuning; optimiser and schedule start fresh).
         seed: fixes model initialisation, pair draws and the order of pairs.
         device: "cpu" or "cuda".
         out: output folder (checkpoint, model, card).
@@ -50,6 +56,10 @@ class TrainConfig:
     epochs: int = 5
     batch_size: int = 10
     lr: float = 1e-3
+    lr_schedule: str = "constant"
+    lr_min: float = 1e-5
+    grad_clip: Optional[float] = None
+    init: Optional[str] = None
     seed: int = 0
     device: str = "cpu"
     out: str = "runs/train"
@@ -121,6 +131,22 @@ def export_checkpoint(checkpoint: Path, out: Path) -> Path:
     return export_torchscript(model, net, out, info=info)
 
 
+LR_SCHEDULES = ("constant", "cosine")
+
+
+def _lr_factor(config: TrainConfig, total_steps: int) -> Callable[[int], float]:
+    """Multiplier of ``config.lr`` after a given number of optimiser steps."""
+    if config.lr_schedule == "constant":
+        return lambda step: 1.0
+    floor = config.lr_min / config.lr
+
+    def cosine(step: int) -> float:
+        progress = min(step / max(total_steps, 1), 1.0)
+        return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+    return cosine
+
+
 def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> Path:
     """Train, checkpoint, evaluate, and export TorchScript + model card into ``config.out``.
 
@@ -136,6 +162,17 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     torch.manual_seed(config.seed)
     model = SoftAlignNet(config.net).to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
+    if config.lr_schedule not in LR_SCHEDULES:
+        raise InputError(f"unknown lr_schedule {config.lr_schedule!r}; expected one of {', '.join(LR_SCHEDULES)}")
+    init_record = None
+    if config.init is not None and not resume:
+        init_ckpt = _load_checkpoint(Path(config.init), device)
+        if init_ckpt["config"]["net"] != config.net.to_dict():
+            raise InputError(f"{config.init}: its network settings differ from this run's ({init_ckpt['config']['net']})")
+        model.load_state_dict(init_ckpt["model"])
+        init_record = {"checkpoint": str(config.init), "protocol": init_ckpt["config"]["protocol"],
+                       "epochs_completed": init_ckpt["state"]["epoch"], "steps": init_ckpt["state"]["global_step"],
+                       "training_seconds": round(init_ckpt["state"]["seconds"], 1), "history": init_ckpt["state"]["history"]}
     state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "history": [], "seconds": 0.0}
     if resume:
         if not ckpt_path.is_file():
@@ -146,8 +183,8 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
         if mismatched:
             raise InputError(f"{ckpt_path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")
         model.load_state_dict(ckpt["model"])
-        optimiser.load_state_dict(ckpt["optimiser"])
         state = ckpt["state"]
+        init_record = ckpt.get("init")
         torch.set_rng_state(ckpt["torch_rng"])
         log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
@@ -161,12 +198,21 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     steps_per_epoch = len(train_pairs) // config.batch_size
     if steps_per_epoch == 0:
         raise InputError(f"the training split has {len(train_pairs)} shapes, fewer than one batch of {config.batch_size}")
+    total_steps = config.epochs * steps_per_epoch
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, _lr_factor(config, total_steps))
+    if resume:
+        # After the scheduler's construction, which resets the learning rate to the schedule's start.
+        optimiser.load_state_dict(ckpt["optimiser"])
+        if "scheduler" in ckpt:  # checkpoints of earlier versions had none (constant lr)
+            scheduler.load_state_dict(ckpt["scheduler"])
 
     def checkpoint() -> None:
         _save_atomic(
             {
                 "model": model.state_dict(),
                 "optimiser": optimiser.state_dict(),
+                "scheduler": scheduler.state_dict(),
+                "init": init_record,
                 "state": state,
                 "torch_rng": torch.get_rng_state(),
                 "config": config.to_dict(),
@@ -191,7 +237,10 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
             loss = registration_loss(R, t, R_gt, t_gt)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
+            if config.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
             optimiser.step()
+            scheduler.step()
             losses.append(loss.item())
             state["step_in_epoch"] = step + 1
             state["global_step"] += 1
@@ -200,7 +249,7 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
                 elapsed = time.monotonic() - t0
                 log(
                     f"epoch {epoch + 1}/{config.epochs} step {step + 1}/{steps_per_epoch} "
-                    f"loss {np.mean(losses[-20:]):.5f} (lower is better)"
+                    f"loss {np.mean(losses[-20:]):.5f} (lower is better), lr {scheduler.get_last_lr()[0]:.2e}"
                     f" | {elapsed / 60:.1f} min this session"
                 )
             if time.monotonic() - last_ckpt > config.checkpoint_minutes * 60:
@@ -238,6 +287,7 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
         "epochs_completed": state["epoch"],
         "steps": state["global_step"],
         "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
+        "initialised_from": init_record,
         "parameters": count_parameters(model),
         "torch_version": torch.__version__,
         "training_seconds": round(state["seconds"], 1),

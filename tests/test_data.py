@@ -87,3 +87,46 @@ def test_wrong_h5_keys(tmp_path):
         f["points"] = np.zeros((2, 10, 3))
     with pytest.raises(InputError, match="expected datasets 'data' and 'label'"):
         load_modelnet40(tmp_path, "test")
+
+
+def _write_h5(folder, split, data, labels, names=("a", "b")):
+    import h5py
+
+    (folder / "shape_names.txt").write_text("\n".join(names) + "\n")
+    with h5py.File(folder / f"ply_data_{split}0.h5", "w") as f:
+        f["data"] = data
+        f["label"] = labels.reshape(-1, 1)
+
+
+def test_official_2048_layout_takes_the_first_1024_points(tmp_path):
+    data = np.random.default_rng(0).normal(size=(3, 2048, 3)).astype(np.float32)
+    _write_h5(tmp_path, "test", data, np.array([0, 1, 1]))
+    shapes = load_modelnet40(tmp_path, "test")
+    assert shapes.points.shape == (3, 1024, 3)
+    np.testing.assert_array_equal(shapes.points, data[:, :1024])
+    assert load_modelnet40(tmp_path, "test", points_per_shape=None).points.shape == (3, 2048, 3)
+    with pytest.raises(InputError, match="2048 points, fewer than the 4096 asked for"):
+        load_modelnet40(tmp_path, "test", points_per_shape=4096)
+
+
+_TETRA = "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n"
+
+
+def test_off_folder_is_sampled_on_faces_and_normalised(tmp_path):
+    for category, header in (("cone", "OFF\n4 4 0\n"), ("box", "OFF4 4 0\n")):  # the second: ModelNet's malformed header
+        for split in ("train", "test"):
+            folder = tmp_path / category / split
+            folder.mkdir(parents=True)
+            for i in range(2):
+                (folder / f"{category}_{i:04d}.off").write_text(header + f"0 0 0\n{i + 2} 0 0\n0 1 0\n0 0 1\n" + _TETRA)
+    shapes = load_modelnet40(tmp_path, "test", points_per_shape=64)
+    assert shapes.points.shape == (4, 64, 3)
+    assert shapes.categories == ["box", "cone"] and list(shapes.labels) == [0, 0, 1, 1]
+    assert shapes.names[0] == "box/test/box_0000.off"
+    np.testing.assert_allclose(shapes.points.mean(axis=1), 0, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(shapes.points, axis=2).max(axis=1), 1, atol=1e-6)
+    again = load_modelnet40(tmp_path, "test", points_per_shape=64)
+    np.testing.assert_array_equal(shapes.points, again.points)
+    (tmp_path / "box" / "test" / "box_0001.off").write_text("OFF\n3 1 0\n0 0 0\n1 0\n")
+    with pytest.raises(InputError, match="box_0001.off"):
+        load_modelnet40(tmp_path, "test", points_per_shape=64)

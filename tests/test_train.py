@@ -7,6 +7,7 @@ from click.testing import CliRunner
 from o3dsoft.cli.main import main
 from o3dsoft.coarse import load_model, sha256_of
 from o3dsoft.errors import InputError
+from o3dsoft.model import NetConfig
 from o3dsoft.train import TrainConfig, train
 
 from .conftest import TINY
@@ -29,16 +30,36 @@ def test_train_exports_a_usable_model_and_card(modelnet_root, tmp_path):
     assert model.config.k == TINY.k
 
 
-def test_resume_continues_exactly(modelnet_root, tmp_path):
+@pytest.mark.parametrize("extra", [{}, {"lr_schedule": "cosine", "grad_clip": 0.01}])
+def test_resume_continues_exactly(modelnet_root, tmp_path, extra):
     # 4 steps in one go == 2 steps, stop, resume for 2 more.
-    train(_config(modelnet_root, tmp_path / "a", max_steps=4, eval_pairs=0), log=lambda m: None)
-    train(_config(modelnet_root, tmp_path / "b", max_steps=2, eval_pairs=0), log=lambda m: None)
-    train(_config(modelnet_root, tmp_path / "b", max_steps=4, eval_pairs=0), resume=True, log=lambda m: None)
+    train(_config(modelnet_root, tmp_path / "a", max_steps=4, eval_pairs=0, **extra), log=lambda m: None)
+    train(_config(modelnet_root, tmp_path / "b", max_steps=2, eval_pairs=0, **extra), log=lambda m: None)
+    train(_config(modelnet_root, tmp_path / "b", max_steps=4, eval_pairs=0, **extra), resume=True, log=lambda m: None)
     a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
     b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
     assert a["state"]["global_step"] == b["state"]["global_step"] == 4
     for k, v in a["model"].items():
         assert torch.allclose(v.float(), b["model"][k].float(), atol=1e-6), k
+    assert a["scheduler"]["_last_lr"] == b["scheduler"]["_last_lr"]
+
+
+def test_cosine_schedule_ends_at_lr_min(modelnet_root, tmp_path):
+    train(_config(modelnet_root, tmp_path, eval_pairs=0, limit_train=8, epochs=2, lr_schedule="cosine", lr_min=1e-5), log=lambda m: None)
+    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    assert ckpt["scheduler"]["_last_lr"][0] == pytest.approx(1e-5)
+    with pytest.raises(InputError, match="unknown lr_schedule 'step'"):
+        train(_config(modelnet_root, tmp_path / "x", lr_schedule="step"))
+
+
+def test_init_from_a_checkpoint(modelnet_root, tmp_path):
+    train(_config(modelnet_root, tmp_path / "a", max_steps=2, eval_pairs=0), log=lambda m: None)
+    train(_config(modelnet_root, tmp_path / "b", max_steps=1, eval_pairs=0, init=str(tmp_path / "a" / "checkpoint.pt")), log=lambda m: None)
+    card = json.loads((tmp_path / "b" / "model_card.json").read_text())
+    assert card["initialised_from"]["steps"] == 2 and card["steps"] == 1
+    other = NetConfig(k=4, radius=0.3, channels=(8, 8, 8, 8, 8))
+    with pytest.raises(InputError, match="network settings differ"):
+        train(_config(modelnet_root, tmp_path / "c", max_steps=1, net=other, init=str(tmp_path / "a" / "checkpoint.pt")))
 
 
 def test_resume_errors(modelnet_root, tmp_path):
