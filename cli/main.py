@@ -154,38 +154,66 @@ def _format_result(source, target, result, errors, model_info, refined: bool) ->
     return "\n".join(lines)
 
 
+# Command-line options of `train` that are TrainConfig fields of the same name; given on the
+# command line, they override the --config file, which overrides TrainConfig's defaults.
+_TRAIN_FIELDS = ("data", "protocol", "epochs", "batch_size", "lr", "lr_schedule", "lr_min", "grad_clip", "init", "seed",
+                 "device", "out", "checkpoint_minutes", "eval_pairs", "max_steps", "limit_train", "points_per_shape", "workers")
+
+
 @main.command()
-@click.option("--data", type=click.Path(path_type=Path), help="ModelNet40 folder (official HDF5 layout); default $O3DSOFT_DATA.")
+@click.option("--config", "config_file", type=click.Path(path_type=Path), help="YAML file of settings (the keys of config.yaml in a run folder); command-line options override it.")
+@click.option("--data", help="ModelNet40 folder (official HDF5 layout or OFF meshes); default $O3DSOFT_DATA.")
 @click.option("--protocol", default="paper", show_default=True, help="Pair protocol (paper, dcp, wide45, so3, ...).")
 @click.option("--epochs", type=click.IntRange(min=1), default=5, show_default=True)
-@click.option("--batch-size", type=click.IntRange(min=1), default=10, show_default=True)
-@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True)
+@click.option("--batch-size", type=click.IntRange(min=1), default=10, show_default=True, help="Pairs per step (per process under torchrun).")
+@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True, help="Adam's learning rate.")
+@click.option("--lr-schedule", type=click.Choice(["constant", "cosine"]), default="constant", show_default=True)
+@click.option("--lr-min", type=click.FloatRange(min=0), default=1e-5, show_default=True, help="Final learning rate of the cosine schedule.")
+@click.option("--grad-clip", type=click.FloatRange(min=0, min_open=True), default=None, help="Clip the gradients' L2 norm (default: no clipping).")
+@click.option("--init", type=click.Path(), default=None, help="Start from the weights of this checkpoint.pt (fine-tuning).")
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--device", default="cpu", show_default=True)
+@click.option("--device", default="cpu", show_default=True, help="cpu or cuda (under torchrun: one GPU per process).")
 @click.option("--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config.")
-@click.option("--separate-encoders", is_flag=True, help="One encoder per cloud instead of a shared one.")
-@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=Path("runs/train"), show_default=True)
-@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt.")
+@click.option("--k", "k", type=click.IntRange(min=1), default=None, help="Neighbourhood size K; default 32.")
+@click.option("--separate-encoders", is_flag=True, default=None, help="One encoder per cloud instead of a shared one.")
+@click.option("--out", default="runs/train", show_default=True, help="Output folder: checkpoint, config, model, model card.")
+@click.option("--checkpoint-minutes", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True)
+@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt exactly where it stopped.")
 @click.option("--max-steps", type=click.IntRange(min=1), default=None, help="Stop after this many steps (quick runs).")
 @click.option("--limit-train", type=click.IntRange(min=1), default=None, help="Use only the first N training shapes.")
-@click.option("--eval-pairs", type=click.IntRange(min=0), default=300, show_default=True, help="Test pairs evaluated after each epoch.")
+@click.option("--points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True, help="Points per shape (first N of the HDF5 data).")
+@click.option("--eval-pairs", type=click.IntRange(min=0), default=300, show_default=True, help="Test pairs evaluated after each epoch (0: none).")
+@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
+@click.pass_context
 @_friendly_errors
-def train(data, protocol, epochs, batch_size, lr, seed, device, radius, separate_encoders, out_dir, resume, max_steps, limit_train, eval_pairs):
-    """Train the network on ModelNet40 and export TorchScript + a model card into OUT."""
+def train(ctx, config_file, resume, radius, k, separate_encoders, **options):
+    """Train the network on ModelNet40 and export TorchScript + a model card into OUT.
+
+    Several processes or machines: run the same command under torchrun, e.g.
+    `torchrun --nproc_per_node 4 -m o3dsoft.cli.main train --device cuda`.
+    """
     from dataclasses import replace
 
+    from click.core import ParameterSource
+
+    from ..configfile import read_config
     from ..data import get_protocol
     from ..model import NetConfig
     from ..train import TrainConfig, train as run_train
 
-    get_protocol(protocol)
-    net = NetConfig(shared_encoder=not separate_encoders)
+    settings = read_config(config_file, TrainConfig) if config_file else {}
+    for name in _TRAIN_FIELDS:
+        if name not in settings or ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE:
+            settings[name] = options[name]
+    net = settings.pop("net", NetConfig())
     if radius is not None:
         net = replace(net, radius=radius)
-    config = TrainConfig(
-        data=str(data) if data else None, protocol=protocol, epochs=epochs, batch_size=batch_size, lr=lr, seed=seed,
-        device=device, out=str(out_dir), eval_pairs=eval_pairs, max_steps=max_steps, limit_train=limit_train, net=net,
-    )
+    if k is not None:
+        net = replace(net, k=k)
+    if separate_encoders is not None:
+        net = replace(net, shared_encoder=not separate_encoders)
+    config = TrainConfig(net=net, **settings)
+    get_protocol(config.protocol)
     run_train(config, resume=resume, log=lambda m: click.echo(m, err=True))
 
 

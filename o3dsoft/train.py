@@ -10,17 +10,20 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
 from .coarse import export_torchscript, sha256_of
-from .data import Pair, PairDataset, get_protocol, load_pairs
-from .errors import InputError
+from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, get_protocol, load_pairs
+from .configfile import write_config
+from .errors import InputError, O3dsoftError
+from .io import atomic_output
 from .metrics import pair_errors, summarise
 from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss
 from .preprocess import denormalise_transform, normalisation_for, normalise_pair, normalise_transform
@@ -48,6 +51,8 @@ class TrainConfig:
         eval_pairs: test pairs evaluated after each epoch (0: none; None: the whole split).
         max_steps: stop after this many optimiser steps in total (None: run all epochs).
         limit_train: use only the first N training shapes (None: all).
+        points_per_shape: points per shape (the first N of the HDF5 data, N samples on meshes).
+        workers: DataLoader worker processes making pairs (0: in the training process).
         net: architecture.
     """
 
@@ -67,12 +72,34 @@ class TrainConfig:
     eval_pairs: Optional[int] = 300
     max_steps: Optional[int] = None
     limit_train: Optional[int] = None
+    points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE
+    workers: int = 0
     net: NetConfig = field(default_factory=NetConfig)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["net"] = self.net.to_dict()
         return d
+
+    def validate(self) -> None:
+        """InputError naming the first setting out of its range."""
+        checks = [
+            ("epochs", self.epochs >= 1, "at least 1"),
+            ("batch_size", self.batch_size >= 1, "at least 1"),
+            ("lr", self.lr > 0, "positive"),
+            ("lr_schedule", self.lr_schedule in LR_SCHEDULES, f"one of {', '.join(LR_SCHEDULES)}"),
+            ("lr_min", 0 <= self.lr_min <= self.lr, "between 0 and lr"),
+            ("grad_clip", self.grad_clip is None or self.grad_clip > 0, "positive or null"),
+            ("checkpoint_minutes", self.checkpoint_minutes > 0, "positive"),
+            ("eval_pairs", self.eval_pairs is None or self.eval_pairs >= 0, "0 or more, or null for the whole split"),
+            ("max_steps", self.max_steps is None or self.max_steps >= 1, "at least 1 or null"),
+            ("limit_train", self.limit_train is None or self.limit_train >= 1, "at least 1 or null"),
+            ("points_per_shape", self.points_per_shape is None or self.points_per_shape >= self.net.k, f"at least k = {self.net.k} or null"),
+            ("workers", self.workers >= 0, "0 or more"),
+        ]
+        for name, ok, expected in checks:
+            if not ok:
+                raise InputError(f"training setting {name} = {getattr(self, name)!r} must be {expected}")
 
 
 def normalised_batch(pairs: Sequence[Pair]):
@@ -90,9 +117,8 @@ def normalised_batch(pairs: Sequence[Pair]):
 
 
 def _save_atomic(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_output(path) as tmp:
+        torch.save(obj, tmp)
 
 
 def evaluate(model: SoftAlignNet, pairs: PairDataset, limit: Optional[int], device: torch.device, batch_size: int = 10) -> Dict[str, float]:
@@ -132,6 +158,8 @@ def export_checkpoint(checkpoint: Path, out: Path) -> Path:
 
 
 LR_SCHEDULES = ("constant", "cosine")
+# Settings that fix which pairs each step sees and the network's shape: a resumed run must keep them.
+RESUME_MUST_MATCH = ("data", "protocol", "batch_size", "seed", "net", "limit_train", "points_per_shape")
 
 
 def _lr_factor(config: TrainConfig, total_steps: int) -> Callable[[int], float]:
@@ -147,23 +175,71 @@ def _lr_factor(config: TrainConfig, total_steps: int) -> Callable[[int], float]:
     return cosine
 
 
+def _setup_distributed(config: TrainConfig) -> Tuple[int, int, torch.device]:
+    """(rank, world size, device). Under torchrun (WORLD_SIZE > 1) joins the process group:
+    NCCL with one GPU per process (LOCAL_RANK) for cuda, gloo for cpu."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world == 1:
+        return 0, 1, torch.device(config.device)
+    import torch.distributed as dist
+
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    if torch.device(config.device).type == "cuda":
+        device = torch.device("cuda", local)
+        torch.cuda.set_device(device)
+        backend = "nccl"
+    else:
+        device, backend = torch.device("cpu"), "gloo"
+    if not dist.is_initialized():
+        dist.init_process_group(backend)
+    return rank, world, device
+
+
+class _TrainingPairs(torch.utils.data.Dataset):
+    """Normalised tensors of protocol pairs, for torch's DataLoader (workers included)."""
+
+    def __init__(self, pairs: PairDataset) -> None:
+        self.pairs = pairs
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, index: int):
+        return tuple(x[0] for x in normalised_batch([self.pairs[index]]))
+
+
+def _replicas_identical(model: torch.nn.Module) -> bool:
+    """True when every rank holds the same parameters (a check that DDP kept them in step)."""
+    import torch.distributed as dist
+
+    flat = torch.cat([p.detach().reshape(-1).float().cpu() for p in model.parameters()])
+    gathered = [torch.empty_like(flat) for _ in range(dist.get_world_size())]
+    dist.all_gather(gathered, flat)
+    return all(torch.equal(gathered[0], g) for g in gathered[1:])
+
+
 def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> Path:
     """Train, checkpoint, evaluate, and export TorchScript + model card into ``config.out``.
+
+    Under ``torchrun --nproc_per_node P`` the same call trains with DistributedDataParallel: each
+    process draws its own share of every epoch's pairs (batch_size pairs per process and step)
+    and only rank 0 logs, evaluates and writes files.
 
     Returns:
         The path of the exported model file.
     """
+    config.validate()
+    rank, world, device = _setup_distributed(config)
+    lead = rank == 0
+    if not lead:
+        log = lambda message: None  # noqa: E731
     out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
-    device = torch.device(config.device)
     protocol = get_protocol(config.protocol)
 
     torch.manual_seed(config.seed)
     model = SoftAlignNet(config.net).to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
-    if config.lr_schedule not in LR_SCHEDULES:
-        raise InputError(f"unknown lr_schedule {config.lr_schedule!r}; expected one of {', '.join(LR_SCHEDULES)}")
     init_record = None
     if config.init is not None and not resume:
         init_ckpt = _load_checkpoint(Path(config.init), device)
@@ -179,25 +255,28 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
             raise InputError(f"{ckpt_path}: no checkpoint to resume from")
         ckpt = _load_checkpoint(ckpt_path, device)
         saved = ckpt["config"]
-        mismatched = [k for k in ("protocol", "batch_size", "seed", "net") if saved.get(k) != config.to_dict()[k]]
+        mismatched = [k for k in RESUME_MUST_MATCH if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
         if mismatched:
             raise InputError(f"{ckpt_path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")
+        if ckpt.get("world_size", 1) != world:
+            raise InputError(f"{ckpt_path}: written by {ckpt.get('world_size', 1)} processes, cannot resume with {world}")
         model.load_state_dict(ckpt["model"])
         state = ckpt["state"]
         init_record = ckpt.get("init")
         torch.set_rng_state(ckpt["torch_rng"])
         log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
-    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
 
-    train_pairs = load_pairs(config.data, "train", protocol, config.seed)
+    train_pairs = load_pairs(config.data, "train", protocol, config.seed, config.points_per_shape)
     if config.limit_train is not None:
         train_pairs.shapes = train_pairs.shapes._replace(
             points=train_pairs.shapes.points[: config.limit_train], labels=train_pairs.shapes.labels[: config.limit_train]
         )
-    test_pairs = load_pairs(config.data, "test", protocol, config.seed + 1) if config.eval_pairs != 0 else None
-    steps_per_epoch = len(train_pairs) // config.batch_size
+    test_pairs = None
+    if config.eval_pairs != 0 and lead:
+        test_pairs = load_pairs(config.data, "test", protocol, config.seed + 1, config.points_per_shape)
+    steps_per_epoch = len(train_pairs) // world // config.batch_size
     if steps_per_epoch == 0:
-        raise InputError(f"the training split has {len(train_pairs)} shapes, fewer than one batch of {config.batch_size}")
+        raise InputError(f"the training split has {len(train_pairs)} shapes, fewer than one batch of {config.batch_size} per process")
     total_steps = config.epochs * steps_per_epoch
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, _lr_factor(config, total_steps))
     if resume:
@@ -205,35 +284,50 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
         optimiser.load_state_dict(ckpt["optimiser"])
         if "scheduler" in ckpt:  # checkpoints of earlier versions had none (constant lr)
             scheduler.load_state_dict(ckpt["scheduler"])
+    if lead:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+        write_config(out / "config.yaml", config.to_dict())
+    net = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
 
     def checkpoint() -> None:
-        _save_atomic(
-            {
-                "model": model.state_dict(),
-                "optimiser": optimiser.state_dict(),
-                "scheduler": scheduler.state_dict(),
-                "init": init_record,
-                "state": state,
-                "torch_rng": torch.get_rng_state(),
-                "config": config.to_dict(),
-            },
-            ckpt_path,
-        )
+        if not lead:
+            return
+        contents = {
+            "model": model.state_dict(),
+            "optimiser": optimiser.state_dict(),
+            "scheduler": scheduler.state_dict(),
+            "init": init_record,
+            "state": state,
+            "torch_rng": torch.get_rng_state(),
+            "config": config.to_dict(),
+            "world_size": world,
+        }
+        try:
+            _save_atomic(contents, ckpt_path)
+        except (OSError, RuntimeError, InputError) as e:  # torch.save reports a failed write as RuntimeError
+            kept = "the previous checkpoint is unchanged" if ckpt_path.is_file() else "no checkpoint was written"
+            raise O3dsoftError(f"{ckpt_path}: could not write the checkpoint ({e}); {kept}; free space and run again with --resume") from None
 
+    dataset = _TrainingPairs(train_pairs)
     model.train()
     last_ckpt = time.monotonic()
     done = False
     while state["epoch"] < config.epochs and not done:
         epoch = state["epoch"]
         # Pairs of epoch e differ from those of other epochs (seeded by epoch) but repeat on resume.
-        order = np.random.default_rng([config.seed, epoch]).permutation(len(train_pairs))
-        epoch_view = PairDataset(train_pairs.shapes, protocol, seed=config.seed * 1000 + epoch)
+        dataset.pairs = PairDataset(train_pairs.shapes, protocol, seed=config.seed * 1000 + epoch)
+        sampler = torch.utils.data.DistributedSampler(dataset, num_replicas=world, rank=rank, shuffle=True, seed=config.seed, drop_last=True)
+        sampler.set_epoch(epoch)
+        order = list(sampler)[state["step_in_epoch"] * config.batch_size : steps_per_epoch * config.batch_size]
+        loader = torch.utils.data.DataLoader(dataset, batch_size=config.batch_size, sampler=order, num_workers=config.workers, drop_last=True)
         losses: List[float] = state.get("epoch_losses", [])
-        t0 = time.monotonic()
-        for step in range(state["step_in_epoch"], steps_per_epoch):
-            batch = [epoch_view[int(i)] for i in order[step * config.batch_size : (step + 1) * config.batch_size]]
-            src, tgt, R_gt, t_gt = (x.to(device) for x in normalised_batch(batch))
-            R, t, _ = model(src, tgt)
+        progress = _Progress(lead, epoch, config, steps_per_epoch, state["step_in_epoch"], world, log)
+        for src, tgt, R_gt, t_gt in loader:
+            src, tgt, R_gt, t_gt = (x.to(device, non_blocking=True) for x in (src, tgt, R_gt, t_gt))
+            R, t, _ = net(src, tgt)
             loss = registration_loss(R, t, R_gt, t_gt)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
@@ -242,16 +336,10 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
             optimiser.step()
             scheduler.step()
             losses.append(loss.item())
-            state["step_in_epoch"] = step + 1
+            state["step_in_epoch"] += 1
             state["global_step"] += 1
             state["epoch_losses"] = losses
-            if (step + 1) % 20 == 0 or step + 1 == steps_per_epoch:
-                elapsed = time.monotonic() - t0
-                log(
-                    f"epoch {epoch + 1}/{config.epochs} step {step + 1}/{steps_per_epoch} "
-                    f"loss {np.mean(losses[-20:]):.5f} (lower is better), lr {scheduler.get_last_lr()[0]:.2e}"
-                    f" | {elapsed / 60:.1f} min this session"
-                )
+            progress.update(losses, scheduler.get_last_lr()[0])
             if time.monotonic() - last_ckpt > config.checkpoint_minutes * 60:
                 state["seconds"] += time.monotonic() - last_ckpt
                 last_ckpt = time.monotonic()
@@ -259,40 +347,93 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
             if config.max_steps is not None and state["global_step"] >= config.max_steps:
                 done = True
                 break
+        progress.close()
         record = {"epoch": epoch + 1, "steps": len(losses), "train_loss": float(np.mean(losses)) if losses else math.nan}
         if test_pairs is not None:
             record["test"] = evaluate(model, test_pairs, config.eval_pairs, device)
+            m = record["test"]
             log(
-                f"epoch {epoch + 1}: test rotation error median {record['test']['rotation_deg_median']:.3f} deg, "
-                f"mean {record['test']['rotation_deg_mean']:.3f} deg (lower is better)"
+                f"epoch {epoch + 1}: {int(m['pairs'])} test pairs, network alone: rotation error median "
+                f"{m['rotation_deg_median']:.3f} deg, mean {m['rotation_deg_mean']:.3f} deg; translation error median "
+                f"{m['translation_median']:.4f} units; recall (5 deg, 0.05) {100 * m['recall_5deg']:.1f} % "
+                "(errors: lower is better; recall: higher is better)"
             )
         if state["step_in_epoch"] >= steps_per_epoch:
             state["history"].append(record)
             state["epoch"] += 1
             state["step_in_epoch"] = 0
             state["epoch_losses"] = []
+            state.pop("partial", None)
         else:
             state["partial"] = record
         state["seconds"] += time.monotonic() - last_ckpt
         last_ckpt = time.monotonic()
         checkpoint()
 
-    model_path = export_torchscript(model, config.net, out / "model.pt", info={"protocol": config.protocol, "epochs_completed": state["epoch"]})
-    card = {
-        "model_file": model_path.name,
-        "sha256": sha256_of(model_path),
-        "config": config.to_dict(),
-        "dataset": "ModelNet40 (official HDF5 layout), train split" + (f", first {config.limit_train} shapes" if config.limit_train else ""),
-        "protocol": asdict(protocol),
-        "epochs_completed": state["epoch"],
-        "steps": state["global_step"],
-        "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
-        "initialised_from": init_record,
-        "parameters": count_parameters(model),
-        "torch_version": torch.__version__,
-        "training_seconds": round(state["seconds"], 1),
-        "device": str(device),
-    }
-    (out / "model_card.json").write_text(json.dumps(card, indent=2))
-    log(f"wrote {model_path} and {out / 'model_card.json'}")
-    return model_path
+    identical = None
+    if world > 1:
+        identical = _replicas_identical(model)
+        log(f"{world} processes: replicas identical after training: {identical}")
+    if lead:
+        model_path = export_torchscript(model, config.net, out / "model.pt", info={"protocol": config.protocol, "epochs_completed": state["epoch"]})
+        card = {
+            "model_file": model_path.name,
+            "sha256": sha256_of(model_path),
+            "config": config.to_dict(),
+            "dataset": f"ModelNet40 train split ({train_pairs.shapes.points.shape[0]} shapes, {train_pairs.shapes.points.shape[1]} points each)"
+                       + (f", first {config.limit_train} shapes" if config.limit_train else ""),
+            "evaluated_on": f"ModelNet40 test split, first {config.eval_pairs} pairs of the protocol (seed {config.seed + 1})" if config.eval_pairs else None,
+            "protocol": asdict(protocol),
+            "epochs_completed": state["epoch"],
+            "steps": state["global_step"],
+            "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
+            "initialised_from": init_record,
+            "parameters": count_parameters(model),
+            "torch_version": torch.__version__,
+            "training_seconds": round(state["seconds"], 1),
+            "device": str(device),
+            "world_size": world,
+            "replicas_identical": identical,
+        }
+        with atomic_output(out / "model_card.json") as tmp:
+            tmp.write_text(json.dumps(card, indent=2))
+        log(f"wrote {model_path} and {out / 'model_card.json'}")
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.barrier()
+        dist.destroy_process_group()
+    return out / "model.pt"
+
+
+class _Progress:
+    """A progress bar (on a terminal) or a log line every 20 steps: loss, pairs/s, learning rate."""
+
+    def __init__(self, lead: bool, epoch: int, config: TrainConfig, steps: int, start: int, world: int, log: Callable[[str], None]) -> None:
+        self.epoch, self.config, self.steps, self.world, self.log = epoch, config, steps, world, log
+        self.step = start
+        self.t0 = time.monotonic()
+        self.done_here = 0
+        self.bar = None
+        if lead and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=steps, initial=start, desc=f"epoch {epoch + 1}/{config.epochs}", unit="step", file=sys.stderr, dynamic_ncols=True)
+
+    def update(self, losses: Sequence[float], lr: float) -> None:
+        self.step += 1
+        self.done_here += 1
+        rate = self.done_here * self.config.batch_size * self.world / max(time.monotonic() - self.t0, 1e-9)
+        loss = float(np.mean(losses[-20:]))
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"loss {loss:.5f} (lower is better), {rate:.1f} pairs/s, lr {lr:.2e}", refresh=False)
+            self.bar.update(1)
+        elif self.step % 20 == 0 or self.step == self.steps:
+            self.log(
+                f"epoch {self.epoch + 1}/{self.config.epochs} step {self.step}/{self.steps} loss {loss:.5f} (lower is better), "
+                f"{rate:.2f} pairs/s, lr {lr:.2e}, {(time.monotonic() - self.t0) / 60:.1f} min"
+            )
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

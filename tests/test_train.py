@@ -6,7 +6,7 @@ from click.testing import CliRunner
 
 from o3dsoft.cli.main import main
 from o3dsoft.coarse import load_model, sha256_of
-from o3dsoft.errors import InputError
+from o3dsoft.errors import InputError, O3dsoftError
 from o3dsoft.model import NetConfig
 from o3dsoft.train import TrainConfig, train
 
@@ -48,7 +48,7 @@ def test_cosine_schedule_ends_at_lr_min(modelnet_root, tmp_path):
     train(_config(modelnet_root, tmp_path, eval_pairs=0, limit_train=8, epochs=2, lr_schedule="cosine", lr_min=1e-5), log=lambda m: None)
     ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     assert ckpt["scheduler"]["_last_lr"][0] == pytest.approx(1e-5)
-    with pytest.raises(InputError, match="unknown lr_schedule 'step'"):
+    with pytest.raises(InputError, match="lr_schedule = .step. must be one of constant, cosine"):
         train(_config(modelnet_root, tmp_path / "x", lr_schedule="step"))
 
 
@@ -86,3 +86,41 @@ def test_train_cli_missing_data(tmp_path, monkeypatch):
     assert r.exit_code == 1 and "O3DSOFT_DATA" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(main, ["train", "--protocol", "bogus"])
     assert r.exit_code == 1 and "unknown protocol 'bogus'" in r.output
+
+
+def test_disk_full_while_checkpointing_keeps_the_last_good_checkpoint(modelnet_root, tmp_path, monkeypatch):
+    import o3dsoft.train as train_module
+
+    train(_config(modelnet_root, tmp_path, max_steps=1, eval_pairs=0), log=lambda m: None)
+    before = (tmp_path / "checkpoint.pt").read_bytes()
+
+    def full_disk(obj, path):
+        with open(path, "wb") as f:
+            f.write(b"PK\x03\x04 half a checkpoint")
+        raise RuntimeError("PytorchStreamWriter failed writing file data/0: file write failed")
+
+    monkeypatch.setattr(train_module.torch, "save", full_disk)
+    with pytest.raises(O3dsoftError, match="could not write the checkpoint .*the previous checkpoint is unchanged"):
+        train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
+    assert (tmp_path / "checkpoint.pt").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt", "config.json", "config.yaml", "model.pt", "model_card.json"]
+
+
+def test_two_processes_under_torchrun_stay_identical(modelnet_root, tmp_path):
+    import subprocess
+    import sys
+
+    config = tmp_path / "tiny.yaml"
+    config.write_text(f"net:\n  k: {TINY.k}\n  radius: {TINY.radius}\n  channels: {list(TINY.channels)}\n")
+    out = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "-m", "o3dsoft.cli.main",
+           "train", "--config", str(config), "--data", str(modelnet_root), "--out", str(out), "--limit-train", "16",
+           "--batch-size", "2", "--max-steps", "3", "--eval-pairs", "2", "--epochs", "1"]
+    env = {**__import__("os").environ, "OMP_NUM_THREADS": "1"}
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    card = json.loads((out / "model_card.json").read_text())
+    assert card["world_size"] == 2 and card["replicas_identical"] is True and card["steps"] == 3
+    assert r.stderr.count("wrote ") == 1  # only rank 0 writes and logs
+    ckpt = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert ckpt["world_size"] == 2
