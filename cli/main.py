@@ -217,11 +217,108 @@ def train(ctx, config_file, resume, radius, k, separate_encoders, **options):
     run_train(config, resume=resume, log=lambda m: click.echo(m, err=True))
 
 
-@main.command()
-@_friendly_errors
+@main.group()
 def bench():
-    """Benchmark methods on ModelNet40 protocols (not available in this version)."""
-    raise O3dsoftError("'o3dsoft bench' is not available in this version yet")
+    """Compare o3dsoft with Open3D's ICP, FPFH + RANSAC and FGR on the same pairs."""
+
+
+def _bench_options(fn):
+    """Options shared by every bench command."""
+    from ..bench import METHODS
+
+    options = [
+        click.option("--method", "methods", multiple=True, help=f"Methods to run (repeat the option; default all): {', '.join(METHODS)}."),
+        click.option("--weights", type=click.Path(path_type=Path), help="TorchScript model file (default: the shipped model)."),
+        click.option("--device", default="cpu", show_default=True, help="Torch device of the network."),
+        click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC."),
+        click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
+        click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
+        click.option("--no-progress", is_flag=True, help="No progress bar."),
+    ]
+    for option in reversed(options):
+        fn = option(fn)
+    return fn
+
+
+def _run_bench(name, pairs, count, methods, weights, device, seed, out, overwrite, no_progress, description, recall=None):
+    from dataclasses import replace
+
+    from ..bench import BenchConfig, check_methods, prepare_folder, run
+    from ..coarse import load_model
+    from ..pipeline import RegisterConfig
+
+    config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed,
+                         register=RegisterConfig(weights=str(weights) if weights else None, device=device))
+    if recall is not None:
+        config = replace(config, recall=recall)
+    needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
+    model = load_model(config.register.weights, device) if needs_model else None
+    folder = prepare_folder(out or Path("runs") / f"bench-{name}-{time.strftime('%Y%m%d-%H%M%S')}", overwrite)
+    result = run(pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True))
+    click.echo(result.table)
+    click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
+    if result.interrupted:
+        click.echo("Interrupted: the table covers the pairs finished before Ctrl-C.", err=True)
+        sys.exit(130)
+
+
+@bench.command("modelnet40")
+@click.option("--protocol", "protocols", multiple=True, help="Protocols (repeat the option; default all of DESIGN section 4).")
+@click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N test pairs of each protocol.")
+@click.option("--data", help="ModelNet40 folder; default $O3DSOFT_DATA.")
+@click.option("--export-pairs", type=click.Path(path_type=Path), help="Also write the pairs to this .npz (for other tools).")
+@click.option("--import-pairs", type=click.Path(path_type=Path), help="Score the pairs of this .npz instead of making them.")
+@_bench_options
+@_friendly_errors
+def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, methods, weights, device, seed, out, overwrite, no_progress):
+    """Every method on the ModelNet40 test pairs of each protocol: table, CSV, JSON, plots."""
+    from ..bench import BENCH_PROTOCOLS, check_methods, export_pairs as write_pairs, import_pairs as read_pairs, modelnet_pairs
+    from ..data import get_protocol
+
+    check_methods(methods)
+    if import_pairs:
+        pairs = read_pairs(import_pairs)
+        count, iterator = len(pairs), iter(pairs)
+        description = {"benchmark": "pairs file", "pairs_file": str(import_pairs)}
+    else:
+        protocols = protocols or BENCH_PROTOCOLS
+        for name in protocols:
+            get_protocol(name)
+        count, iterator = modelnet_pairs(data, protocols, limit, seed)
+        description = {"benchmark": "modelnet40", "protocols": list(protocols), "limit": limit, "data": data, "seed": seed}
+        if export_pairs:
+            pairs = list(iterator)
+            write_pairs(export_pairs, pairs)
+            click.echo(f"wrote {len(pairs)} pairs to {export_pairs}", err=True)
+            iterator = iter(pairs)
+    _run_bench("modelnet40", iterator, count, methods, weights, device, seed, out, overwrite, no_progress, description)
+
+
+@bench.command("bunny")
+@click.option("--data", type=click.Path(path_type=Path), default=None, help="Folder with scans and their .conf (default ../shared/data/stanford_bunny or $O3DSOFT_SCANS).")
+@click.option("--min-overlap", type=click.FloatRange(0, 1), default=0.3, show_default=True, help="Keep ordered scan pairs with at least this ground-truth overlap.")
+@click.option("--recall-translation", type=click.FloatRange(min=0, min_open=True), default=0.002, show_default=True, help="Translation threshold of the 1-degree recall, in the scans' units (metres for the bunny); x5 for the 5-degree one.")
+@_bench_options
+@_friendly_errors
+def bench_bunny(data, min_overlap, recall_translation, methods, weights, device, seed, out, overwrite, no_progress):
+    """Every method on every overlapping pair of real scans (Stanford .conf ground truth)."""
+    import os
+
+    from ..bench import check_methods, scan_pairs
+    from ..errors import UsageError
+
+    check_methods(methods)
+    folder = data or (Path(os.environ["O3DSOFT_SCANS"]) if "O3DSOFT_SCANS" in os.environ else Path("../shared/data/stanford_bunny"))
+    if not folder.is_dir():
+        raise UsageError(f"{folder}: no such folder of scans; pass --data FOLDER (scans + a Stanford .conf)")
+    pairs, table = scan_pairs(folder, min_overlap)
+    kept = sum(r["kept"] for r in table)
+    click.echo(f"{kept} of {len(table)} ordered scan pairs have a ground-truth overlap of at least {min_overlap:.0%} (share of source points within 1 % of the scale of a target point)", err=True)
+    if not pairs:
+        raise UsageError(f"no scan pair in {folder} reaches --min-overlap {min_overlap}")
+    description = {"benchmark": "scans", "folder": str(folder), "min_overlap": min_overlap, "pairs": table}
+    recall = ((1.0, recall_translation), (5.0, 5 * recall_translation))
+    _run_bench("scans", iter(pairs), len(pairs), methods, weights, device, seed, out, overwrite, no_progress, description, recall)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -100,12 +100,16 @@ def modified_chamfer_distance(
     return float(np.mean(d_src**2) + np.mean(d_tgt**2))
 
 
-def summarise(errors: "list[PairErrors]") -> Dict[str, float]:
+MODELNET_RECALL = ((1.0, 0.01), (5.0, 0.05))
+
+
+def summarise(errors: "list[PairErrors]", recall: "tuple" = MODELNET_RECALL) -> Dict[str, float]:
     """Summary over pairs: DCP's Euler/translation MSE, RMSE, MAE; isotropic mean/median; recall.
 
-    Recall is the share of pairs (0-1, higher is better) with rotation error < 1 degree and
-    translation error < 0.01 (``recall_1deg``), and < 5 degrees and < 0.05 (``recall_5deg``);
-    the translation thresholds are in cloud units (ModelNet40 shapes have radius 1).
+    Recall is the share of pairs (0-1, higher is better) within both thresholds of each entry of
+    `recall` ((degrees, cloud units)); by default rotation error < 1 degree and translation error
+    < 0.01 (``recall_1deg``), and < 5 degrees and < 0.05 (``recall_5deg``), for ModelNet40's
+    radius-1 shapes.
     """
     if not errors:
         return {}
@@ -129,6 +133,5 @@ def summarise(errors: "list[PairErrors]") -> Dict[str, float]:
         "rotation_l2_mean": float(np.mean([e.rotation_l2 for e in errors])),
         "translation_l1_mean": float(np.mean([e.translation_l1 for e in errors])),
         "translation_l2_mean": float(np.mean([e.translation_l2 for e in errors])),
-        "recall_1deg": float(np.mean((rot < 1.0) & (trans < 0.01))),
-        "recall_5deg": float(np.mean((rot < 5.0) & (trans < 0.05))),
+        **{f"recall_{deg:g}deg": float(np.mean((rot < deg) & (trans < dist))) for deg, dist in recall},
     }

@@ -1,0 +1,506 @@
+"""Benchmark harness: every method on the very same pairs, scored with the metrics of DESIGN §4.
+
+Pairs come from ModelNet40 under the protocols of :mod:`o3dsoft.data`, from real scans with a
+``.conf`` of ground-truth poses (:func:`scan_pairs`), or from a pairs file
+(:func:`import_pairs`). Each pair is run through the chosen methods; one row per (pair, method)
+holds the errors and the time of each stage. :func:`run` writes the run folder (per-pair CSV,
+JSON summary, the config, versions, plots).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import platform
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
+
+import numpy as np
+
+from . import baselines
+from . import refine as refine_stage
+from .coarse import CoarseModel, sha256_of
+from .data import get_protocol, load_pairs
+from .errors import InputError, UsageError
+from .io import atomic_output
+from .metrics import MODELNET_RECALL, PairErrors, modified_chamfer_distance, pair_errors, summarise
+from .pipeline import RegisterConfig, register
+from .preprocess import normalisation_for
+from .transforms import apply_transform, rotation_angle_deg
+
+METHODS: Dict[str, str] = {
+    "o3dsoft-coarse": "o3dsoft network alone",
+    "o3dsoft": "o3dsoft network + ICP",
+    "icp": "Open3D ICP from the identity",
+    "fpfh-ransac": "Open3D FPFH + RANSAC",
+    "fpfh-ransac+icp": "Open3D FPFH + RANSAC + ICP",
+    "fgr": "Open3D FPFH + FGR",
+    "fgr+icp": "Open3D FPFH + FGR + ICP",
+}
+# ModelNet40 categories whose shapes are (nearly) rotationally symmetric, where a rotation error
+# about the axis is meaningless; excluded in the second row of each protocol, as OMNet does.
+SYMMETRIC_CATEGORIES = ("bottle", "bowl", "cone", "cup", "flower_pot", "lamp", "tent", "vase")
+# The protocols of DESIGN section 4 (wide45, the shipped model's training range, is extra).
+BENCH_PROTOCOLS = ("paper", "dcp", "dcp-unseen", "dcp-noise", "rpmnet-crop", "so3", "so3-crop")
+STAGES = ("features", "coarse", "ransac", "fgr", "icp", "total")
+PAIRS_FORMAT = "o3dsoft-pairs"
+
+
+@dataclass
+class BenchConfig:
+    """Settings of a benchmark run (saved as config.json in the run folder).
+
+    Attributes:
+        methods: names from METHODS, in the order of the table.
+        register: o3dsoft's settings (its ICP is also the one after every '+icp' baseline).
+        identity_icp: Open3D ICP from the identity: correspondence distance, relative to the
+            pair's scale, refined over the same schedule.
+        global_: FPFH + RANSAC / FGR settings.
+        seed: seed of the pairs and of RANSAC.
+        recall: (degrees, distance in cloud units) thresholds of the recall columns.
+    """
+
+    methods: Tuple[str, ...] = tuple(METHODS)
+    register: RegisterConfig = field(default_factory=RegisterConfig)
+    identity_icp: refine_stage.ICPConfig = field(default_factory=lambda: refine_stage.ICPConfig(distance=0.2))
+    global_: baselines.GlobalConfig = field(default_factory=baselines.GlobalConfig)
+    seed: int = 0
+    recall: Tuple[Tuple[float, float], ...] = MODELNET_RECALL
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def check_methods(names: Sequence[str]) -> Tuple[str, ...]:
+    """The names, checked; UsageError listing the valid ones otherwise."""
+    bad = [n for n in names if n not in METHODS]
+    if bad:
+        raise UsageError(f"unknown method {bad[0]!r}; valid: {', '.join(METHODS)}")
+    return tuple(dict.fromkeys(names))
+
+
+class BenchPair(NamedTuple):
+    """One problem: target ~ transform @ source.
+
+    source (N, 3), target (M, 3); transform (4, 4) T_target_source; protocol and index name the
+    pair; category is the shape's (or the scan pair's) name; clean_target (L, 3): the complete,
+    noise-free target for the modified Chamfer distance (None: the target itself).
+    """
+
+    protocol: str
+    index: int
+    source: np.ndarray
+    target: np.ndarray
+    transform: np.ndarray
+    category: str
+    clean_target: Optional[np.ndarray] = None
+
+    @property
+    def initial_angle(self) -> float:
+        return rotation_angle_deg(self.transform[:3, :3])
+
+
+# --------------------------------------------------------------------------------------------
+# Pair sources
+# --------------------------------------------------------------------------------------------
+def modelnet_pairs(data: Optional[str], protocols: Sequence[str], limit: Optional[int], seed: int) -> Tuple[int, Iterator[BenchPair]]:
+    """(count, iterator) of the test pairs of each protocol, the first `limit` of each."""
+    datasets = []
+    for name in protocols:
+        ds = load_pairs(data, "test", get_protocol(name), seed)
+        datasets.append((name, ds, len(ds) if limit is None else min(limit, len(ds))))
+
+    def generate() -> Iterator[BenchPair]:
+        for name, ds, n in datasets:
+            for i in range(n):
+                p = ds[i]
+                clean = apply_transform(p.transform, ds.shapes.points[i].astype(np.float64))
+                yield BenchPair(name, i, p.source, p.target, p.transform, ds.shapes.categories[p.label], clean)
+
+    return sum(n for _, _, n in datasets), generate()
+
+
+def scan_pairs(folder: Path, min_overlap: float) -> Tuple[List[BenchPair], List[dict]]:
+    """Every ordered pair of scans of `folder` whose ground-truth overlap is >= `min_overlap`.
+
+    The folder holds one ``.conf`` file (Stanford format, :mod:`o3dsoft.scans`) and the scans it
+    names. Overlap = share of the source's points within 0.01 x scale (1 mm on the bunny) of a
+    target point once placed by the ground truth.
+
+    Returns:
+        (pairs, table of every ordered pair with its overlap and whether it was kept).
+    """
+    from scipy.spatial import cKDTree
+
+    from .io import read_points
+    from .scans import read_conf, relative_pose
+
+    folder = Path(folder)
+    confs = sorted(folder.glob("*.conf"))
+    if len(confs) != 1:
+        raise InputError(f"{folder}: expected one .conf file of scan poses, found {len(confs)}")
+    poses = read_conf(confs[0])
+    clouds = {}
+    for name in poses:
+        path = folder / name if Path(name).suffix else folder / f"{name}.ply"
+        if not path.is_file():
+            raise InputError(f"{confs[0]}: scan {name!r} has no file {path.name} in {folder}")
+        clouds[name] = read_points(path)
+    trees = {name: cKDTree(points) for name, points in clouds.items()}
+    pairs, table = [], []
+    for s in poses:
+        for t in poses:
+            if s == t:
+                continue
+            T = relative_pose(poses, s, t)
+            scale = normalisation_for(clouds[s], clouds[t]).scale
+            d, _ = trees[t].query(apply_transform(T, clouds[s]), distance_upper_bound=0.01 * scale)
+            overlap = float(np.mean(np.isfinite(d)))
+            keep = overlap >= min_overlap
+            table.append({"source": s, "target": t, "overlap": overlap, "kept": keep})
+            if keep:
+                pairs.append(BenchPair("scans", len(pairs), clouds[s], clouds[t], T, f"{s}->{t}"))
+    return pairs, table
+
+
+def export_pairs(path: Path, pairs: Sequence[BenchPair]) -> None:
+    """Write pairs to an .npz any tool can read: points concatenated with offsets.
+
+    Keys: format, source_points (sum N, 3), source_offsets (P + 1), target_points, target_offsets,
+    transform (P, 4, 4) T_target_source, protocol (P,) str, index (P,), category (P,) str.
+    """
+    def offsets(clouds):
+        return np.concatenate([[0], np.cumsum([len(c) for c in clouds])]).astype(np.int64)
+
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(
+                f,
+                format=np.array(PAIRS_FORMAT),
+                source_points=np.concatenate([p.source for p in pairs]).astype(np.float32),
+                source_offsets=offsets([p.source for p in pairs]),
+                target_points=np.concatenate([p.target for p in pairs]).astype(np.float32),
+                target_offsets=offsets([p.target for p in pairs]),
+                transform=np.stack([p.transform for p in pairs]).astype(np.float64),
+                protocol=np.array([p.protocol for p in pairs]),
+                index=np.array([p.index for p in pairs], dtype=np.int64),
+                category=np.array([p.category for p in pairs]),
+            )
+
+
+def import_pairs(path: Path) -> List[BenchPair]:
+    """Read a pairs file written by :func:`export_pairs` (or by any tool in that format).
+
+    Raises:
+        UsageError: no such file.
+        InputError: not an .npz, a missing key, or arrays of inconsistent shapes (named).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UsageError(f"{path}: no such pairs file")
+    try:
+        z = np.load(path, allow_pickle=False)
+    except Exception as e:  # numpy raises several types for non-npz files
+        raise InputError(f"{path}: not a pairs file (.npz): {e}") from None
+    need = ("source_points", "source_offsets", "target_points", "target_offsets", "transform", "protocol", "index")
+    missing = [k for k in need if k not in z.files]
+    if missing:
+        raise InputError(f"{path}: missing array(s) {', '.join(missing)}; a pairs file has {', '.join(need)}")
+    P = len(z["transform"])
+    for side in ("source", "target"):
+        pts, off = z[f"{side}_points"], z[f"{side}_offsets"]
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise InputError(f"{path}: {side}_points must be (N, 3), got {pts.shape}")
+        if off.shape != (P + 1,) or off[0] != 0 or off[-1] != len(pts) or np.any(np.diff(off) <= 0):
+            raise InputError(f"{path}: {side}_offsets must rise from 0 to {len(pts)} in {P + 1} steps")
+    if z["transform"].shape != (P, 4, 4) or z["protocol"].shape != (P,) or z["index"].shape != (P,):
+        raise InputError(f"{path}: transform must be (P, 4, 4) with one protocol and index per pair")
+    category = z["category"] if "category" in z.files else np.array([""] * P)
+    s_off, t_off = z["source_offsets"], z["target_offsets"]
+    return [
+        BenchPair(str(z["protocol"][i]), int(z["index"][i]),
+                  z["source_points"][s_off[i]:s_off[i + 1]].astype(np.float64),
+                  z["target_points"][t_off[i]:t_off[i + 1]].astype(np.float64),
+                  z["transform"][i].astype(np.float64), str(category[i]))
+        for i in range(P)
+    ]
+
+
+# --------------------------------------------------------------------------------------------
+# Running the methods
+# --------------------------------------------------------------------------------------------
+class MethodResult(NamedTuple):
+    """One method on one pair: its estimate and the time of each stage (ms)."""
+
+    method: str
+    transform: np.ndarray
+    times_ms: Dict[str, float]
+
+
+def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel]) -> List[MethodResult]:
+    """Run every method of `config` on one pair."""
+    methods = config.methods
+    src, tgt = pair.source.astype(np.float64), pair.target.astype(np.float64)
+    scale = normalisation_for(src, tgt).scale
+    icp_distance = config.register.icp.distance_for(scale)
+    out: Dict[str, MethodResult] = {}
+
+    def clock() -> float:
+        return time.perf_counter() * 1000.0
+
+    if {"o3dsoft", "o3dsoft-coarse"} & set(methods):
+        result = register(src, tgt, config.register, model=model)
+        t = result.timings_ms
+        coarse_ms = t["clean"] + t["sample_normalise"] + t["coarse"]
+        out["o3dsoft-coarse"] = MethodResult("o3dsoft-coarse", result.coarse_transformation, {"coarse": coarse_ms, "total": coarse_ms})
+        out["o3dsoft"] = MethodResult("o3dsoft", result.transformation, {"coarse": coarse_ms, "icp": t["refine"], "total": coarse_ms + t["refine"]})
+    if "icp" in methods:
+        t0 = clock()
+        T = refine_stage.icp(src, tgt, np.eye(4), config.identity_icp.distance_for(scale), config.identity_icp).transformation
+        out["icp"] = MethodResult("icp", T, {"icp": clock() - t0, "total": clock() - t0})
+    if {"fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp"} & set(methods):
+        t0 = clock()
+        fs = baselines.fpfh_features(src, scale, config.global_)
+        ft = baselines.fpfh_features(tgt, scale, config.global_)
+        features_ms = clock() - t0
+        for name, solve in (("fpfh-ransac", lambda: baselines.ransac(fs, ft, scale, config.seed + pair.index, config.global_)),
+                            ("fgr", lambda: baselines.fgr(fs, ft, scale, config.global_))):
+            if name not in methods and f"{name}+icp" not in methods:
+                continue
+            stage = "ransac" if name == "fpfh-ransac" else "fgr"
+            t0 = clock()
+            T = solve()
+            solve_ms = clock() - t0
+            out[name] = MethodResult(name, T, {"features": features_ms, stage: solve_ms, "total": features_ms + solve_ms})
+            if f"{name}+icp" in methods:
+                t0 = clock()
+                T_fine = refine_stage.icp(src, tgt, T, icp_distance, config.register.icp).transformation
+                icp_ms = clock() - t0
+                out[f"{name}+icp"] = MethodResult(f"{name}+icp", T_fine, {"features": features_ms, stage: solve_ms, "icp": icp_ms,
+                                                                          "total": features_ms + solve_ms + icp_ms})
+    return [out[m] for m in methods]
+
+
+def score(pair: BenchPair, result: MethodResult) -> Tuple[dict, PairErrors]:
+    """The CSV row of one method on one pair, and its errors."""
+    e = pair_errors(result.transform, pair.transform)
+    chamfer = modified_chamfer_distance(pair.source, pair.target, result.transform, pair.transform, pair.clean_target)
+    row = {
+        "protocol": pair.protocol, "index": pair.index, "category": pair.category,
+        "symmetric": pair.category in SYMMETRIC_CATEGORIES, "initial_angle_deg": round(pair.initial_angle, 4),
+        "method": result.method, "rotation_deg": e.rotation_deg, "translation": e.translation,
+        "rotation_l1": e.rotation_l1, "rotation_l2": e.rotation_l2, "translation_l1": e.translation_l1, "translation_l2": e.translation_l2,
+        "euler_abs_x_deg": e.euler_abs_deg[0], "euler_abs_y_deg": e.euler_abs_deg[1], "euler_abs_z_deg": e.euler_abs_deg[2],
+        "chamfer": chamfer,
+    }
+    for stage in STAGES:
+        row[f"time_{stage}_ms"] = result.times_ms.get(stage, "")
+    row["transform"] = " ".join(f"{v:.9g}" for v in result.transform.reshape(-1))
+    return row, e
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries, table, files
+# --------------------------------------------------------------------------------------------
+def summarise_rows(rows: Sequence[dict], errors: Sequence[PairErrors], config: BenchConfig) -> List[dict]:
+    """One summary per (protocol, subset, method); subsets: all categories, and without the
+    symmetric ones where the protocol has any."""
+    out = []
+    protocols = list(dict.fromkeys(r["protocol"] for r in rows))
+    for protocol in protocols:
+        idx = [i for i, r in enumerate(rows) if r["protocol"] == protocol]
+        subsets = [("all", idx)]
+        if any(rows[i]["symmetric"] for i in idx):
+            subsets.append(("no symmetric", [i for i in idx if not rows[i]["symmetric"]]))
+        for subset, chosen in subsets:
+            for method in config.methods:
+                sel = [i for i in chosen if rows[i]["method"] == method]
+                if not sel:
+                    continue
+                total = np.array([rows[i]["time_total_ms"] for i in sel], dtype=float)
+                summary = {"protocol": protocol, "subset": subset, "method": method, **summarise([errors[i] for i in sel], config.recall)}
+                summary["chamfer_mean"] = float(np.mean([rows[i]["chamfer"] for i in sel]))
+                summary["time_ms_median"] = float(np.median(total))
+                summary["time_ms_p90"] = float(np.percentile(total, 90))
+                for stage in STAGES[:-1]:
+                    values = [rows[i][f"time_{stage}_ms"] for i in sel if rows[i][f"time_{stage}_ms"] != ""]
+                    if values:
+                        summary[f"time_{stage}_ms_median"] = float(np.median(values))
+                out.append(summary)
+    return out
+
+
+def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]]) -> str:
+    """The table a person reads: one block per protocol and subset, one row per method."""
+    (d1, t1), (d5, t5) = recall[0], recall[-1]
+    head = (f"{'method':18s} {'pairs':>5s} {'rot mean':>9s} {'rot med':>9s} {'trans mean':>10s} {'Euler RMSE':>10s} "
+            f"{f'recall {d1:g}d/{t1:g}':>14s} {f'recall {d5:g}d/{t5:g}':>14s} {'ms median':>9s} {'ms p90':>8s}")
+    units = (f"{'':18s} {'':>5s} {'deg':>9s} {'deg':>9s} {'units':>10s} {'deg':>10s} {'%':>14s} {'%':>14s} {'':>9s} {'':>8s}")
+    lines = ["Errors and times: lower is better; recall: higher is better. Translation in the clouds' units."]
+    block = None
+    for s in summaries:
+        if (s["protocol"], s["subset"]) != block:
+            block = (s["protocol"], s["subset"])
+            title = s["protocol"]
+            if s["subset"] != "all":
+                title += " (without symmetric categories: " + ", ".join(SYMMETRIC_CATEGORIES) + ")"
+            lines += ["", title, head, units]
+        rk = [k for k in s if k.startswith("recall_")]
+        lines.append(
+            f"{s['method']:18s} {int(s['pairs']):>5d} {s['rotation_deg_mean']:>9.3g} {s['rotation_deg_median']:>9.3g} "
+            f"{s['translation_mean']:>10.3g} {s['euler_rmse_deg']:>10.3g} {100 * s[rk[0]]:>14.1f} {100 * s[rk[-1]]:>14.1f} "
+            f"{s['time_ms_median']:>9.1f} {s['time_ms_p90']:>8.1f}"
+        )
+    return "\n".join(lines)
+
+
+def versions() -> Dict[str, str]:
+    """Versions of o3dsoft and what it runs on."""
+    import open3d
+    import torch
+
+    from . import __version__
+
+    return {"o3dsoft": __version__, "torch": torch.__version__, "open3d": open3d.__version__, "numpy": np.__version__,
+            "python": platform.python_version(), "machine": f"{platform.machine()}, {platform.system()}, {__import__('os').cpu_count()} logical CPUs"}
+
+
+def write_csv(path: Path, rows: Sequence[dict]) -> None:
+    with atomic_output(path) as tmp:
+        with open(tmp, "w", newline="") as f:
+            if rows:
+                writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+                writer.writeheader()
+                writer.writerows(rows)
+
+
+def plot(folder: Path, rows: Sequence[dict], config: BenchConfig) -> List[Path]:
+    """cdf_rotation_error.png and recall_vs_angle.png: one panel per protocol, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    protocols = list(dict.fromkeys(r["protocol"] for r in rows))
+    if not protocols:
+        return []
+    deg, dist = config.recall[0]
+    paths = []
+    for kind in ("cdf_rotation_error", "recall_vs_angle"):
+        fig, axes = plt.subplots(1, len(protocols), figsize=(4.5 * len(protocols), 3.8), squeeze=False)
+        for ax, protocol in zip(axes[0], protocols):
+            for method in config.methods:
+                sel = [r for r in rows if r["protocol"] == protocol and r["method"] == method]
+                if not sel:
+                    continue
+                if kind == "cdf_rotation_error":
+                    err = np.sort(np.maximum([r["rotation_deg"] for r in sel], 1e-6))
+                    ax.step(err, np.arange(1, len(err) + 1) / len(err), where="post", label=method)
+                    ax.set_xscale("log")
+                    ax.set_xlabel("rotation error (deg, lower is better)")
+                    ax.set_ylabel("share of pairs with at most this error")
+                else:
+                    angle = np.array([r["initial_angle_deg"] for r in sel])
+                    ok = np.array([(r["rotation_deg"] < deg) and (r["translation"] < dist) for r in sel])
+                    edges = np.linspace(0, max(180.0 if angle.max() > 90 else 90.0, angle.max() + 1e-9), 10)
+                    which = np.clip(np.digitize(angle, edges) - 1, 0, len(edges) - 2)
+                    centres, recall = [], []
+                    for b in range(len(edges) - 1):
+                        if np.any(which == b):
+                            centres.append(0.5 * (edges[b] + edges[b + 1]))
+                            recall.append(100 * ok[which == b].mean())
+                    ax.plot(centres, recall, marker="o", label=method)
+                    ax.set_xlabel("initial rotation angle (deg)")
+                    ax.set_ylabel(f"recall ({deg:g} deg, {dist:g}) %, higher is better")
+            ax.set_title(protocol)
+            ax.grid(alpha=0.3)
+        axes[0][0].legend(fontsize=7)
+        fig.tight_layout()
+        path = folder / f"{kind}.png"
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+class BenchRun(NamedTuple):
+    """What a run produced: the summaries, the folder, and whether Ctrl-C cut it short."""
+
+    summaries: List[dict]
+    folder: Path
+    interrupted: bool
+    table: str
+
+
+def prepare_folder(out: Path, overwrite: bool) -> Path:
+    """Create the run folder; refuse an existing one unless `overwrite`."""
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise UsageError(f"{out}: the output folder exists; choose another --out or pass --overwrite")
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out}: exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def run(
+    pairs: Iterator[BenchPair],
+    count: int,
+    config: BenchConfig,
+    model: Optional[CoarseModel],
+    out: Path,
+    description: dict,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> BenchRun:
+    """Run the methods of `config` on every pair and write the run folder `out` (already created).
+
+    On Ctrl-C, the pairs finished so far are summarised and written, and ``interrupted`` is set.
+    """
+    from tqdm import tqdm
+
+    rows: List[dict] = []
+    errors: List[PairErrors] = []
+    interrupted = False
+    t_start = time.monotonic()
+    bar = tqdm(total=count, unit="pair", disable=None if progress else True, dynamic_ncols=True)  # None: only on a terminal
+    try:
+        for pair in pairs:
+            scored = [score(pair, r) for r in run_methods(pair, config, model)]
+            for row, e in scored:  # appended only once every method is done: no half pairs
+                rows.append(row)
+                errors.append(e)
+            bar.set_postfix_str(pair.protocol, refresh=False)
+            bar.update(1)
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        bar.close()
+    summaries = summarise_rows(rows, errors, config)
+    table = format_table(summaries, config.recall)
+    write_csv(out / "pairs.csv", rows)
+    weights = config.register.weights
+    from .coarse import default_weights_path
+
+    weights_path = Path(weights) if weights else default_weights_path()
+    summary_doc = {
+        "description": description,
+        "interrupted": interrupted,
+        "pairs_completed": len(rows) // max(len(config.methods), 1),
+        "seconds": round(time.monotonic() - t_start, 1),
+        "weights": {"path": str(weights_path), "sha256": sha256_of(weights_path) if model is not None else None},
+        "versions": versions(),
+        "recall_thresholds": [{"rotation_deg": d, "translation": t} for d, t in config.recall],
+        "methods": {m: METHODS[m] for m in config.methods},
+        "summaries": summaries,
+    }
+    with atomic_output(out / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary_doc, indent=2))
+    with atomic_output(out / "config.json") as tmp:
+        tmp.write_text(json.dumps({**description, "bench": config.to_dict()}, indent=2))
+    (out / "table.txt").write_text(table + "\n")
+    plot(out, rows, config)
+    return BenchRun(summaries, out, interrupted, table)

@@ -1,0 +1,149 @@
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from o3dsoft import bench
+from o3dsoft.cli.main import main
+from o3dsoft.coarse import load_model
+from o3dsoft.errors import InputError, UsageError
+from o3dsoft.metrics import pair_errors
+
+from .conftest import EXAMPLES
+
+
+def _bench(args):
+    return CliRunner().invoke(main, ["bench", *args])
+
+
+def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_path):
+    out = tmp_path / "run"
+    r = _bench(["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "2", "--weights", str(tiny_model_path),
+                "--out", str(out), "--export-pairs", str(tmp_path / "pairs.npz")])
+    assert r.exit_code == 0, r.output
+    assert "fpfh-ransac+icp" in r.output and "recall 1d/0.01" in r.output and "lower is better" in r.output
+    rows = list(csv.DictReader(open(out / "pairs.csv")))
+    assert len(rows) == 2 * len(bench.METHODS)
+    assert {r["method"] for r in rows} == set(bench.METHODS)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["pairs_completed"] == 2 and not summary["interrupted"]
+    assert len(summary["weights"]["sha256"]) == 64 and "open3d" in summary["versions"]
+    assert {s["method"] for s in summary["summaries"]} == set(bench.METHODS)
+    assert (out / "cdf_rotation_error.png").stat().st_size > 1000 and (out / "recall_vs_angle.png").is_file()
+    config = json.loads((out / "config.json").read_text())
+    assert config["bench"]["global_"]["voxel"] == 0.05 and config["protocols"] == ["dcp"]
+
+    # The same folder again is refused; --overwrite reuses it.
+    r = _bench(["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--out", str(out)])
+    assert r.exit_code == 2 and "exists" in r.output and "--overwrite" in r.output
+    # Scoring the exported pairs gives the same errors for a deterministic method.
+    r = _bench(["modelnet40", "--import-pairs", str(tmp_path / "pairs.npz"), "--method", "icp", "--out", str(tmp_path / "again")])
+    assert r.exit_code == 0, r.output
+    again = list(csv.DictReader(open(tmp_path / "again" / "pairs.csv")))
+    before = [row for row in rows if row["method"] == "icp"]
+    assert [float(a["rotation_deg"]) for a in again] == pytest.approx([float(b["rotation_deg"]) for b in before], abs=1e-6)
+
+
+def test_pairs_file_round_trip(modelnet_root, tmp_path):
+    count, pairs = bench.modelnet_pairs(str(modelnet_root), ["rpmnet-crop", "dcp"], 2, seed=0)
+    pairs = list(pairs)
+    assert count == 4 and [p.protocol for p in pairs] == ["rpmnet-crop"] * 2 + ["dcp"] * 2
+    bench.export_pairs(tmp_path / "p.npz", pairs)
+    back = bench.import_pairs(tmp_path / "p.npz")
+    for a, b in zip(pairs, back):
+        assert (a.protocol, a.index, a.category) == (b.protocol, b.index, b.category)
+        np.testing.assert_allclose(a.source, b.source, atol=1e-6)
+        np.testing.assert_allclose(a.target, b.target, atol=1e-6)
+        np.testing.assert_array_equal(a.transform, b.transform)
+
+
+def test_bad_pairs_files(tmp_path):
+    with pytest.raises(UsageError, match="no such pairs file"):
+        bench.import_pairs(tmp_path / "none.npz")
+    (tmp_path / "text.npz").write_text("hello")
+    with pytest.raises(InputError, match="not a pairs file"):
+        bench.import_pairs(tmp_path / "text.npz")
+    np.savez(tmp_path / "partial.npz", source_points=np.zeros((3, 3)))
+    with pytest.raises(InputError, match="missing array.*source_offsets"):
+        bench.import_pairs(tmp_path / "partial.npz")
+    np.savez(tmp_path / "offsets.npz", source_points=np.zeros((3, 3)), source_offsets=np.array([0, 5]), target_points=np.zeros((3, 3)),
+             target_offsets=np.array([0, 3]), transform=np.eye(4)[None], protocol=np.array(["x"]), index=np.array([0]))
+    with pytest.raises(InputError, match="source_offsets must rise from 0 to 3"):
+        bench.import_pairs(tmp_path / "offsets.npz")
+
+
+def test_bad_names_and_data(tmp_path, monkeypatch):
+    r = _bench(["modelnet40", "--protocol", "dcpp"])
+    assert r.exit_code == 1 and "unknown protocol 'dcpp'; valid: paper, dcp" in r.output
+    r = _bench(["modelnet40", "--method", "ransac", "--data", str(tmp_path)])
+    assert r.exit_code == 2 and "unknown method 'ransac'; valid: o3dsoft-coarse, o3dsoft, icp" in r.output
+    r = _bench(["modelnet40", "--data", str(tmp_path), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1 and "no ModelNet40 test split here" in r.output and "Traceback" not in r.output
+
+
+def test_interrupted_run_keeps_what_finished(modelnet_root, tmp_path, monkeypatch):
+    count, pairs = bench.modelnet_pairs(str(modelnet_root), ["paper"], 3, seed=0)
+    real = bench.run_methods
+    calls = []
+
+    def interrupt_on_third(pair, config, model):
+        calls.append(pair.index)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(pair, config, model)
+
+    monkeypatch.setattr(bench, "run_methods", interrupt_on_third)
+    config = bench.BenchConfig(methods=("icp",))
+    result = bench.run(pairs, count, config, None, tmp_path, {"benchmark": "test"}, progress=False)
+    assert result.interrupted and result.summaries[0]["pairs"] == 2
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["interrupted"] and summary["pairs_completed"] == 2
+    assert len(list(csv.DictReader(open(tmp_path / "pairs.csv")))) == 2
+
+
+def test_baselines_recover_a_dcp_pair(modelnet_root):
+    _, pairs = bench.modelnet_pairs(str(modelnet_root), ["dcp"], 1, seed=0)
+    pair = next(pairs)
+    results = {r.method: r for r in bench.run_methods(pair, bench.BenchConfig(methods=("fpfh-ransac+icp", "fgr+icp")), None)}
+    for name, r in results.items():
+        e = pair_errors(r.transform, pair.transform)
+        assert e.rotation_deg < 0.1 and e.translation < 1e-3, name
+        assert r.times_ms["total"] >= r.times_ms["features"] > 0
+
+
+@pytest.fixture
+def two_scans(tmp_path):
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for name in ("bun000.ply", "bun045.ply"):
+        shutil.copy(EXAMPLES / name, folder / name)
+    (folder / "bun.conf").write_text(
+        "camera 0 0 0 0 0 0 1\nbmesh bun000.ply 0 0 0 0 0 0 1\n"
+        "bmesh bun045.ply -0.0520211 -0.000383981 -0.0109223 0.00548449 -0.294635 -0.0038555 0.955586\n"
+    )
+    return folder
+
+
+def test_scan_pairs_from_a_conf(two_scans):
+    pairs, table = bench.scan_pairs(two_scans, 0.3)
+    assert [p.category for p in pairs] == ["bun000.ply->bun045.ply", "bun045.ply->bun000.ply"]
+    assert all(0.3 <= row["overlap"] <= 1 for row in table)
+    assert pairs[0].initial_angle == pytest.approx(pairs[1].initial_angle)
+    assert bench.scan_pairs(two_scans, 1.0)[0] == []
+    (two_scans / "bun045.ply").unlink()
+    with pytest.raises(InputError, match="scan 'bun045.ply' has no file"):
+        bench.scan_pairs(two_scans, 0.3)
+
+
+def test_bench_bunny_command(two_scans, tmp_path):
+    r = _bench(["bunny", "--data", str(two_scans), "--method", "o3dsoft", "--method", "icp", "--out", str(tmp_path / "b")])
+    assert r.exit_code == 0, r.output
+    assert "2 of 2 ordered scan pairs" in r.output and "recall 1d/0.002" in r.output
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    o3d_row = [s for s in summary["summaries"] if s["method"] == "o3dsoft"][0]
+    assert o3d_row["rotation_deg_median"] < 2.0  # the shipped model + ICP on real scans 45 degrees apart
+    r = _bench(["bunny", "--data", str(tmp_path / "nowhere")])
+    assert r.exit_code == 2 and "no such folder of scans" in r.output
