@@ -1,7 +1,7 @@
 """Accuracy of a model on ModelNet40 test pairs: the network alone and followed by ICP.
 
     python -m benchmarks.eval_model [--weights weights/o3dsoft_default.pt] [--protocol paper dcp]
-        [--limit 300] [--data ../shared/data/modelnet40_ply_hdf5_1024] [--seed 0]
+        [--limit 300] [--data ../shared/data/modelnet40_ply_hdf5_1024] [--seed 0] [--iterations 1 2]
 
 Prints one JSON object per protocol and stage with the summary of o3dsoft.metrics.summarise
 (isotropic rotation error in degrees, translation error in shape units, DCP's Euler RMSE/MAE,
@@ -24,11 +24,11 @@ from o3dsoft.pipeline import RegisterConfig, register
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 
 
-def evaluate_protocol(model, data: str, protocol: str, limit: int, seed: int) -> dict:
+def evaluate_protocol(model, data: str, protocol: str, limit: int, seed: int, iterations: int = 1) -> dict:
     pairs = load_pairs(data, "test", get_protocol(protocol), seed)
     n = min(limit, len(pairs)) if limit else len(pairs)
     coarse, fine, times = [], [], []
-    config = RegisterConfig()
+    config = RegisterConfig(coarse_iterations=iterations)
     for i in range(n):
         p = pairs[i]
         t0 = time.perf_counter()
@@ -39,6 +39,7 @@ def evaluate_protocol(model, data: str, protocol: str, limit: int, seed: int) ->
     return {
         "protocol": protocol,
         "pairs": n,
+        "coarse_iterations": iterations,
         "network": summarise(coarse),
         "network+icp": summarise(fine),
         "median_ms_per_pair": statistics.median(times),
@@ -52,10 +53,12 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=300, help="first N test pairs (0: all 2,468)")
     ap.add_argument("--data", default=str(DEFAULT_DATA))
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--iterations", type=int, nargs="+", default=[1], help="network passes of the coarse stage (several: one run each)")
     args = ap.parse_args()
     model = load_model(args.weights)
     for protocol in args.protocol:
-        print(json.dumps(evaluate_protocol(model, args.data, protocol, args.limit, args.seed)), flush=True)
+        for iterations in args.iterations:
+            print(json.dumps(evaluate_protocol(model, args.data, protocol, args.limit, args.seed, iterations)), flush=True)
 
 
 if __name__ == "__main__":

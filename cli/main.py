@@ -49,11 +49,12 @@ def main() -> None:
 @click.option("--icp-distance", type=click.FloatRange(min=0, min_open=True), default=0.1, show_default=True, help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.")
 @click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
+@click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="Network passes, each on the source moved by the estimate so far (more: closer start for ICP, slower).")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, mesh_points, device, render_path):
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -78,6 +79,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     read_ms = (time.perf_counter() - t0) * 1000.0
     config = RegisterConfig(
         num_points=num_points,
+        coarse_iterations=coarse_iterations,
         refine=not no_refine,
         icp=ICPConfig(distance=icp_distance, absolute=icp_absolute),
         weights=str(weights) if weights else None,
@@ -231,6 +233,7 @@ def _bench_options(fn):
         click.option("--weights", type=click.Path(path_type=Path), help="TorchScript model file (default: the shipped model)."),
         click.option("--device", default="cpu", show_default=True, help="Torch device of the network."),
         click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC."),
+        click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
@@ -240,7 +243,7 @@ def _bench_options(fn):
     return fn
 
 
-def _run_bench(name, pairs, count, methods, weights, device, seed, out, overwrite, no_progress, description, recall=None):
+def _run_bench(name, pairs, count, methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress, description, recall=None):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -248,7 +251,7 @@ def _run_bench(name, pairs, count, methods, weights, device, seed, out, overwrit
     from ..pipeline import RegisterConfig
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed,
-                         register=RegisterConfig(weights=str(weights) if weights else None, device=device))
+                         register=RegisterConfig(weights=str(weights) if weights else None, device=device, coarse_iterations=coarse_iterations))
     if recall is not None:
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
@@ -270,7 +273,7 @@ def _run_bench(name, pairs, count, methods, weights, device, seed, out, overwrit
 @click.option("--import-pairs", type=click.Path(path_type=Path), help="Score the pairs of this .npz instead of making them.")
 @_bench_options
 @_friendly_errors
-def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, methods, weights, device, seed, out, overwrite, no_progress):
+def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress):
     """Every method on the ModelNet40 test pairs of each protocol: table, CSV, JSON, plots."""
     from ..bench import BENCH_PROTOCOLS, check_methods, export_pairs as write_pairs, import_pairs as read_pairs, modelnet_pairs
     from ..data import get_protocol
@@ -291,7 +294,7 @@ def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, methods
             write_pairs(export_pairs, pairs)
             click.echo(f"wrote {len(pairs)} pairs to {export_pairs}", err=True)
             iterator = iter(pairs)
-    _run_bench("modelnet40", iterator, count, methods, weights, device, seed, out, overwrite, no_progress, description)
+    _run_bench("modelnet40", iterator, count, methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress, description)
 
 
 @bench.command("bunny")
@@ -300,7 +303,7 @@ def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, methods
 @click.option("--recall-translation", type=click.FloatRange(min=0, min_open=True), default=0.002, show_default=True, help="Translation threshold of the 1-degree recall, in the scans' units (metres for the bunny); x5 for the 5-degree one.")
 @_bench_options
 @_friendly_errors
-def bench_bunny(data, min_overlap, recall_translation, methods, weights, device, seed, out, overwrite, no_progress):
+def bench_bunny(data, min_overlap, recall_translation, methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress):
     """Every method on every overlapping pair of real scans (Stanford .conf ground truth)."""
     import os
 
@@ -318,7 +321,7 @@ def bench_bunny(data, min_overlap, recall_translation, methods, weights, device,
         raise UsageError(f"no scan pair in {folder} reaches --min-overlap {min_overlap}")
     description = {"benchmark": "scans", "folder": str(folder), "min_overlap": min_overlap, "pairs": table}
     recall = ((1.0, recall_translation), (5.0, 5 * recall_translation))
-    _run_bench("scans", iter(pairs), len(pairs), methods, weights, device, seed, out, overwrite, no_progress, description, recall)
+    _run_bench("scans", iter(pairs), len(pairs), methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress, description, recall)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -138,18 +138,31 @@ class CoarseEstimate(NamedTuple):
     weights: np.ndarray
 
 
-def estimate(model: CoarseModel, source: np.ndarray, target: np.ndarray) -> CoarseEstimate:
-    """Run the network on one normalised pair.
+def estimate(model: CoarseModel, source: np.ndarray, target: np.ndarray, iterations: int = 1) -> CoarseEstimate:
+    """Run the network on one normalised pair, `iterations` times.
+
+    Each further pass runs the network on the source moved by the estimate so far (re-centred,
+    as the network expects) and composes the correction, like the iterations of DCP or RPM-Net:
+    the network is more precise on the smaller residual rotation.
 
     Args:
         model: a loaded model.
         source: (N, 3) normalised source points, N >= the model's K.
         target: (M, 3) normalised target points, M >= K.
+        iterations: network passes (1: the paper's single pass).
     Returns:
-        CoarseEstimate with T_target_source in the normalised frame.
+        CoarseEstimate with T_target_source in the normalised frame and the last pass's weights.
     """
-    src = torch.as_tensor(np.ascontiguousarray(source), dtype=torch.float32).unsqueeze(0)
+    if iterations < 1:
+        raise ValueError(f"iterations must be at least 1, got {iterations}")
     tgt = torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0)
-    R, t, w = model.run(src, tgt)
-    T = rigid(R[0].double().cpu().numpy(), t[0].double().cpu().numpy())
+    T = np.eye(4)
+    source = np.asarray(source, dtype=np.float64)
+    for _ in range(iterations):
+        moved = source @ T[:3, :3].T + T[:3, 3]
+        centre = moved.mean(axis=0)
+        src = torch.as_tensor(moved - centre, dtype=torch.float32).unsqueeze(0)
+        R, t, w = model.run(src, tgt)
+        R_np, t_np = R[0].double().cpu().numpy(), t[0].double().cpu().numpy()
+        T = rigid(R_np, t_np - R_np @ centre) @ T  # the step maps `moved` (not re-centred) onto the target
     return CoarseEstimate(T, w[0].float().cpu().numpy())

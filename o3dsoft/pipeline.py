@@ -29,6 +29,7 @@ class RegisterConfig:
 
     Attributes:
         num_points: points sampled from each cloud for the network.
+        coarse_iterations: network passes, each on the source moved by the estimate so far.
         refine: run ICP after the network.
         icp: settings of the fine stage.
         weights: TorchScript model file; None for the shipped default.
@@ -37,6 +38,7 @@ class RegisterConfig:
     """
 
     num_points: int = 1024
+    coarse_iterations: int = 1
     refine: bool = True
     icp: refine_stage.ICPConfig = field(default_factory=refine_stage.ICPConfig)
     weights: Optional[str] = None
@@ -150,7 +152,7 @@ def register(
     lap("sample_normalise")
 
     # Coarse: the soft-alignment network, then back to the original frames.
-    estimate = coarse_stage.estimate(model, src_net, tgt_net)
+    estimate = coarse_stage.estimate(model, src_net, tgt_net, config.coarse_iterations)
     T_coarse = denormalise_transform(estimate.transform, norm)
     lap("coarse")
 

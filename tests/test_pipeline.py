@@ -125,3 +125,38 @@ def test_downsample_bounds_large_clouds():
     down = downsample(pts, 50_000)
     assert 10_000 < len(down) <= 50_000
     assert downsample(pts[:1000], 50_000) is not None and len(downsample(pts[:1000], 50_000)) == 1000
+
+
+class _HalfwayModel:
+    """Stands in for a network: returns exactly half of the true rotation (points keep their order)."""
+
+    def run(self, source, target):
+        import torch
+        from scipy.spatial.transform import Rotation
+
+        s, t = source[0].double().numpy(), target[0].double().numpy()
+        H = (s - s.mean(0)).T @ (t - t.mean(0))
+        U, _, Vt = np.linalg.svd(H)
+        D = np.diag([1, 1, np.sign(np.linalg.det(Vt.T @ U.T))])
+        R = Rotation.from_rotvec(0.5 * Rotation.from_matrix(Vt.T @ D @ U.T).as_rotvec()).as_matrix()
+        trans = t.mean(0) - R @ s.mean(0)
+        as_t = lambda a: torch.as_tensor(a, dtype=torch.float32)[None]  # noqa: E731
+        return as_t(R), as_t(trans), torch.ones(1, len(s))
+
+
+@pytest.mark.parametrize("iterations", [1, 2, 3])
+def test_coarse_iterations_compose_the_corrections(iterations):
+    from o3dsoft.coarse import estimate
+    from o3dsoft.metrics import rotation_error_deg
+    from o3dsoft.transforms import rotation_angle_deg
+
+    rng = np.random.default_rng(3)
+    source = blob(rng, 200) * 0.5
+    T_gt = random_transform(rng, 40.0, 0.3)
+    target = apply(T_gt, source)
+    T = estimate(_HalfwayModel(), source, target - target.mean(0), iterations).transform
+    angle = rotation_angle_deg(T_gt[:3, :3])
+    # Each pass halves the remaining rotation; the composition must keep the points in step.
+    assert rotation_error_deg(T[:3, :3], T_gt[:3, :3]) == pytest.approx(angle / 2**iterations, rel=1e-3)
+    residual = apply(T, source) - (target - target.mean(0))
+    assert np.abs(residual.mean(0)).max() < 1e-5  # centroids coincide after every pass
