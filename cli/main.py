@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -256,6 +257,7 @@ def _run_bench(name, pairs, count, methods, weights, device, seed, coarse_iterat
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
     model = load_model(config.register.weights, device) if needs_model else None
+    description = {"command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), **description}
     folder = prepare_folder(out or Path("runs") / f"bench-{name}-{time.strftime('%Y%m%d-%H%M%S')}", overwrite)
     result = run(pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True))
     click.echo(result.table)

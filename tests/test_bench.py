@@ -35,6 +35,10 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     assert (out / "cdf_rotation_error.png").stat().st_size > 1000 and (out / "recall_vs_angle.png").is_file()
     config = json.loads((out / "config.json").read_text())
     assert config["bench"]["global_"]["voxel"] == 0.05 and config["protocols"] == ["dcp"]
+    from benchmarks.results_table import markdown
+
+    md = markdown(out)
+    assert "**dcp**" in md and "| Open3D FPFH + RANSAC + ICP | 2 |" in md and "first 2 test pairs" in md
 
     # The same folder again is refused; --overwrite reuses it.
     r = _bench(["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--out", str(out)])

@@ -1,0 +1,69 @@
+"""Write the README's "Results" section from a bench run folder (never typed by hand).
+
+    python -m benchmarks.results_table RUN_DIR [--readme README.md]
+
+Replaces the text between the markers ``<!-- results:start -->`` and ``<!-- results:end -->``
+with the run's command, machine, versions and one table per protocol (from summary.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+START, END = "<!-- results:start -->", "<!-- results:end -->"
+
+
+def markdown(run: Path) -> str:
+    doc = json.loads((run / "summary.json").read_text())
+    desc, v = doc["description"], doc["versions"]
+    recall = doc["recall_thresholds"]
+    r1, r5 = recall[0], recall[-1]
+    limit = desc.get("limit")
+    lines = [
+        f"Command: `{desc.get('command', 'o3dsoft bench modelnet40')}`"
+        + (f" (first {limit} test pairs per protocol)" if limit else " (the whole ModelNet40 test split)")
+        + f"; {doc['pairs_completed']} pairs in {doc['seconds'] / 60:.1f} min"
+        + (" (interrupted)" if doc["interrupted"] else "") + ".",
+        f"Machine: {v['machine']}; o3dsoft {v['o3dsoft']}, torch {v['torch']}, Open3D {v['open3d']}. "
+        f"Weights sha256 `{(doc['weights']['sha256'] or '-')[:12]}`.",
+        "",
+        "Rotation errors in degrees, translation in shape units (radius-1 shapes): lower is better. "
+        f"Recall: share of pairs with rotation error < {r1['rotation_deg']:g} deg and translation error < {r1['translation']:g} "
+        f"(and < {r5['rotation_deg']:g} deg, < {r5['translation']:g}): higher is better. Time: per pair, lower is better.",
+    ]
+    block = None
+    for s in doc["summaries"]:
+        if (s["protocol"], s["subset"]) != block:
+            block = (s["protocol"], s["subset"])
+            title = f"**{s['protocol']}**" + (" without symmetric categories" if s["subset"] != "all" else "")
+            lines += ["", title, "",
+                      "| method | pairs | rotation mean / median (deg) | translation mean | Euler RMSE (deg) | "
+                      f"recall {r1['rotation_deg']:g} deg | recall {r5['rotation_deg']:g} deg | time median / p90 (ms) |",
+                      "|---|---|---|---|---|---|---|---|"]
+        rk = sorted(k for k in s if k.startswith("recall_"))
+        lines.append(
+            f"| {doc['methods'][s['method']]} | {int(s['pairs'])} | {s['rotation_deg_mean']:.3g} / {s['rotation_deg_median']:.3g} | "
+            f"{s['translation_mean']:.3g} | {s['euler_rmse_deg']:.3g} | {100 * s[rk[0]]:.1f} % | {100 * s[rk[-1]]:.1f} % | "
+            f"{s['time_ms_median']:.0f} / {s['time_ms_p90']:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--readme", type=Path, default=Path(__file__).resolve().parents[1] / "README.md")
+    args = ap.parse_args()
+    text = args.readme.read_text()
+    if START not in text or END not in text:
+        raise SystemExit(f"{args.readme}: no {START} ... {END} markers")
+    head, rest = text.split(START, 1)
+    _, tail = rest.split(END, 1)
+    args.readme.write_text(head + START + "\n" + markdown(args.run) + "\n" + END + tail)
+    print(f"updated {args.readme} from {args.run}")
+
+
+if __name__ == "__main__":
+    main()
