@@ -54,8 +54,9 @@ def main() -> None:
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
+@click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path):
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, strict):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -116,6 +117,15 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
         click.echo(json.dumps(payload, indent=2))
     else:
         click.echo(_format_result(source, target, result, errors, model_info, config.refine))
+    if result.likely_failed:
+        click.echo(
+            f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: only {100 * result.fitness_tight:.0f} % of the "
+            f"source points lie within {result.tight_distance:.3g} units of the target). If the clouds are more than ~45 degrees apart, "
+            "give a rough initial alignment; if they overlap only partly, check the result visually (--render).",
+            err=True,
+        )
+        if strict:
+            sys.exit(3)
 
 
 def _errors_dict(e) -> dict:
@@ -137,7 +147,8 @@ def _format_result(source, target, result, errors, model_info, refined: bool) ->
         "",
         f"  fitness      {result.fitness:.4f}   share of source points within {result.correspondence_distance:.4g} units of the target (0-1, higher is better)",
         f"  inlier RMSE  {result.inlier_rmse:.4g}   units, over those points (lower is better)",
-        f"  confidence   {result.confidence:.4f}   mean network weight w_i (0-1, higher is better)",
+        f"  confidence   {result.confidence:.4f}   estimated probability that the alignment is right (0-1, higher is better)"
+        + ("  LIKELY FAILED" if result.likely_failed else ""),
     ]
     if errors is not None:
         f, c = errors["final"], errors["coarse"]

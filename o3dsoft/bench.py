@@ -22,6 +22,7 @@ import numpy as np
 from . import baselines
 from . import refine as refine_stage
 from .coarse import CoarseModel, sha256_of
+from .confidence import LIKELY_FAILED_BELOW
 from .data import get_protocol, load_pairs
 from .errors import InputError, UsageError
 from .io import atomic_output
@@ -232,11 +233,13 @@ def import_pairs(path: Path) -> List[BenchPair]:
 # Running the methods
 # --------------------------------------------------------------------------------------------
 class MethodResult(NamedTuple):
-    """One method on one pair: its estimate and the time of each stage (ms)."""
+    """One method on one pair: its estimate, the time of each stage (ms), and o3dsoft's
+    confidence in it (None for methods that give none)."""
 
     method: str
     transform: np.ndarray
     times_ms: Dict[str, float]
+    confidence: Optional[float] = None
 
 
 def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel]) -> List[MethodResult]:
@@ -255,7 +258,8 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         t = result.timings_ms
         coarse_ms = t["clean"] + t["sample_normalise"] + t["coarse"]
         out["o3dsoft-coarse"] = MethodResult("o3dsoft-coarse", result.coarse_transformation, {"coarse": coarse_ms, "total": coarse_ms})
-        out["o3dsoft"] = MethodResult("o3dsoft", result.transformation, {"coarse": coarse_ms, "icp": t["refine"], "total": coarse_ms + t["refine"]})
+        out["o3dsoft"] = MethodResult("o3dsoft", result.transformation, {"coarse": coarse_ms, "icp": t["refine"], "total": coarse_ms + t["refine"]},
+                                      result.confidence)
     if "icp" in methods:
         t0 = clock()
         T = refine_stage.icp(src, tgt, np.eye(4), config.identity_icp.distance_for(scale), config.identity_icp).transformation
@@ -294,6 +298,7 @@ def score(pair: BenchPair, result: MethodResult) -> Tuple[dict, PairErrors]:
         "rotation_l1": e.rotation_l1, "rotation_l2": e.rotation_l2, "translation_l1": e.translation_l1, "translation_l2": e.translation_l2,
         "euler_abs_x_deg": e.euler_abs_deg[0], "euler_abs_y_deg": e.euler_abs_deg[1], "euler_abs_z_deg": e.euler_abs_deg[2],
         "chamfer": chamfer,
+        "confidence": "" if result.confidence is None else result.confidence,
     }
     for stage in STAGES:
         row[f"time_{stage}_ms"] = result.times_ms.get(stage, "")
@@ -324,12 +329,28 @@ def summarise_rows(rows: Sequence[dict], errors: Sequence[PairErrors], config: B
                 summary["chamfer_mean"] = float(np.mean([rows[i]["chamfer"] for i in sel]))
                 summary["time_ms_median"] = float(np.median(total))
                 summary["time_ms_p90"] = float(np.percentile(total, 90))
+                scores = [rows[i]["confidence"] for i in sel if rows[i]["confidence"] != ""]
+                if len(scores) == len(sel):
+                    deg, dist = config.recall[-1]
+                    success = np.array([errors[i].rotation_deg < deg and errors[i].translation < dist for i in sel])
+                    summary["confidence_auc"] = roc_auc(np.array(scores), success)
+                    summary["likely_failed_share"] = float(np.mean(np.array(scores) < LIKELY_FAILED_BELOW))
                 for stage in STAGES[:-1]:
                     values = [rows[i][f"time_{stage}_ms"] for i in sel if rows[i][f"time_{stage}_ms"] != ""]
                     if values:
                         summary[f"time_{stage}_ms_median"] = float(np.median(values))
                 out.append(summary)
     return out
+
+
+def roc_auc(score: np.ndarray, success: np.ndarray) -> Optional[float]:
+    """Area under the ROC curve of `score` separating successes from failures (0.5: chance, 1:
+    perfect; higher is better); None when either class is empty."""
+    pos, neg = score[success], score[~success]
+    if len(pos) == 0 or len(neg) == 0:
+        return None
+    diff = pos[:, None] - neg[None, :]
+    return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
 
 
 def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]]) -> str:
@@ -353,6 +374,10 @@ def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]
             f"{s['translation_mean']:>10.3g} {s['euler_rmse_deg']:>10.3g} {100 * s[rk[0]]:>14.1f} {100 * s[rk[-1]]:>14.1f} "
             f"{s['time_ms_median']:>9.1f} {s['time_ms_p90']:>8.1f}"
         )
+        if "confidence_auc" in s:
+            auc = "n/a (no failures or no successes)" if s["confidence_auc"] is None else f"{s['confidence_auc']:.3f}"
+            lines.append(f"{'':18s} confidence vs success at {d5:g} deg / {t5:g}: ROC AUC {auc} (higher is better); "
+                         f"flagged likely failed: {100 * s['likely_failed_share']:.1f} %")
     return "\n".join(lines)
 
 

@@ -16,6 +16,7 @@ from typing import Dict, Optional, Union
 import numpy as np
 
 from . import coarse as coarse_stage
+from . import confidence as confidence_stage
 from . import refine as refine_stage
 from .errors import InputError
 from .preprocess import clean_points, denormalise_transform, normalise_pair, normalisation_for, sample_points
@@ -59,8 +60,12 @@ class RegistrationResult:
             after the final transform (0-1, higher is better).
         inlier_rmse: RMS distance of those point pairs (cloud units, lower is better).
         coarse_transformation: (4, 4) the network's estimate, before ICP.
-        confidence: mean of the network's per-point weights w_i = max_j W_ij (0-1, higher means
-            the network matched points more decisively; low values flag a doubtful coarse stage).
+        confidence: estimated probability that the alignment is right (0-1, higher is better),
+            from the share of source points close to the target (:mod:`o3dsoft.confidence`).
+        likely_failed: confidence below 0.5: treat the transform as wrong.
+        fitness_tight: share of source points within `tight_distance` of a target point (0-1).
+        tight_distance: max(0.3 x correspondence_distance, 1.5 x the target's point spacing).
+        mean_weight: mean of the network's per-point weights w_i = max_j W_ij (0-1).
         correspondence_distance: the ICP / scoring distance used (cloud units).
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
@@ -73,6 +78,10 @@ class RegistrationResult:
     inlier_rmse: float
     coarse_transformation: np.ndarray
     confidence: float
+    likely_failed: bool
+    fitness_tight: float
+    tight_distance: float
+    mean_weight: float
     correspondence_distance: float
     scale: float
     timings_ms: Dict[str, float]
@@ -163,6 +172,11 @@ def register(
     else:
         fine = refine_stage.evaluate(src.points, tgt.points, T_coarse, distance, config.icp.max_points)
     lap("refine")
+
+    # Score: how much to trust the result.
+    scored = confidence_stage.features(src.points, tgt.points, fine.transformation, distance, config.icp.max_points)
+    trust = confidence_stage.confidence(scored)
+    lap("score")
     timings["total"] = sum(timings.values())
 
     return RegistrationResult(
@@ -170,7 +184,11 @@ def register(
         fitness=fine.fitness,
         inlier_rmse=fine.inlier_rmse,
         coarse_transformation=T_coarse,
-        confidence=float(np.mean(estimate.weights)),
+        confidence=trust,
+        likely_failed=trust < confidence_stage.LIKELY_FAILED_BELOW,
+        fitness_tight=scored.fitness_tight,
+        tight_distance=scored.tight_distance,
+        mean_weight=float(np.mean(estimate.weights)),
         correspondence_distance=distance,
         scale=norm.scale,
         timings_ms=timings,

@@ -53,7 +53,20 @@ def test_register_json(pair_files, tiny_model_path):
     payload = json.loads(r.output)
     assert np.allclose(payload["transformation"], T, atol=1e-5)
     assert payload["errors"]["final"]["rotation_deg"] < 1e-3
-    assert {"fitness", "inlier_rmse", "confidence", "coarse_transformation", "timings_ms"} <= set(payload)
+    assert {"fitness", "inlier_rmse", "confidence", "likely_failed", "coarse_transformation", "timings_ms"} <= set(payload)
+    assert payload["likely_failed"] is False
+
+
+def test_likely_failure_warns_and_strict_exits_3(tmp_path, tiny_model_path):
+    rng = np.random.default_rng(5)
+    write_points(tmp_path / "blob.ply", blob(rng, 500))
+    write_points(tmp_path / "slab.ply", rng.uniform(-1, 1, size=(500, 3)) * np.array([1.0, 1.0, 0.05]))
+    args = ["register", tmp_path / "blob.ply", tmp_path / "slab.ply", "--weights", tiny_model_path]
+    r = CliRunner().invoke(main, [str(a) for a in args + ["--json"]])
+    assert r.exit_code == 0 and "likely wrong" in r.stderr
+    assert json.loads(r.stdout)["likely_failed"] is True
+    r = CliRunner().invoke(main, [str(a) for a in args + ["--strict"]])
+    assert r.exit_code == 3 and "LIKELY FAILED" in r.stdout
 
 
 def test_no_refine(pair_files, tiny_model_path):

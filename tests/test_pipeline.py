@@ -29,8 +29,9 @@ def test_register_small_motion_recovered_after_icp(tiny_model_path):
     assert res.fitness == pytest.approx(1.0)
     assert res.inlier_rmse < 1e-5
     assert res.transformation.shape == (4, 4) and res.transformation.dtype == np.float64
-    assert 0.0 < res.confidence <= 1.0
-    assert set(res.timings_ms) >= {"clean", "sample_normalise", "coarse", "refine", "total"}
+    assert res.confidence > 0.99 and not res.likely_failed and res.fitness_tight == pytest.approx(1.0)
+    assert 0.0 < res.mean_weight <= 1.0
+    assert set(res.timings_ms) >= {"clean", "sample_normalise", "coarse", "refine", "score", "total"}
 
 
 @pytest.mark.parametrize("units", [1e-3, 1.0, 1e3])
@@ -160,3 +161,27 @@ def test_coarse_iterations_compose_the_corrections(iterations):
     assert rotation_error_deg(T[:3, :3], T_gt[:3, :3]) == pytest.approx(angle / 2**iterations, rel=1e-3)
     residual = apply(T, source) - (target - target.mean(0))
     assert np.abs(residual.mean(0)).max() < 1e-5  # centroids coincide after every pass
+
+
+def test_unrelated_clouds_are_flagged(tiny_model_path):
+    rng = np.random.default_rng(5)
+    src = blob(rng, 500)
+    tgt = rng.uniform(-1, 1, size=(500, 3)) * np.array([1.0, 1.0, 0.05])  # a flat slab: nothing like the blob
+    res = register(src, tgt, RegisterConfig(weights=str(tiny_model_path)))
+    assert res.likely_failed and res.confidence < 0.5
+
+
+def test_sparse_target_is_not_mistaken_for_a_failure():
+    from o3dsoft.confidence import confidence, features, point_spacing
+
+    rng = np.random.default_rng(2)
+    u, v = rng.uniform(0, 2 * np.pi, size=(2, 4000))
+    torus = np.stack([(1 + 0.3 * np.cos(v)) * np.cos(u), (1 + 0.3 * np.cos(v)) * np.sin(u), 0.3 * np.sin(v)], axis=1)
+    T = random_transform(rng)
+    sparse = apply(T, torus[rng.choice(4000, 300, replace=False)])
+    right = features(torus, sparse, T, distance=0.13)
+    assert confidence(right) > 0.9
+    wrong = T @ np.diag([1.0, -1.0, -1.0, 1.0])  # flipped upside down
+    assert confidence(features(torus, sparse, wrong, distance=0.13)) < 0.5
+    grid = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), [0.0]), axis=-1).reshape(-1, 3) * 0.5
+    assert point_spacing(grid) == pytest.approx(0.5)
