@@ -120,7 +120,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     if result.likely_failed:
         click.echo(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: only {100 * result.fitness_tight:.0f} % of the "
-            f"source points lie within {result.tight_distance:.3g} units of the target). If the clouds are more than ~45 degrees apart, "
+            f"points lie within {result.tight_distance:.3g} units of the other cloud). If the clouds are more than ~45 degrees apart, "
             "give a rough initial alignment; if they overlap only partly, check the result visually (--render).",
             err=True,
         )
@@ -192,7 +192,7 @@ _TRAIN_FIELDS = ("data", "protocol", "epochs", "batch_size", "lr", "lr_schedule"
 @click.option("--separate-encoders", is_flag=True, default=None, help="One encoder per cloud instead of a shared one.")
 @click.option("--out", default="runs/train", show_default=True, help="Output folder: checkpoint, config, model, model card.")
 @click.option("--checkpoint-minutes", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True)
-@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt exactly where it stopped.")
+@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt exactly where it stopped, with the settings of OUT/config.yaml (options given here override them).")
 @click.option("--max-steps", type=click.IntRange(min=1), default=None, help="Stop after this many steps (quick runs).")
 @click.option("--limit-train", type=click.IntRange(min=1), default=None, help="Use only the first N training shapes.")
 @click.option("--points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True, help="Points per shape (first N of the HDF5 data).")
@@ -215,6 +215,8 @@ def train(ctx, config_file, resume, radius, k, separate_encoders, **options):
     from ..model import NetConfig
     from ..train import TrainConfig, train as run_train
 
+    if resume and config_file is None and (Path(options["out"]) / "config.yaml").is_file():
+        config_file = Path(options["out"]) / "config.yaml"  # resume with the run's own settings
     settings = read_config(config_file, TrainConfig) if config_file else {}
     for name in _TRAIN_FIELDS:
         if name not in settings or ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE:

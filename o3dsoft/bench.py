@@ -24,7 +24,7 @@ from . import refine as refine_stage
 from .coarse import CoarseModel, sha256_of
 from .confidence import LIKELY_FAILED_BELOW
 from .data import get_protocol, load_pairs
-from .errors import InputError, UsageError
+from .errors import InputError, O3dsoftError, UsageError
 from .io import atomic_output
 from .metrics import MODELNET_RECALL, PairErrors, modified_chamfer_distance, pair_errors, summarise
 from .pipeline import RegisterConfig, register
@@ -170,11 +170,17 @@ def export_pairs(path: Path, pairs: Sequence[BenchPair]) -> None:
     """Write pairs to an .npz any tool can read: points concatenated with offsets.
 
     Keys: format, source_points (sum N, 3), source_offsets (P + 1), target_points, target_offsets,
-    transform (P, 4, 4) T_target_source, protocol (P,) str, index (P,), category (P,) str.
+    transform (P, 4, 4) T_target_source, protocol (P,) str, index (P,), category (P,) str, and
+    (when every pair has one) clean_target_points / clean_target_offsets: the complete, noise-free
+    target of the modified Chamfer distance.
     """
     def offsets(clouds):
         return np.concatenate([[0], np.cumsum([len(c) for c in clouds])]).astype(np.int64)
 
+    clean = {}
+    if pairs and all(p.clean_target is not None for p in pairs):
+        clean = {"clean_target_points": np.concatenate([p.clean_target for p in pairs]).astype(np.float32),
+                 "clean_target_offsets": offsets([p.clean_target for p in pairs])}
     with atomic_output(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(
@@ -188,6 +194,7 @@ def export_pairs(path: Path, pairs: Sequence[BenchPair]) -> None:
                 protocol=np.array([p.protocol for p in pairs]),
                 index=np.array([p.index for p in pairs], dtype=np.int64),
                 category=np.array([p.category for p in pairs]),
+                **clean,
             )
 
 
@@ -205,6 +212,15 @@ def import_pairs(path: Path) -> List[BenchPair]:
         z = np.load(path, allow_pickle=False)
     except Exception as e:  # numpy raises several types for non-npz files
         raise InputError(f"{path}: not a pairs file (.npz): {e}") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise InputError(f"{path}: a single array, not a pairs file (.npz with named arrays)")
+    try:
+        return _pairs_from_npz(path, z)
+    except ValueError as e:  # object arrays, which need pickle, and other unreadable entries
+        raise InputError(f"{path}: unreadable pairs file ({e})") from None
+
+
+def _pairs_from_npz(path: Path, z) -> List[BenchPair]:
     need = ("source_points", "source_offsets", "target_points", "target_offsets", "transform", "protocol", "index")
     missing = [k for k in need if k not in z.files]
     if missing:
@@ -219,12 +235,20 @@ def import_pairs(path: Path) -> List[BenchPair]:
     if z["transform"].shape != (P, 4, 4) or z["protocol"].shape != (P,) or z["index"].shape != (P,):
         raise InputError(f"{path}: transform must be (P, 4, 4) with one protocol and index per pair")
     category = z["category"] if "category" in z.files else np.array([""] * P)
+    if category.shape != (P,):
+        raise InputError(f"{path}: category must hold one name per pair ({P}), got shape {category.shape}")
     s_off, t_off = z["source_offsets"], z["target_offsets"]
+    clean = None
+    if "clean_target_points" in z.files and "clean_target_offsets" in z.files:
+        clean, c_off = z["clean_target_points"], z["clean_target_offsets"]
+        if c_off.shape != (P + 1,) or c_off[-1] != len(clean):
+            raise InputError(f"{path}: clean_target_offsets must have {P + 1} entries ending at {len(clean)}")
     return [
         BenchPair(str(z["protocol"][i]), int(z["index"][i]),
                   z["source_points"][s_off[i]:s_off[i + 1]].astype(np.float64),
                   z["target_points"][t_off[i]:t_off[i + 1]].astype(np.float64),
-                  z["transform"][i].astype(np.float64), str(category[i]))
+                  z["transform"][i].astype(np.float64), str(category[i]),
+                  None if clean is None else clean[c_off[i]:c_off[i + 1]].astype(np.float64))
         for i in range(P)
     ]
 
@@ -258,7 +282,8 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         t = result.timings_ms
         coarse_ms = t["clean"] + t["sample_normalise"] + t["coarse"]
         out["o3dsoft-coarse"] = MethodResult("o3dsoft-coarse", result.coarse_transformation, {"coarse": coarse_ms, "total": coarse_ms})
-        out["o3dsoft"] = MethodResult("o3dsoft", result.transformation, {"coarse": coarse_ms, "icp": t["refine"], "total": coarse_ms + t["refine"]},
+        fine_ms = t["refine"] + t["score"]  # ICP and the confidence
+        out["o3dsoft"] = MethodResult("o3dsoft", result.transformation, {"coarse": coarse_ms, "icp": fine_ms, "total": coarse_ms + fine_ms},
                                       result.confidence)
     if "icp" in methods:
         t0 = clock()
@@ -492,9 +517,15 @@ def run(
     interrupted = False
     t_start = time.monotonic()
     bar = tqdm(total=count, unit="pair", disable=None if progress else True, dynamic_ncols=True)  # None: only on a terminal
+    failed: List[dict] = []
     try:
         for pair in pairs:
-            scored = [score(pair, r) for r in run_methods(pair, config, model)]
+            try:
+                scored = [score(pair, r) for r in run_methods(pair, config, model)]
+            except (O3dsoftError, RuntimeError) as e:  # an unusable pair (or an Open3D failure) is reported, not fatal
+                failed.append({"protocol": pair.protocol, "index": pair.index, "error": str(e)})
+                log(f"pair {pair.protocol}/{pair.index} skipped: {e}")
+                scored = []
             for row, e in scored:  # appended only once every method is done: no half pairs
                 rows.append(row)
                 errors.append(e)
@@ -515,8 +546,9 @@ def run(
         "description": description,
         "interrupted": interrupted,
         "pairs_completed": len(rows) // max(len(config.methods), 1),
+        "pairs_failed": failed,
         "seconds": round(time.monotonic() - t_start, 1),
-        "weights": {"path": str(weights_path), "sha256": sha256_of(weights_path) if model is not None else None},
+        "weights": {"path": str(weights_path), "sha256": sha256_of(weights_path)} if model is not None else None,
         "versions": versions(),
         "recall_thresholds": [{"rotation_deg": d, "translation": t} for d, t in config.recall],
         "methods": {m: METHODS[m] for m in config.methods},

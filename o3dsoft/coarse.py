@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from .errors import InputError
+from .io import atomic_output
 from .model import NetConfig, SoftAlignNet
 from .transforms import rigid
 
@@ -69,12 +70,14 @@ def export_torchscript(model: SoftAlignNet, config: NetConfig, path: Union[str, 
     with _quiet_jit():
         scripted = torch.jit.script(model.cpu())
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "net": config.to_dict(), "info": info or {}}
-    tmp = path.with_name(path.name + ".tmp")
     path.parent.mkdir(parents=True, exist_ok=True)
-    with _quiet_jit():
-        torch.jit.save(scripted, str(tmp), _extra_files={META_NAME: json.dumps(meta)})
-    tmp.replace(path)
-    model.to(device).train(was_training)
+    try:
+        with atomic_output(path) as tmp, _quiet_jit():
+            torch.jit.save(scripted, str(tmp), _extra_files={META_NAME: json.dumps(meta)})
+    except RuntimeError as e:  # torch reports a failed write (e.g. a full disk) as RuntimeError
+        raise InputError(f"{path}: cannot write the model ({e})") from None
+    finally:
+        model.to(device).train(was_training)
     return path
 
 
@@ -154,7 +157,7 @@ def estimate(model: CoarseModel, source: np.ndarray, target: np.ndarray, iterati
         CoarseEstimate with T_target_source in the normalised frame and the last pass's weights.
     """
     if iterations < 1:
-        raise ValueError(f"iterations must be at least 1, got {iterations}")
+        raise InputError(f"coarse iterations must be at least 1, got {iterations}")
     tgt = torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0)
     T = np.eye(4)
     source = np.asarray(source, dtype=np.float64)

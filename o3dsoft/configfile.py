@@ -82,6 +82,11 @@ def _check_type(path: Path, line: int, key: str, value: Any, expected: Any) -> A
         if not isinstance(value, list):
             raise InputError(f"{path} line {line}: {key!r} must be a list, got {value!r}")
         return tuple(_check_type(path, line, key, v, args[0]) for v in value)
+    if expected is float and isinstance(value, str):
+        try:  # YAML 1.1 reads exponents without a dot, such as 1e-3, as strings
+            value = float(value)
+        except ValueError:
+            pass
     ok = {
         bool: isinstance(value, bool),
         int: isinstance(value, int) and not isinstance(value, bool),

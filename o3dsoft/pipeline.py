@@ -63,8 +63,10 @@ class RegistrationResult:
         confidence: estimated probability that the alignment is right (0-1, higher is better),
             from the share of source points close to the target (:mod:`o3dsoft.confidence`).
         likely_failed: confidence below 0.5: treat the transform as wrong.
-        fitness_tight: share of source points within `tight_distance` of a target point (0-1).
-        tight_distance: max(0.3 x correspondence_distance, 1.5 x the target's point spacing).
+        fitness_tight: share of source points within `tight_distance` of a target point, or of
+            target points near the source when the target is much sparser (0-1).
+        tight_distance: max(0.3 x correspondence_distance, 1.5 x the point spacing of the
+            denser cloud).
         mean_weight: mean of the network's per-point weights w_i = max_j W_ij (0-1).
         correspondence_distance: the ICP / scoring distance used (cloud units).
         scale: the common scale the clouds were normalised by (cloud units).

@@ -12,6 +12,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -88,7 +89,7 @@ class TrainConfig:
             ("batch_size", self.batch_size >= 1, "at least 1"),
             ("lr", self.lr > 0, "positive"),
             ("lr_schedule", self.lr_schedule in LR_SCHEDULES, f"one of {', '.join(LR_SCHEDULES)}"),
-            ("lr_min", 0 <= self.lr_min <= self.lr, "between 0 and lr"),
+            ("lr_min", self.lr_schedule != "cosine" or 0 <= self.lr_min <= self.lr, "between 0 and lr"),
             ("grad_clip", self.grad_clip is None or self.grad_clip > 0, "positive or null"),
             ("checkpoint_minutes", self.checkpoint_minutes > 0, "positive"),
             ("eval_pairs", self.eval_pairs is None or self.eval_pairs >= 0, "0 or more, or null for the whole split"),
@@ -140,16 +141,22 @@ def evaluate(model: SoftAlignNet, pairs: PairDataset, limit: Optional[int], devi
     return summarise(errors)
 
 
-def _load_checkpoint(path: Path, device: torch.device) -> dict:
+def _load_checkpoint(path: Path) -> dict:
+    """A training checkpoint, on the CPU (the optimiser moves its state to the parameters' device)."""
     try:
-        return torch.load(path, map_location=device, weights_only=False)
+        with warnings.catch_warnings():  # torch warns before failing over to jit.load on exported models
+            warnings.simplefilter("ignore", UserWarning)
+            ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:  # torch raises many types for truncated or foreign files
         raise InputError(f"{path}: unreadable checkpoint ({e})") from None
+    if not isinstance(ckpt, dict) or not {"model", "config", "state"} <= set(ckpt):
+        raise InputError(f"{path}: not an o3dsoft training checkpoint (expected the checkpoint.pt of a run folder, not an exported model)")
+    return ckpt
 
 
 def export_checkpoint(checkpoint: Path, out: Path) -> Path:
     """Export the model of a training checkpoint to a TorchScript file with the current code."""
-    ckpt = _load_checkpoint(checkpoint, torch.device("cpu"))
+    ckpt = _load_checkpoint(checkpoint)
     net = NetConfig.from_dict(ckpt["config"]["net"])
     model = SoftAlignNet(net)
     model.load_state_dict(ckpt["model"])
@@ -212,7 +219,7 @@ def _replicas_identical(model: torch.nn.Module) -> bool:
     """True when every rank holds the same parameters (a check that DDP kept them in step)."""
     import torch.distributed as dist
 
-    flat = torch.cat([p.detach().reshape(-1).float().cpu() for p in model.parameters()])
+    flat = torch.cat([p.detach().reshape(-1).float() for p in model.parameters()])  # on the device: NCCL has no CPU tensors
     gathered = [torch.empty_like(flat) for _ in range(dist.get_world_size())]
     dist.all_gather(gathered, flat)
     return all(torch.equal(gathered[0], g) for g in gathered[1:])
@@ -242,7 +249,7 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
     init_record = None
     if config.init is not None and not resume:
-        init_ckpt = _load_checkpoint(Path(config.init), device)
+        init_ckpt = _load_checkpoint(Path(config.init))
         if init_ckpt["config"]["net"] != config.net.to_dict():
             raise InputError(f"{config.init}: its network settings differ from this run's ({init_ckpt['config']['net']})")
         model.load_state_dict(init_ckpt["model"])
@@ -253,7 +260,7 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     if resume:
         if not ckpt_path.is_file():
             raise InputError(f"{ckpt_path}: no checkpoint to resume from")
-        ckpt = _load_checkpoint(ckpt_path, device)
+        ckpt = _load_checkpoint(ckpt_path)
         saved = ckpt["config"]
         mismatched = [k for k in RESUME_MUST_MATCH if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
         if mismatched:
@@ -272,8 +279,12 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
             points=train_pairs.shapes.points[: config.limit_train], labels=train_pairs.shapes.labels[: config.limit_train]
         )
     test_pairs = None
-    if config.eval_pairs != 0 and lead:
+    if config.eval_pairs != 0:  # loaded by every rank, so that a missing split stops them all alike
         test_pairs = load_pairs(config.data, "test", protocol, config.seed + 1, config.points_per_shape)
+        if len(test_pairs) == 0:
+            raise InputError(f"{config.data}: the test split has no shapes for protocol {config.protocol!r}; use --eval-pairs 0")
+        if not lead:
+            test_pairs = None
     steps_per_epoch = len(train_pairs) // world // config.batch_size
     if steps_per_epoch == 0:
         raise InputError(f"the training split has {len(train_pairs)} shapes, fewer than one batch of {config.batch_size} per process")
@@ -286,8 +297,10 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
             scheduler.load_state_dict(ckpt["scheduler"])
     if lead:
         out.mkdir(parents=True, exist_ok=True)
-        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-        write_config(out / "config.yaml", config.to_dict())
+        with atomic_output(out / "config.json") as tmp:
+            tmp.write_text(json.dumps(config.to_dict(), indent=2))
+        with atomic_output(out / "config.yaml") as tmp:
+            write_config(tmp, config.to_dict())
     net = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
@@ -314,7 +327,7 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     dataset = _TrainingPairs(train_pairs)
     model.train()
     last_ckpt = time.monotonic()
-    done = False
+    done = config.max_steps is not None and state["global_step"] >= config.max_steps
     while state["epoch"] < config.epochs and not done:
         epoch = state["epoch"]
         # Pairs of epoch e differ from those of other epochs (seeded by epoch) but repeat on resume.

@@ -58,6 +58,7 @@ def test_pairs_file_round_trip(modelnet_root, tmp_path):
     bench.export_pairs(tmp_path / "p.npz", pairs)
     back = bench.import_pairs(tmp_path / "p.npz")
     for a, b in zip(pairs, back):
+        np.testing.assert_allclose(a.clean_target, b.clean_target, atol=1e-6)
         assert (a.protocol, a.index, a.category) == (b.protocol, b.index, b.category)
         np.testing.assert_allclose(a.source, b.source, atol=1e-6)
         np.testing.assert_allclose(a.target, b.target, atol=1e-6)
@@ -77,6 +78,29 @@ def test_bad_pairs_files(tmp_path):
              target_offsets=np.array([0, 3]), transform=np.eye(4)[None], protocol=np.array(["x"]), index=np.array([0]))
     with pytest.raises(InputError, match="source_offsets must rise from 0 to 3"):
         bench.import_pairs(tmp_path / "offsets.npz")
+    np.save(tmp_path / "single.npy", np.zeros((3, 3)))
+    with pytest.raises(InputError, match="a single array, not a pairs file"):
+        bench.import_pairs(tmp_path / "single.npy")
+    np.savez(tmp_path / "cat.npz", source_points=np.zeros((3, 3)), source_offsets=np.array([0, 3]), target_points=np.zeros((3, 3)),
+             target_offsets=np.array([0, 3]), transform=np.eye(4)[None], protocol=np.array(["x"]), index=np.array([0]),
+             category=np.array(["a", "b"]))
+    with pytest.raises(InputError, match="category must hold one name per pair"):
+        bench.import_pairs(tmp_path / "cat.npz")
+
+
+def test_an_unusable_pair_is_reported_and_skipped(tmp_path):
+    rng = np.random.default_rng(0)
+    good = rng.normal(size=(300, 3))
+    pairs = [bench.BenchPair("x", 0, good, good, np.eye(4), "blob"),
+             bench.BenchPair("x", 1, good[:5], good[:5], np.eye(4), "tiny"),  # fewer points than the network's K
+             bench.BenchPair("x", 2, good, good, np.eye(4), "blob")]
+    from o3dsoft.coarse import load_model
+
+    result = bench.run(iter(pairs), 3, bench.BenchConfig(methods=("o3dsoft",)), load_model(), tmp_path, {}, progress=False, log=lambda m: None)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["pairs_completed"] == 2 and [f["index"] for f in summary["pairs_failed"]] == [1]
+    assert "fewer" in summary["pairs_failed"][0]["error"] or "points" in summary["pairs_failed"][0]["error"]
+    assert result.summaries[0]["pairs"] == 2
 
 
 def test_bad_names_and_data(tmp_path, monkeypatch):

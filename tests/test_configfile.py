@@ -21,8 +21,8 @@ def test_round_trip_of_a_full_config(tmp_path):
 
 
 def test_values_are_checked_and_converted(tmp_path):
-    settings = read_config(_yaml(tmp_path, "lr: 1\nnet:\n  channels: [4, 4, 4, 4, 8]\n"), TrainConfig)
-    assert settings["lr"] == 1.0 and isinstance(settings["lr"], float)
+    settings = read_config(_yaml(tmp_path, "lr: 1\nlr_min: 1e-6\nnet:\n  channels: [4, 4, 4, 4, 8]\n"), TrainConfig)
+    assert settings["lr"] == 1.0 and isinstance(settings["lr"], float) and settings["lr_min"] == 1e-6
     assert settings["net"] == NetConfig(channels=(4, 4, 4, 4, 8))
     assert read_config(_yaml(tmp_path, ""), TrainConfig) == {}
 
@@ -63,5 +63,10 @@ def test_command_line_overrides_the_config_file(modelnet_root, tmp_path):
     assert r.exit_code == 0, r.output
     used = TrainConfig(**read_config(out / "config.yaml", TrainConfig))
     assert used.epochs == 1 and used.batch_size == 2 and used.net.k == 8 and used.max_steps == 1
+    # --resume alone takes the run's own settings (here: batch 2, K 8), not the defaults.
+    r = CliRunner().invoke(main, ["train", "--out", str(out), "--resume", "--max-steps", "2"])
+    assert r.exit_code == 0, r.output
+    resumed = TrainConfig(**read_config(out / "config.yaml", TrainConfig))
+    assert resumed.batch_size == 2 and resumed.net.k == 8 and resumed.max_steps == 2
     r = CliRunner().invoke(main, ["train", "--config", str(_yaml(tmp_path, "epoch: 1\n"))])
     assert r.exit_code == 1 and "unknown key 'epoch'" in r.output and "Traceback" not in r.output

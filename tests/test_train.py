@@ -48,6 +48,9 @@ def test_cosine_schedule_ends_at_lr_min(modelnet_root, tmp_path):
     train(_config(modelnet_root, tmp_path, eval_pairs=0, limit_train=8, epochs=2, lr_schedule="cosine", lr_min=1e-5), log=lambda m: None)
     ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
     assert ckpt["scheduler"]["_last_lr"][0] == pytest.approx(1e-5)
+    TrainConfig(lr=1e-6).validate()  # lr_min only matters to the cosine schedule
+    with pytest.raises(InputError, match="lr_min = 0.01 must be between 0 and lr"):
+        TrainConfig(lr_schedule="cosine", lr_min=1e-2).validate()
     with pytest.raises(InputError, match="lr_schedule = .step. must be one of constant, cosine"):
         train(_config(modelnet_root, tmp_path / "x", lr_schedule="step"))
 
@@ -57,6 +60,8 @@ def test_init_from_a_checkpoint(modelnet_root, tmp_path):
     train(_config(modelnet_root, tmp_path / "b", max_steps=1, eval_pairs=0, init=str(tmp_path / "a" / "checkpoint.pt")), log=lambda m: None)
     card = json.loads((tmp_path / "b" / "model_card.json").read_text())
     assert card["initialised_from"]["steps"] == 2 and card["steps"] == 1
+    with pytest.raises(InputError, match="not an o3dsoft training checkpoint"):
+        train(_config(modelnet_root, tmp_path / "m", max_steps=1, init=str(tmp_path / "a" / "model.pt")))
     other = NetConfig(k=4, radius=0.3, channels=(8, 8, 8, 8, 8))
     with pytest.raises(InputError, match="network settings differ"):
         train(_config(modelnet_root, tmp_path / "c", max_steps=1, net=other, init=str(tmp_path / "a" / "checkpoint.pt")))
