@@ -70,3 +70,12 @@ def test_command_line_overrides_the_config_file(modelnet_root, tmp_path):
     assert resumed.batch_size == 2 and resumed.net.k == 8 and resumed.max_steps == 2
     r = CliRunner().invoke(main, ["train", "--config", str(_yaml(tmp_path, "epoch: 1\n"))])
     assert r.exit_code == 1 and "unknown key 'epoch'" in r.output and "Traceback" not in r.output
+
+
+@pytest.mark.parametrize("name", ["paper.yaml", "default-1-wide45.yaml", "default-2-finetune.yaml"])
+def test_shipped_configs_are_valid(name):
+    from .conftest import REPO
+
+    config = TrainConfig(**read_config(REPO / "configs" / name, TrainConfig))
+    config.validate()
+    assert config.net == NetConfig()
