@@ -54,9 +54,10 @@ def main() -> None:
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
+@click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True, help="Further attempts, each on another sample of points, while the result looks wrong (the most confident is kept).")
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, strict):
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, retries, strict):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -82,6 +83,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     config = RegisterConfig(
         num_points=num_points,
         coarse_iterations=coarse_iterations,
+        retries=retries,
         refine=not no_refine,
         icp=ICPConfig(distance=icp_distance, absolute=icp_absolute),
         weights=str(weights) if weights else None,

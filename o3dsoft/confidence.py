@@ -37,7 +37,6 @@ SLOPE = 28.34
 TIGHT = 0.3
 SPACINGS = 1.5
 LIKELY_FAILED_BELOW = 0.5
-_SPACING_SAMPLE = 5000
 
 
 class Features(NamedTuple):
@@ -49,14 +48,9 @@ class Features(NamedTuple):
     tight_distance: float
 
 
-def point_spacing(points: np.ndarray, seed: int = 0) -> float:
+def point_spacing(points: np.ndarray) -> float:
     """Median distance from a point to its nearest other point of the same (N, 3) cloud."""
-    from scipy.spatial import cKDTree
-
-    rng = np.random.default_rng(seed)
-    query = points if len(points) <= _SPACING_SAMPLE else points[rng.choice(len(points), _SPACING_SAMPLE, replace=False)]
-    d, _ = cKDTree(points).query(query, k=2)
-    return float(np.median(d[:, 1]))
+    return float(np.median(np.asarray(refine_stage.to_open3d(points).compute_nearest_neighbor_distance())))
 
 
 def features(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float,

@@ -31,6 +31,8 @@ class RegisterConfig:
     Attributes:
         num_points: points sampled from each cloud for the network.
         coarse_iterations: network passes, each on the source moved by the estimate so far.
+        retries: further attempts, each on another sample of points, while the result is flagged
+            likely failed; the most confident attempt is returned.
         refine: run ICP after the network.
         icp: settings of the fine stage.
         weights: TorchScript model file; None for the shipped default.
@@ -40,6 +42,7 @@ class RegisterConfig:
 
     num_points: int = 1024
     coarse_iterations: int = 1
+    retries: int = 2
     refine: bool = True
     icp: refine_stage.ICPConfig = field(default_factory=refine_stage.ICPConfig)
     weights: Optional[str] = None
@@ -72,6 +75,7 @@ class RegistrationResult:
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
         num_source, num_target: points after cleaning.
+        attempts: coarse + fine runs made (more than 1 when the first looked wrong).
         removed: rows dropped by cleaning, per cloud: {"source_non_finite": ..., ...}.
     """
 
@@ -89,6 +93,7 @@ class RegistrationResult:
     timings_ms: Dict[str, float]
     num_source: int
     num_target: int
+    attempts: int
     removed: Dict[str, int]
 
     def to_dict(self) -> dict:
@@ -139,7 +144,7 @@ def register(
     def lap(stage: str) -> None:
         nonlocal clock
         now = time.perf_counter()
-        timings[stage] = (now - clock) * 1000.0
+        timings[stage] = timings.get(stage, 0.0) + (now - clock) * 1000.0  # summed over attempts
         clock = now
 
     # Load the network (callers registering many pairs pass it in, loaded once).
@@ -155,30 +160,40 @@ def register(
     tgt = clean_points(as_points(target, target_name), target_name, min_points=k)
     lap("clean")
 
-    # Sample the network's input and normalise the pair (own centroids, one common scale).
     norm = normalisation_for(src.points, tgt.points)
-    src_net = sample_points(src.points, config.num_points, seed=config.seed)
-    tgt_net = sample_points(tgt.points, config.num_points, seed=config.seed + 1)
-    src_net, tgt_net, _ = normalise_pair(src_net, tgt_net, norm)
-    lap("sample_normalise")
-
-    # Coarse: the soft-alignment network, then back to the original frames.
-    estimate = coarse_stage.estimate(model, src_net, tgt_net, config.coarse_iterations)
-    T_coarse = denormalise_transform(estimate.transform, norm)
-    lap("coarse")
-
-    # Refine: point-to-point ICP at full resolution (or just score the coarse estimate).
     distance = config.icp.distance_for(norm.scale)
-    if config.refine:
-        fine = refine_stage.icp(src.points, tgt.points, T_coarse, distance, config.icp)
-    else:
-        fine = refine_stage.evaluate(src.points, tgt.points, T_coarse, distance, config.icp.max_points)
-    lap("refine")
+    best = None
+    # One attempt, and more only while the result looks wrong: each draws another sample of points
+    # for the network, whose estimate can flip on near-symmetric shapes; the most confident wins.
+    for attempt in range(1 + config.retries):
+        seed = config.seed + 2 * attempt
+        # Sample the network's input and normalise the pair (own centroids, one common scale).
+        src_net = sample_points(src.points, config.num_points, seed=seed)
+        tgt_net = sample_points(tgt.points, config.num_points, seed=seed + 1)
+        src_net, tgt_net, _ = normalise_pair(src_net, tgt_net, norm)
+        lap("sample_normalise")
 
-    # Score: how much to trust the result.
-    scored = confidence_stage.features(src.points, tgt.points, fine.transformation, distance, config.icp.max_points)
-    trust = confidence_stage.confidence(scored)
-    lap("score")
+        # Coarse: the soft-alignment network, then back to the original frames.
+        estimate = coarse_stage.estimate(model, src_net, tgt_net, config.coarse_iterations)
+        T_coarse = denormalise_transform(estimate.transform, norm)
+        lap("coarse")
+
+        # Refine: point-to-point ICP at full resolution (or just score the coarse estimate).
+        if config.refine:
+            fine = refine_stage.icp(src.points, tgt.points, T_coarse, distance, config.icp)
+        else:
+            fine = refine_stage.evaluate(src.points, tgt.points, T_coarse, distance, config.icp.max_points)
+        lap("refine")
+
+        # Score: how much to trust the result.
+        scored = confidence_stage.features(src.points, tgt.points, fine.transformation, distance, config.icp.max_points)
+        trust = confidence_stage.confidence(scored)
+        lap("score")
+        if best is None or trust > best[0]:
+            best = (trust, scored, fine, T_coarse, estimate)
+        if trust >= confidence_stage.LIKELY_FAILED_BELOW:
+            break
+    trust, scored, fine, T_coarse, estimate = best
     timings["total"] = sum(timings.values())
 
     return RegistrationResult(
@@ -196,6 +211,7 @@ def register(
         timings_ms=timings,
         num_source=len(src.points),
         num_target=len(tgt.points),
+        attempts=attempt + 1,
         removed={
             "source_non_finite": src.non_finite,
             "source_duplicates": src.duplicates,

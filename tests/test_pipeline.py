@@ -185,3 +185,36 @@ def test_sparse_target_is_not_mistaken_for_a_failure():
     assert confidence(features(torus, sparse, wrong, distance=0.13)) < 0.5
     grid = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), [0.0]), axis=-1).reshape(-1, 3) * 0.5
     assert point_spacing(grid) == pytest.approx(0.5)
+
+
+class _WrongFirstModel:
+    """Stands in for a network that knows the true rotation but returns it flipped upside down on
+    its first call (rotations are the same in the normalised frame; the clouds come centred)."""
+
+    def __init__(self, R_true):
+        from o3dsoft.model import NetConfig
+
+        self.config = NetConfig(k=8)
+        self.R_true = R_true
+        self.calls = 0
+
+    def run(self, source, target):
+        import torch
+
+        self.calls += 1
+        R = self.R_true @ (np.diag([1.0, -1.0, -1.0]) if self.calls == 1 else np.eye(3))
+        s, t = source[0].double().numpy(), target[0].double().numpy()
+        as_t = lambda a: torch.as_tensor(a, dtype=torch.float32)[None]  # noqa: E731
+        return as_t(R), as_t(t.mean(0) - R @ s.mean(0)), torch.ones(1, len(s))
+
+
+def test_a_likely_failure_is_retried_with_another_sample():
+    rng = np.random.default_rng(4)
+    src = blob(rng, 800)
+    T = random_transform(rng, 30.0, 0.2)
+    tgt = apply(T, src)
+    res = register(src, tgt, RegisterConfig(num_points=800, retries=0), model=_WrongFirstModel(T[:3, :3]))
+    assert res.likely_failed and res.attempts == 1
+    res = register(src, tgt, RegisterConfig(num_points=800, retries=2), model=_WrongFirstModel(T[:3, :3]))
+    assert not res.likely_failed and res.attempts == 2
+    assert pair_errors(res.transformation, T).rotation_deg < 1e-3
