@@ -8,7 +8,6 @@ from click.testing import CliRunner
 
 from o3dsoft import bench
 from o3dsoft.cli.main import main
-from o3dsoft.coarse import load_model
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.metrics import pair_errors
 
