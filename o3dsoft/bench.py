@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import platform
 import time
 from dataclasses import asdict, dataclass, field
@@ -21,12 +22,12 @@ import numpy as np
 
 from . import baselines
 from . import refine as refine_stage
-from .coarse import CoarseModel, sha256_of
+from .coarse import CoarseModel, default_weights_path, sha256_of
 from .confidence import LIKELY_FAILED_BELOW
 from .data import get_protocol, load_pairs
 from .errors import InputError, O3dsoftError, UsageError
 from .io import atomic_output
-from .metrics import MODELNET_RECALL, PairErrors, modified_chamfer_distance, pair_errors, summarise
+from .metrics import MODELNET_RECALL, PairErrors, modified_chamfer_distance, pair_errors, summarise, within
 from .pipeline import RegisterConfig, register
 from .preprocess import normalisation_for
 from .transforms import apply_transform, rotation_angle_deg
@@ -356,8 +357,7 @@ def summarise_rows(rows: Sequence[dict], errors: Sequence[PairErrors], config: B
                 summary["time_ms_p90"] = float(np.percentile(total, 90))
                 scores = [rows[i]["confidence"] for i in sel if rows[i]["confidence"] != ""]
                 if len(scores) == len(sel):
-                    deg, dist = config.recall[-1]
-                    success = np.array([errors[i].rotation_deg < deg and errors[i].translation < dist for i in sel])
+                    success = within([errors[i].rotation_deg for i in sel], [errors[i].translation for i in sel], config.recall[-1])
                     summary["confidence_auc"] = roc_auc(np.array(scores), success)
                     summary["likely_failed_share"] = float(np.mean(np.array(scores) < LIKELY_FAILED_BELOW))
                 for stage in STAGES[:-1]:
@@ -414,7 +414,7 @@ def versions() -> Dict[str, str]:
     from . import __version__
 
     return {"o3dsoft": __version__, "torch": torch.__version__, "open3d": open3d.__version__, "numpy": np.__version__,
-            "python": platform.python_version(), "machine": f"{platform.machine()}, {platform.system()}, {__import__('os').cpu_count()} logical CPUs"}
+            "python": platform.python_version(), "machine": f"{platform.machine()}, {platform.system()}, {os.cpu_count()} logical CPUs"}
 
 
 def write_csv(path: Path, rows: Sequence[dict]) -> None:
@@ -453,7 +453,7 @@ def plot(folder: Path, rows: Sequence[dict], config: BenchConfig) -> List[Path]:
                     ax.set_ylabel("share of pairs with at most this error")
                 else:
                     angle = np.array([r["initial_angle_deg"] for r in sel])
-                    ok = np.array([(r["rotation_deg"] < deg) and (r["translation"] < dist) for r in sel])
+                    ok = within([r["rotation_deg"] for r in sel], [r["translation"] for r in sel], config.recall[0])
                     edges = np.linspace(0, max(180.0 if angle.max() > 90 else 90.0, angle.max() + 1e-9), 10)
                     which = np.clip(np.digitize(angle, edges) - 1, 0, len(edges) - 2)
                     centres, recall = [], []
@@ -539,8 +539,6 @@ def run(
     table = format_table(summaries, config.recall)
     write_csv(out / "pairs.csv", rows)
     weights = config.register.weights
-    from .coarse import default_weights_path
-
     weights_path = Path(weights) if weights else default_weights_path()
     summary_doc = {
         "description": description,

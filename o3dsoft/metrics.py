@@ -103,6 +103,13 @@ def modified_chamfer_distance(
 MODELNET_RECALL = ((1.0, 0.01), (5.0, 0.05))
 
 
+def within(rotation_deg, translation, threshold: "tuple") -> np.ndarray:
+    """Success at one recall threshold (degrees, cloud units): both errors below it; works
+    elementwise on arrays of errors."""
+    deg, dist = threshold
+    return (np.asarray(rotation_deg) < deg) & (np.asarray(translation) < dist)
+
+
 def summarise(errors: "list[PairErrors]", recall: "tuple" = MODELNET_RECALL) -> Dict[str, float]:
     """Summary over pairs: DCP's Euler/translation MSE, RMSE, MAE; isotropic mean/median; recall.
 
@@ -133,5 +140,5 @@ def summarise(errors: "list[PairErrors]", recall: "tuple" = MODELNET_RECALL) -> 
         "rotation_l2_mean": float(np.mean([e.rotation_l2 for e in errors])),
         "translation_l1_mean": float(np.mean([e.translation_l1 for e in errors])),
         "translation_l2_mean": float(np.mean([e.translation_l2 for e in errors])),
-        **{f"recall_{deg:g}deg": float(np.mean((rot < deg) & (trans < dist))) for deg, dist in recall},
+        **{f"recall_{deg:g}deg": float(np.mean(within(rot, trans, (deg, dist)))) for deg, dist in recall},
     }
