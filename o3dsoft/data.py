@@ -46,7 +46,10 @@ class Protocol:
         translation: each component of t uniform in [-translation, translation].
         noise_std, noise_clip: Gaussian noise added to each cloud independently (0 = none).
         crop_keep: fraction of each cloud kept by its own random half-space (1 = no crop).
-        num_points: points per cloud after cropping (None = all points of the shape).
+        num_points: points per cloud after cropping (None = all points of the shape); each cloud
+            draws its own points, so source and target are different samples of the shape.
+        degraded_share: share of pairs that get the crop and the noise; the others stay complete
+            and noise-free (still resampled to num_points). 1 = every pair, the benchmark setting.
         categories: "all", "seen" (labels 0-19) or "unseen" (labels 20-39) for the test split;
             training on an "unseen" protocol uses the seen half.
     """
@@ -60,6 +63,7 @@ class Protocol:
     noise_clip: float = 0.0
     crop_keep: float = 1.0
     num_points: Optional[int] = None
+    degraded_share: float = 1.0
     categories: str = "all"
 
 
@@ -75,6 +79,11 @@ PROTOCOLS: Dict[str, Protocol] = {
         Protocol("so3-crop", rotation="so3", noise_std=0.01, noise_clip=0.05, crop_keep=0.7, num_points=717),
         # The range the shipped default model is trained on: paper's +-22.5 and DCP's 0-45 inside.
         Protocol("wide45", angle_min=-45.0, angle_max=45.0, translation=0.5),
+        # Training only: wide45 where half of the pairs are cropped and noisy like rpmnet-crop and
+        # the rest complete, all independently resampled (so the weights w_i learn to down-weight
+        # points without a partner while clean pairs stay in the mix).
+        Protocol("wide45-partial", angle_min=-45.0, angle_max=45.0, translation=0.5, noise_std=0.01, noise_clip=0.05,
+                 crop_keep=0.7, num_points=717, degraded_share=0.5),
     )
 }
 
@@ -142,14 +151,17 @@ def make_pair(points: np.ndarray, protocol: Protocol, seed: int, index: int, lab
     t = rng.uniform(-p.translation, p.translation, size=3)
     src = points.astype(np.float64)
     tgt = src.copy()
-    if p.crop_keep < 1.0:
+    # Drawn only for mixed protocols, so that the pairs of the others stay as they were.
+    degraded = p.degraded_share >= 1.0 or rng.random() < p.degraded_share
+    if degraded and p.crop_keep < 1.0:
         src = _crop(src, p.crop_keep, rng)
         tgt = _crop(tgt, p.crop_keep, rng)
     if p.num_points is not None:
         src = _resample(src, p.num_points, rng)
         tgt = _resample(tgt, p.num_points, rng)
-    src = _noise(src, p, rng)
-    tgt = _noise(tgt, p, rng)
+    if degraded:
+        src = _noise(src, p, rng)
+        tgt = _noise(tgt, p, rng)
     tgt = tgt @ R.T + t
     tgt = tgt[rng.permutation(len(tgt))]
     return Pair(src.astype(np.float32), tgt.astype(np.float32), rigid(R, t), index, label, rotation_angle_deg(R))

@@ -237,9 +237,30 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     """
     config.validate()
     rank, world, device = _setup_distributed(config)
+    try:
+        return _train(config, resume, log if rank == 0 else (lambda message: None), rank, world, device)
+    finally:
+        if world > 1:
+            _teardown_distributed()
+
+
+def _teardown_distributed() -> None:
+    """Destroy the process group after everything that used it (the DDP wrapper, its reducer) is freed.
+
+    Freeing the wrapper only at interpreter exit, after the group is gone, can abort the process
+    ("terminate called without an active exception") from one of gloo's threads.
+    """
+    import gc
+
+    import torch.distributed as dist
+
+    gc.collect()
+    if dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: int, world: int, device: torch.device) -> Path:
     lead = rank == 0
-    if not lead:
-        log = lambda message: None  # noqa: E731
     out = Path(config.out)
     ckpt_path = out / "checkpoint.pt"
     protocol = get_protocol(config.protocol)
@@ -414,8 +435,7 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     if world > 1:
         import torch.distributed as dist
 
-        dist.barrier()
-        dist.destroy_process_group()
+        dist.barrier()  # the other ranks return only once rank 0 has written the model
     return out / "model.pt"
 
 

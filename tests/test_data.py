@@ -43,6 +43,19 @@ def test_crop_keeps_seventy_percent_and_noise_is_clipped(shape):
     assert nearest_dist.mean() > 0.005  # and there is noise
 
 
+def test_mixed_protocol_degrades_about_its_share_of_pairs(shape):
+    p = get_protocol("wide45-partial")
+    degraded = 0
+    for i in range(60):
+        pair = make_pair(shape, p, seed=0, index=i)
+        assert pair.source.shape == pair.target.shape == (717, 3)
+        nearest = np.min(np.linalg.norm(pair.source[:, None] - shape[None], axis=2), axis=1)
+        if nearest.max() > 0:  # noisy, hence degraded; clean pairs are exact points of the shape
+            degraded += 1
+            assert nearest.mean() > 0.005
+    assert 18 <= degraded <= 42  # Binomial(60, 0.5): outside this range with probability < 0.002
+
+
 def test_protocol_rotation_ranges(shape):
     angles = [make_pair(shape, get_protocol("paper"), 0, i).transform for i in range(200)]
     max_err = max(rotation_error_deg(T[:3, :3], np.eye(3)) for T in angles)
