@@ -54,10 +54,10 @@ def main() -> None:
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
-@click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True, help="Further attempts, each on another sample of points, while the result looks wrong (the most confident is kept).")
+@click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="Global search (the network from 24 starting rotations, for clouds with no rough alignment): auto = when the first result looks wrong.")
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, retries, strict):
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, search, strict):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -83,7 +83,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     config = RegisterConfig(
         num_points=num_points,
         coarse_iterations=coarse_iterations,
-        retries=retries,
+        search=search,
         refine=not no_refine,
         icp=ICPConfig(distance=icp_distance, absolute=icp_absolute),
         weights=str(weights) if weights else None,
@@ -122,8 +122,9 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     if result.likely_failed:
         click.echo(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: only {100 * result.fitness_tight:.0f} % of the "
-            f"points lie within {result.tight_distance:.3g} units of the other cloud). If the clouds are more than ~45 degrees apart, "
-            "give a rough initial alignment; if they overlap only partly, check the result visually (--render).",
+            f"points lie within {result.tight_distance:.3g} units of the other cloud"
+            + ("; the search from 24 starting rotations found nothing better" if result.searched else "")
+            + "). If the clouds overlap only partly, a right alignment can read as doubtful: check it visually (--render).",
             err=True,
         )
         if strict:
@@ -152,6 +153,8 @@ def _format_result(source, target, result, errors, model_info, refined: bool) ->
         f"  confidence   {result.confidence:.4f}   estimated probability that the alignment is right (0-1, higher is better)"
         + ("  LIKELY FAILED" if result.likely_failed else ""),
     ]
+    if result.searched:
+        lines.append(f"  search       ran: the first estimate looked wrong; {result.attempts} estimates refined, the most confident kept")
     if errors is not None:
         f, c = errors["final"], errors["coarse"]
         stage = "network + ICP" if refined else "network"
@@ -250,6 +253,7 @@ def _bench_options(fn):
         click.option("--device", default="cpu", show_default=True, help="Torch device of the network."),
         click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC."),
         click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),
+        click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
@@ -259,7 +263,7 @@ def _bench_options(fn):
     return fn
 
 
-def _run_bench(name, pairs, count, methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress, description, recall=None):
+def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, out, overwrite, no_progress):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -267,7 +271,8 @@ def _run_bench(name, pairs, count, methods, weights, device, seed, coarse_iterat
     from ..pipeline import RegisterConfig
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed,
-                         register=RegisterConfig(weights=str(weights) if weights else None, device=device, coarse_iterations=coarse_iterations))
+                         register=RegisterConfig(weights=str(weights) if weights else None, device=device, coarse_iterations=coarse_iterations,
+                                                  search=search))
     if recall is not None:
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
@@ -290,12 +295,13 @@ def _run_bench(name, pairs, count, methods, weights, device, seed, coarse_iterat
 @click.option("--import-pairs", type=click.Path(path_type=Path), help="Score the pairs of this .npz instead of making them.")
 @_bench_options
 @_friendly_errors
-def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress):
+def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, **common):
     """Every method on the ModelNet40 test pairs of each protocol: table, CSV, JSON, plots."""
     from ..bench import BENCH_PROTOCOLS, check_methods, export_pairs as write_pairs, import_pairs as read_pairs, modelnet_pairs
     from ..data import get_protocol
 
-    check_methods(methods)
+    check_methods(common["methods"])
+    seed = common["seed"]
     if import_pairs:
         pairs = read_pairs(import_pairs)
         count, iterator = len(pairs), iter(pairs)
@@ -311,7 +317,7 @@ def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, methods
             write_pairs(export_pairs, pairs)
             click.echo(f"wrote {len(pairs)} pairs to {export_pairs}", err=True)
             iterator = iter(pairs)
-    _run_bench("modelnet40", iterator, count, methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress, description)
+    _run_bench("modelnet40", iterator, count, description, **common)
 
 
 @bench.command("bunny")
@@ -320,14 +326,14 @@ def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, methods
 @click.option("--recall-translation", type=click.FloatRange(min=0, min_open=True), default=0.002, show_default=True, help="Translation threshold of the 1-degree recall, in the scans' units (metres for the bunny); x5 for the 5-degree one.")
 @_bench_options
 @_friendly_errors
-def bench_bunny(data, min_overlap, recall_translation, methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress):
+def bench_bunny(data, min_overlap, recall_translation, **common):
     """Every method on every overlapping pair of real scans (Stanford .conf ground truth)."""
     import os
 
     from ..bench import check_methods, scan_pairs
     from ..errors import UsageError
 
-    check_methods(methods)
+    check_methods(common["methods"])
     folder = data or (Path(os.environ["O3DSOFT_SCANS"]) if "O3DSOFT_SCANS" in os.environ else Path("../shared/data/stanford_bunny"))
     if not folder.is_dir():
         raise UsageError(f"{folder}: no such folder of scans; pass --data FOLDER (scans + a Stanford .conf)")
@@ -338,7 +344,7 @@ def bench_bunny(data, min_overlap, recall_translation, methods, weights, device,
         raise UsageError(f"no scan pair in {folder} reaches --min-overlap {min_overlap}")
     description = {"benchmark": "scans", "folder": str(folder), "min_overlap": min_overlap, "pairs": table}
     recall = ((1.0, recall_translation), (5.0, 5 * recall_translation))
-    _run_bench("scans", iter(pairs), len(pairs), methods, weights, device, seed, coarse_iterations, out, overwrite, no_progress, description, recall)
+    _run_bench("scans", iter(pairs), len(pairs), description, recall, **common)
 
 
 if __name__ == "__main__":  # pragma: no cover

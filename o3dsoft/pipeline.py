@@ -11,16 +11,18 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Dict, Optional, Union
+from typing import Dict, NamedTuple, Optional, Union
 
 import numpy as np
 
 from . import coarse as coarse_stage
 from . import confidence as confidence_stage
 from . import refine as refine_stage
+from . import search as search_stage
 from .errors import InputError
 from .preprocess import clean_points, denormalise_transform, normalise_pair, normalisation_for, sample_points
 
+SEARCH_MODES = ("auto", "always", "off")
 CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud"]  # noqa: F821
 
 
@@ -31,8 +33,11 @@ class RegisterConfig:
     Attributes:
         num_points: points sampled from each cloud for the network.
         coarse_iterations: network passes, each on the source moved by the estimate so far.
-        retries: further attempts, each on another sample of points, while the result is flagged
-            likely failed; the most confident attempt is returned.
+        search: the global search (:mod:`o3dsoft.search`), for pairs with no usable initial
+            guess: "auto" runs it when the first result is flagged likely failed, "always" on
+            every pair, "off" never. The most confident result is returned.
+        search_points: points per cloud for the search's batch of network passes.
+        search_refine: how many of the search's best-ranked estimates go on to ICP.
         refine: run ICP after the network.
         icp: settings of the fine stage.
         weights: TorchScript model file; None for the shipped default.
@@ -42,7 +47,9 @@ class RegisterConfig:
 
     num_points: int = 1024
     coarse_iterations: int = 1
-    retries: int = 2
+    search: str = "auto"
+    search_points: int = 512
+    search_refine: int = 3
     refine: bool = True
     icp: refine_stage.ICPConfig = field(default_factory=refine_stage.ICPConfig)
     weights: Optional[str] = None
@@ -51,6 +58,16 @@ class RegisterConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def validate(self, k: int) -> None:
+        """Raise InputError for settings the network (neighbourhood size `k`) cannot run with."""
+        if self.search not in SEARCH_MODES:
+            raise InputError(f"search={self.search!r}; valid: {', '.join(SEARCH_MODES)}")
+        for name in ("num_points", "search_points"):
+            if getattr(self, name) < k:
+                raise InputError(f"{name}={getattr(self, name)} is below the network's neighbourhood size K={k}")
+        if self.search_refine < 1:
+            raise InputError(f"search_refine must be at least 1, got {self.search_refine}")
 
 
 @dataclass
@@ -75,7 +92,8 @@ class RegistrationResult:
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
         num_source, num_target: points after cleaning.
-        attempts: coarse + fine runs made (more than 1 when the first looked wrong).
+        attempts: estimates refined by ICP and scored (more than 1 after a search).
+        searched: whether the global search ran.
         removed: rows dropped by cleaning, per cloud: {"source_non_finite": ..., ...}.
     """
 
@@ -94,6 +112,7 @@ class RegistrationResult:
     num_source: int
     num_target: int
     attempts: int
+    searched: bool
     removed: Dict[str, int]
 
     def to_dict(self) -> dict:
@@ -102,6 +121,15 @@ class RegistrationResult:
         d["transformation"] = self.transformation.tolist()
         d["coarse_transformation"] = self.coarse_transformation.tolist()
         return d
+
+
+class _Attempt(NamedTuple):
+    """One refined and scored estimate."""
+
+    trust: float
+    scored: confidence_stage.Features
+    fine: refine_stage.ICPResult
+    coarse: np.ndarray
 
 
 def as_points(cloud: CloudLike, name: str) -> np.ndarray:
@@ -151,67 +179,71 @@ def register(
     if model is None:
         model = coarse_stage.load_model(config.weights, config.device)
         lap("load_model")
+    config.validate(model.config.k)
     k = model.config.k
-    if config.num_points < k:
-        raise InputError(f"num_points={config.num_points} is below the network's neighbourhood size K={k}")
 
     # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds.
     src = clean_points(as_points(source, source_name), source_name, min_points=k)
     tgt = clean_points(as_points(target, target_name), target_name, min_points=k)
     lap("clean")
 
+    # Sample the network's input and normalise the pair (own centroids, one common scale).
     norm = normalisation_for(src.points, tgt.points)
     distance = config.icp.distance_for(norm.scale)
-    best = None
-    # One attempt, and more only while the result looks wrong: each draws another sample of points
-    # for the network, whose estimate can flip on near-symmetric shapes; the most confident wins.
-    for attempt in range(1 + config.retries):
-        seed = config.seed + 2 * attempt
-        # Sample the network's input and normalise the pair (own centroids, one common scale).
-        src_net = sample_points(src.points, config.num_points, seed=seed)
-        tgt_net = sample_points(tgt.points, config.num_points, seed=seed + 1)
-        src_net, tgt_net, _ = normalise_pair(src_net, tgt_net, norm)
-        lap("sample_normalise")
+    src_net = sample_points(src.points, config.num_points, seed=config.seed)
+    tgt_net = sample_points(tgt.points, config.num_points, seed=config.seed + 1)
+    src_norm, tgt_norm, _ = normalise_pair(src_net, tgt_net, norm)
+    lap("sample_normalise")
 
-        # Coarse: the soft-alignment network, then back to the original frames.
-        estimate = coarse_stage.estimate(model, src_net, tgt_net, config.coarse_iterations)
-        T_coarse = denormalise_transform(estimate.transform, norm)
-        lap("coarse")
-
+    def finish(T_coarse: np.ndarray) -> _Attempt:
         # Refine: point-to-point ICP at full resolution (or just score the coarse estimate).
         if config.refine:
             fine = refine_stage.icp(src.points, tgt.points, T_coarse, distance, config.icp)
         else:
             fine = refine_stage.evaluate(src.points, tgt.points, T_coarse, distance, config.icp.max_points)
         lap("refine")
-
         # Score: how much to trust the result.
         scored = confidence_stage.features(src.points, tgt.points, fine.transformation, distance, config.icp.max_points)
         trust = confidence_stage.confidence(scored)
         lap("score")
-        if best is None or trust > best[0]:
-            best = (trust, scored, fine, T_coarse, estimate)
-        if trust >= confidence_stage.LIKELY_FAILED_BELOW:
-            break
-    trust, scored, fine, T_coarse, estimate = best
+        return _Attempt(trust, scored, fine, T_coarse)
+
+    # Coarse: the soft-alignment network, then back to the original frames.
+    estimate = coarse_stage.estimate(model, src_norm, tgt_norm, config.coarse_iterations)
+    lap("coarse")
+    attempts = [finish(denormalise_transform(estimate.transform, norm))]
+
+    searched = config.search == "always" or (config.search == "auto" and attempts[0].trust < confidence_stage.LIKELY_FAILED_BELOW)
+    if searched:
+        # Search: the network from the 24 cube rotations on smaller samples, ranked by the share
+        # of sampled points that land near the target; the best few are refined and scored.
+        src_small = sample_points(src_norm, config.search_points, seed=config.seed + 2)
+        tgt_small = sample_points(tgt_norm, config.search_points, seed=config.seed + 3)
+        candidates = search_stage.network_candidates(model, src_small, tgt_small, search_stage.cube_rotations())
+        candidates = np.stack([denormalise_transform(T, norm) for T in candidates])
+        order = search_stage.rank(src_net, tgt_net, candidates, 0.5 * distance)
+        lap("search")
+        attempts += [finish(candidates[h]) for h in order[: config.search_refine]]
+    best = max(attempts, key=lambda a: a.trust)
     timings["total"] = sum(timings.values())
 
     return RegistrationResult(
-        transformation=fine.transformation,
-        fitness=fine.fitness,
-        inlier_rmse=fine.inlier_rmse,
-        coarse_transformation=T_coarse,
-        confidence=trust,
-        likely_failed=trust < confidence_stage.LIKELY_FAILED_BELOW,
-        fitness_tight=scored.fitness_tight,
-        tight_distance=scored.tight_distance,
+        transformation=best.fine.transformation,
+        fitness=best.fine.fitness,
+        inlier_rmse=best.fine.inlier_rmse,
+        coarse_transformation=best.coarse,
+        confidence=best.trust,
+        likely_failed=best.trust < confidence_stage.LIKELY_FAILED_BELOW,
+        fitness_tight=best.scored.fitness_tight,
+        tight_distance=best.scored.tight_distance,
         mean_weight=float(np.mean(estimate.weights)),
         correspondence_distance=distance,
         scale=norm.scale,
         timings_ms=timings,
         num_source=len(src.points),
         num_target=len(tgt.points),
-        attempts=attempt + 1,
+        attempts=len(attempts),
+        searched=searched,
         removed={
             "source_non_finite": src.non_finite,
             "source_duplicates": src.duplicates,

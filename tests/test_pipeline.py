@@ -4,9 +4,10 @@ import pytest
 import o3dsoft
 from o3dsoft.coarse import load_model
 from o3dsoft.errors import InputError
-from o3dsoft.metrics import pair_errors
+from o3dsoft.metrics import pair_errors, rotation_error_deg
 from o3dsoft.pipeline import RegisterConfig, register
 from o3dsoft.refine import ICPConfig, downsample
+from o3dsoft.transforms import euler_to_matrix
 
 from .conftest import apply, blob, random_transform
 
@@ -187,34 +188,49 @@ def test_sparse_target_is_not_mistaken_for_a_failure():
     assert point_spacing(grid) == pytest.approx(0.5)
 
 
-class _WrongFirstModel:
-    """Stands in for a network that knows the true rotation but returns it flipped upside down on
-    its first call (rotations are the same in the normalised frame; the clouds come centred)."""
+class _NearSightedModel:
+    """Stands in for a network that finds the rotation left to do only when it is under 50 degrees
+    (roughly like the trained one) and returns the identity otherwise. It knows the true rotation
+    (rotations are the same in the normalised frame) and, in a batch of 24, that the sources come
+    pre-rotated by the search's starts, in their order."""
 
     def __init__(self, R_true):
         from o3dsoft.model import NetConfig
 
         self.config = NetConfig(k=8)
         self.R_true = R_true
-        self.calls = 0
+        self.batches = []
 
     def run(self, source, target):
         import torch
 
-        self.calls += 1
-        R = self.R_true @ (np.diag([1.0, -1.0, -1.0]) if self.calls == 1 else np.eye(3))
-        s, t = source[0].double().numpy(), target[0].double().numpy()
-        as_t = lambda a: torch.as_tensor(a, dtype=torch.float32)[None]  # noqa: E731
-        return as_t(R), as_t(t.mean(0) - R @ s.mean(0)), torch.ones(1, len(s))
+        from o3dsoft.search import cube_rotations
+
+        self.batches.append(len(source))
+        starts = cube_rotations() if len(source) == 24 else np.eye(3)[None]
+        Rs, ts = [], []
+        for h in range(len(source)):
+            R = self.R_true @ starts[h].T  # what is left to do after the start
+            if rotation_error_deg(R, np.eye(3)) > 50:
+                R = np.eye(3)
+            s, t = source[h].double().numpy(), target[h].double().numpy()
+            Rs.append(R)
+            ts.append(t.mean(0) - R @ s.mean(0))
+        as_t = lambda a: torch.as_tensor(np.stack(a), dtype=torch.float32)  # noqa: E731
+        return as_t(Rs), as_t(ts), torch.ones(len(source), source.shape[1])
 
 
-def test_a_likely_failure_is_retried_with_another_sample():
+def test_a_large_rotation_is_found_by_the_search():
     rng = np.random.default_rng(4)
     src = blob(rng, 800)
-    T = random_transform(rng, 30.0, 0.2)
+    T = np.eye(4)
+    T[:3, :3] = euler_to_matrix([160.0, -20.0, 100.0])  # 152 degrees; 31 from the nearest start
+    T[:3, 3] = [0.3, -0.2, 0.1]
     tgt = apply(T, src)
-    res = register(src, tgt, RegisterConfig(num_points=800, retries=0), model=_WrongFirstModel(T[:3, :3]))
-    assert res.likely_failed and res.attempts == 1
-    res = register(src, tgt, RegisterConfig(num_points=800, retries=2), model=_WrongFirstModel(T[:3, :3]))
-    assert not res.likely_failed and res.attempts == 2
+    model = _NearSightedModel(T[:3, :3])
+    res = register(src, tgt, RegisterConfig(num_points=800, search="off"), model=model)
+    assert res.likely_failed and res.attempts == 1 and not res.searched and model.batches == [1]
+    model = _NearSightedModel(T[:3, :3])
+    res = register(src, tgt, RegisterConfig(num_points=800, search_points=400), model=model)
+    assert res.searched and not res.likely_failed and res.attempts == 4 and model.batches == [1, 24]
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
