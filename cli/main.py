@@ -55,9 +55,10 @@ def main() -> None:
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
 @click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="Global search (the network from 24 starting rotations, for clouds with no rough alignment): auto = when the first result looks wrong.")
+@click.option("--search-features", is_flag=True, help="The search also tries FPFH features matched by RANSAC (for partial scans).")
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, search, strict):
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, strict):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -84,6 +85,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
         num_points=num_points,
         coarse_iterations=coarse_iterations,
         search=search,
+        search_features=search_features,
         refine=not no_refine,
         icp=ICPConfig(distance=icp_distance, absolute=icp_absolute),
         weights=str(weights) if weights else None,
@@ -254,6 +256,7 @@ def _bench_options(fn):
         click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC."),
         click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),
         click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
+        click.option("--search-features", is_flag=True, help="o3dsoft's search also tries FPFH + RANSAC (see register --help)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
@@ -263,7 +266,7 @@ def _bench_options(fn):
     return fn
 
 
-def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, out, overwrite, no_progress):
+def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, out, overwrite, no_progress):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -272,7 +275,7 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, weights
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed,
                          register=RegisterConfig(weights=str(weights) if weights else None, device=device, coarse_iterations=coarse_iterations,
-                                                  search=search))
+                                                  search=search, search_features=search_features))
     if recall is not None:
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)

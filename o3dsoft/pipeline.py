@@ -37,7 +37,11 @@ class RegisterConfig:
             guess: "auto" runs it when the first result is flagged likely failed, "always" on
             every pair, "off" never. The most confident result is returned.
         search_points: points per cloud for the search's batch of network passes.
-        search_refine: how many of the search's best-ranked estimates go on to ICP.
+        search_refine: how many of the search's best-ranked estimates are polished by ICP on the
+            network's samples before the best of them is refined at full resolution.
+        search_features: the search also considers the estimate of FPFH features matched by
+            RANSAC (:mod:`o3dsoft.baselines`), a classical estimate that does not depend on the
+            network's training distribution (partial scans, large rotations).
         refine: run ICP after the network.
         icp: settings of the fine stage.
         weights: TorchScript model file; None for the shipped default.
@@ -50,6 +54,7 @@ class RegisterConfig:
     search: str = "auto"
     search_points: int = 512
     search_refine: int = 3
+    search_features: bool = False
     refine: bool = True
     icp: refine_stage.ICPConfig = field(default_factory=refine_stage.ICPConfig)
     weights: Optional[str] = None
@@ -92,7 +97,7 @@ class RegistrationResult:
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
         num_source, num_target: points after cleaning.
-        attempts: estimates refined by ICP and scored (more than 1 after a search).
+        attempts: estimates refined by ICP at full resolution and scored (2 after a search).
         searched: whether the global search ran.
         removed: rows dropped by cleaning, per cloud: {"source_non_finite": ..., ...}.
     """
@@ -215,15 +220,17 @@ def register(
 
     searched = config.search == "always" or (config.search == "auto" and attempts[0].trust < confidence_stage.LIKELY_FAILED_BELOW)
     if searched:
-        # Search: the network from the 24 cube rotations on smaller samples, ranked by the share
-        # of sampled points that land near the target; the best few are refined and scored.
+        # Search: the network from the 24 cube rotations on smaller samples (plus, optionally, a
+        # feature-based estimate); the best-ranked are polished by ICP on the network's samples,
+        # and only the one that fits best there is refined at full resolution and scored.
         src_small = sample_points(src_norm, config.search_points, seed=config.seed + 2)
         tgt_small = sample_points(tgt_norm, config.search_points, seed=config.seed + 3)
         candidates = search_stage.network_candidates(model, src_small, tgt_small, search_stage.cube_rotations())
         candidates = np.stack([denormalise_transform(T, norm) for T in candidates])
-        order = search_stage.rank(src_net, tgt_net, candidates, 0.5 * distance)
+        extra = search_stage.feature_candidate(src.points, tgt.points, norm.scale, config.seed)[None] if config.search_features else None
+        chosen = search_stage.select(src_net, tgt_net, candidates, distance, config.search_refine, config.icp, extra)
         lap("search")
-        attempts += [finish(candidates[h]) for h in order[: config.search_refine]]
+        attempts.append(finish(chosen))
     best = max(attempts, key=lambda a: a.trust)
     timings["total"] = sum(timings.values())
 

@@ -4,17 +4,19 @@ The network is trained on rotations of up to 45 degrees per axis, and far beyond
 estimate is unreliable (the paper's experiment 10). The search pre-rotates the source by each of
 the 24 rotations of a cube, which cover SO(3) (every rotation lies within 62.8 degrees of one of
 them), runs the network on all of them as one batch, ranks the estimates by the share of sampled
-source points that land near the target, and leaves the best few to ICP and the confidence.
+source points that land near the target, polishes the best few by ICP on the samples and keeps
+the one that fits best, for the pipeline to refine at full resolution.
 """
 
 from __future__ import annotations
 
 import itertools
-from typing import List
+from typing import Optional
 
 import numpy as np
 import torch
 
+from . import confidence as confidence_stage
 from . import refine as refine_stage
 from .coarse import CoarseModel
 from .transforms import rigid
@@ -55,13 +57,38 @@ def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarra
     return np.stack([rigid(full[h], t[h] - full[h] @ centre) for h in range(len(rotations))])
 
 
-def rank(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, distance: float) -> List[int]:
-    """Candidate indices, best first, by the share of source points within `distance` of the target.
+def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, distance: float, keep: int,
+           icp: refine_stage.ICPConfig = refine_stage.ICPConfig(), extra: Optional[np.ndarray] = None) -> np.ndarray:
+    """The candidate that fits best after a quick ICP on small samples of the clouds.
+
+    The candidates are ranked by the share of source points within distance / 2 of the target;
+    the `keep` best, and every `extra` one, are refined by ICP on the samples and compared by the
+    confidence's measurement (the share of points within the tight distance).
 
     Args:
-        source: (N, 3), target: (M, 3): small samples of the clouds (scoring runs once per candidate).
+        source: (N, 3), target: (M, 3): samples of the clouds (ICP runs once per kept candidate).
         candidates: (H, 4, 4) T_target_source in the clouds' frame.
-        distance: the inlier distance (cloud units).
+        distance: the ICP correspondence distance (cloud units).
+        keep: how many of the ranked candidates to refine.
+        icp: ICP settings (its distance schedule and convergence criteria).
+        extra: (E, 4, 4) candidates refined whatever their rank, or None.
+    Returns:
+        (4, 4) the refined T_target_source that fits best.
     """
-    fitness = [refine_stage.evaluate(source, target, T, distance).fitness for T in candidates]
-    return sorted(range(len(candidates)), key=lambda h: -fitness[h])
+    fitness = [refine_stage.evaluate(source, target, T, 0.5 * distance).fitness for T in candidates]
+    ranked = [candidates[h] for h in sorted(range(len(candidates)), key=lambda h: -fitness[h])[:keep]]
+    if extra is not None:
+        ranked += list(extra)
+    refined = [refine_stage.icp(source, target, T, distance, icp).transformation for T in ranked]
+    tight = [confidence_stage.features(source, target, T, distance).fitness_tight for T in refined]
+    return refined[int(np.argmax(tight))]
+
+
+def feature_candidate(source: np.ndarray, target: np.ndarray, scale: float, seed: int) -> np.ndarray:
+    """(4, 4) T_target_source from FPFH features matched by RANSAC, with the settings of
+    :class:`o3dsoft.baselines.GlobalConfig` (clouds voxel-downsampled to 0.05 x `scale` first)."""
+    from . import baselines
+
+    fs = baselines.fpfh_features(source, scale)
+    ft = baselines.fpfh_features(target, scale)
+    return baselines.ransac(fs, ft, scale, seed)

@@ -39,6 +39,14 @@ def test_examples_run_without_arguments(script):
     assert "rotation error" in r.stdout
 
 
+def test_scan_recipe_example_aligns_the_bundled_scans():
+    r = subprocess.run([sys.executable, str(REPO / "examples" / "register_scans.py")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    line = next(l for l in r.stdout.splitlines() if l.startswith("error against the ground truth"))
+    rotation_deg, translation = float(line.split()[6]), float(line.split()[9])
+    assert rotation_deg < 1.0 and translation < 0.002  # 1 degree, 2 mm
+
+
 def test_register_arrays_example_recovers_its_transform():
     r = subprocess.run([sys.executable, str(REPO / "examples" / "register_arrays.py")], capture_output=True, text=True, timeout=300)
     line = next(l for l in r.stdout.splitlines() if l.startswith("rotation error"))
