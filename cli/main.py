@@ -120,7 +120,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
             payload["errors"] = {k: _errors_dict(e) for k, e in errors.items()}
         click.echo(json.dumps(payload, indent=2))
     else:
-        click.echo(_format_result(source, target, result, errors, model_info, config.refine))
+        click.echo(_format_result(source, target, result, errors, model_info, config.refine, config.search))
     if result.likely_failed:
         click.echo(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: only {100 * result.fitness_tight:.0f} % of the "
@@ -140,7 +140,7 @@ def _errors_dict(e) -> dict:
     return d
 
 
-def _format_result(source, target, result, errors, model_info, refined: bool) -> str:
+def _format_result(source, target, result, errors, model_info, refined: bool, search_mode: str) -> str:
     T = result.transformation
     lines = [
         f"o3dsoft register  {source} -> {target}",
@@ -156,7 +156,8 @@ def _format_result(source, target, result, errors, model_info, refined: bool) ->
         + ("  LIKELY FAILED" if result.likely_failed else ""),
     ]
     if result.searched:
-        lines.append(f"  search       ran: the first estimate looked wrong; {result.attempts} estimates refined, the most confident kept")
+        why = "the first result looked wrong" if search_mode == "auto" else "--search always"
+        lines.append(f"  search       ran ({why}); the more confident of its result and the first kept")
     if errors is not None:
         f, c = errors["final"], errors["coarse"]
         stage = "network + ICP" if refined else "network"

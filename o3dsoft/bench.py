@@ -281,9 +281,10 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
     if {"o3dsoft", "o3dsoft-coarse"} & set(methods):
         result = register(src, tgt, config.register, model=model)
         t = result.timings_ms
-        coarse_ms = {"coarse": t["clean"] + t["sample_normalise"] + t["coarse"], "search": t.get("search", 0.0)}
-        # The network's estimate that the kept result started from (after a search, one of its
-        # starts, chosen with ICP and the confidence): timed without ICP.
+        coarse_ms = {"coarse": t["clean"] + t["sample_normalise"] + t["coarse"], **({"search": t["search"]} if "search" in t else {})}
+        # The coarse estimate the kept result was refined from. After a search it is one of the
+        # search's estimates, picked with ICP on samples (whose time is the search's), so on
+        # searched pairs this row is not the network alone (those have a time_search_ms in the CSV).
         out["o3dsoft-coarse"] = MethodResult("o3dsoft-coarse", result.coarse_transformation, {**coarse_ms, "total": sum(coarse_ms.values())})
         fine_ms = t["refine"] + t["score"]  # ICP and the confidence, over every refined estimate
         out["o3dsoft"] = MethodResult("o3dsoft", result.transformation, {**coarse_ms, "icp": fine_ms, "total": sum(coarse_ms.values()) + fine_ms},

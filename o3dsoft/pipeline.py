@@ -35,7 +35,8 @@ class RegisterConfig:
         coarse_iterations: network passes, each on the source moved by the estimate so far.
         search: the global search (:mod:`o3dsoft.search`), for pairs with no usable initial
             guess: "auto" runs it when the first result is flagged likely failed, "always" on
-            every pair, "off" never. The most confident result is returned.
+            every pair, "off" never. The more confident result is returned. Without `refine`,
+            the search's top-ranked estimate is taken as it is.
         search_points: points per cloud for the search's batch of network passes.
         search_refine: how many of the search's best-ranked estimates are polished by ICP on the
             network's samples before the best of them is refined at full resolution.
@@ -71,6 +72,8 @@ class RegisterConfig:
         for name in ("num_points", "search_points"):
             if getattr(self, name) < k:
                 raise InputError(f"{name}={getattr(self, name)} is below the network's neighbourhood size K={k}")
+        if self.search_features and self.search == "off":
+            raise InputError("search_features needs the search: set search to 'auto' or 'always'")
         if self.search_refine < 1:
             raise InputError(f"search_refine must be at least 1, got {self.search_refine}")
 
@@ -84,7 +87,8 @@ class RegistrationResult:
         fitness: share of source points with a target point within `correspondence_distance`
             after the final transform (0-1, higher is better).
         inlier_rmse: RMS distance of those point pairs (cloud units, lower is better).
-        coarse_transformation: (4, 4) the network's estimate, before ICP.
+        coarse_transformation: (4, 4) the coarse estimate the result was refined from, before
+            any ICP: the network's, or after a search one of its starts (or the feature match).
         confidence: estimated probability that the alignment is right (0-1, higher is better),
             from the share of source points close to the target (:mod:`o3dsoft.confidence`).
         likely_failed: confidence below 0.5: treat the transform as wrong.
@@ -92,7 +96,8 @@ class RegistrationResult:
             target points near the source when the target is much sparser (0-1).
         tight_distance: max(0.3 x correspondence_distance, 1.5 x the point spacing of the
             denser cloud).
-        mean_weight: mean of the network's per-point weights w_i = max_j W_ij (0-1).
+        mean_weight: mean of the network's per-point weights w_i = max_j W_ij in its first
+            pass (0-1).
         correspondence_distance: the ICP / scoring distance used (cloud units).
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
@@ -168,8 +173,8 @@ def register(
     Returns:
         RegistrationResult.
     Raises:
-        InputError: a cloud is degenerate (too few points, identical or collinear points) or the
-            weights file is unusable.
+        InputError: a cloud is degenerate (too few points, identical or collinear points), the
+            weights file is unusable, or a setting of `config` is invalid (see its ``validate``).
     """
     timings: Dict[str, float] = {}
     clock = time.perf_counter()
@@ -200,12 +205,12 @@ def register(
     src_norm, tgt_norm, _ = normalise_pair(src_net, tgt_net, norm)
     lap("sample_normalise")
 
-    def finish(T_coarse: np.ndarray) -> _Attempt:
-        # Refine: point-to-point ICP at full resolution (or just score the coarse estimate).
+    def finish(start: np.ndarray, T_coarse: np.ndarray) -> _Attempt:
+        # Refine: point-to-point ICP at full resolution from `start` (or just score it).
         if config.refine:
-            fine = refine_stage.icp(src.points, tgt.points, T_coarse, distance, config.icp)
+            fine = refine_stage.icp(src.points, tgt.points, start, distance, config.icp)
         else:
-            fine = refine_stage.evaluate(src.points, tgt.points, T_coarse, distance, config.icp.max_points)
+            fine = refine_stage.evaluate(src.points, tgt.points, start, distance, config.icp.max_points)
         lap("refine")
         # Score: how much to trust the result.
         scored = confidence_stage.features(src.points, tgt.points, fine.transformation, distance, config.icp.max_points)
@@ -216,7 +221,8 @@ def register(
     # Coarse: the soft-alignment network, then back to the original frames.
     estimate = coarse_stage.estimate(model, src_norm, tgt_norm, config.coarse_iterations)
     lap("coarse")
-    attempts = [finish(denormalise_transform(estimate.transform, norm))]
+    T_coarse = denormalise_transform(estimate.transform, norm)
+    attempts = [finish(T_coarse, T_coarse)]
 
     searched = config.search == "always" or (config.search == "auto" and attempts[0].trust < confidence_stage.LIKELY_FAILED_BELOW)
     if searched:
@@ -228,9 +234,9 @@ def register(
         candidates = search_stage.network_candidates(model, src_small, tgt_small, search_stage.cube_rotations())
         candidates = np.stack([denormalise_transform(T, norm) for T in candidates])
         extra = search_stage.feature_candidate(src.points, tgt.points, norm.scale, config.seed)[None] if config.search_features else None
-        chosen = search_stage.select(src_net, tgt_net, candidates, distance, config.search_refine, config.icp, extra)
+        chosen = search_stage.select(src_net, tgt_net, candidates, distance, config.search_refine, config.icp if config.refine else None, extra)
         lap("search")
-        attempts.append(finish(chosen))
+        attempts.append(finish(chosen.polished, chosen.estimate))
     best = max(attempts, key=lambda a: a.trust)
     timings["total"] = sum(timings.values())
 

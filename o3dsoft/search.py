@@ -11,7 +11,7 @@ the one that fits best, for the pipeline to refine at full resolution.
 from __future__ import annotations
 
 import itertools
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -57,31 +57,43 @@ def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarra
     return np.stack([rigid(full[h], t[h] - full[h] @ centre) for h in range(len(rotations))])
 
 
+class Choice(NamedTuple):
+    """The search's pick: `estimate` (4, 4), the candidate as the network (or the feature match)
+    gave it, and `polished` (4, 4), the same after ICP on the samples."""
+
+    estimate: np.ndarray
+    polished: np.ndarray
+
+
 def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, distance: float, keep: int,
-           icp: refine_stage.ICPConfig = refine_stage.ICPConfig(), extra: Optional[np.ndarray] = None) -> np.ndarray:
-    """The candidate that fits best after a quick ICP on small samples of the clouds.
+           icp: Optional[refine_stage.ICPConfig] = refine_stage.ICPConfig(), extra: Optional[np.ndarray] = None) -> Choice:
+    """The candidate that fits best, after a quick ICP on small samples of the clouds.
 
     The candidates are ranked by the share of source points within distance / 2 of the target;
     the `keep` best, and every `extra` one, are refined by ICP on the samples and compared by the
-    confidence's measurement (the share of points within the tight distance).
+    confidence's measurement (the share of points within the tight distance). With `icp` None
+    nothing is refined: the top-ranked candidate is picked.
 
     Args:
         source: (N, 3), target: (M, 3): samples of the clouds (ICP runs once per kept candidate).
         candidates: (H, 4, 4) T_target_source in the clouds' frame.
         distance: the ICP correspondence distance (cloud units).
         keep: how many of the ranked candidates to refine.
-        icp: ICP settings (its distance schedule and convergence criteria).
+        icp: ICP settings (its distance schedule and convergence criteria), or None.
         extra: (E, 4, 4) candidates refined whatever their rank, or None.
-    Returns:
-        (4, 4) the refined T_target_source that fits best.
     """
-    fitness = [refine_stage.evaluate(source, target, T, 0.5 * distance).fitness for T in candidates]
-    ranked = [candidates[h] for h in sorted(range(len(candidates)), key=lambda h: -fitness[h])[:keep]]
+    extra_ids = range(len(candidates), len(candidates) + (0 if extra is None else len(extra)))
     if extra is not None:
-        ranked += list(extra)
-    refined = [refine_stage.icp(source, target, T, distance, icp).transformation for T in ranked]
-    tight = [confidence_stage.features(source, target, T, distance).fitness_tight for T in refined]
-    return refined[int(np.argmax(tight))]
+        candidates = np.concatenate([candidates, extra])
+    fitness = [refine_stage.evaluate(source, target, T, 0.5 * distance).fitness for T in candidates]
+    order = sorted(range(len(candidates)), key=lambda h: -fitness[h])
+    if icp is None:
+        return Choice(candidates[order[0]], candidates[order[0]])
+    kept = order[:keep] + [h for h in extra_ids if h not in order[:keep]]
+    polished = [refine_stage.icp(source, target, candidates[h], distance, icp).transformation for h in kept]
+    tight = [confidence_stage.features(source, target, T, distance).fitness_tight for T in polished]
+    best = int(np.argmax(tight))
+    return Choice(candidates[kept[best]], polished[best])
 
 
 def feature_candidate(source: np.ndarray, target: np.ndarray, scale: float, seed: int) -> np.ndarray:

@@ -12,6 +12,7 @@ import math
 import os
 import sys
 import time
+import traceback
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -239,6 +240,9 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     rank, world, device = _setup_distributed(config)
     try:
         return _train(config, resume, log if rank == 0 else (lambda message: None), rank, world, device)
+    except BaseException as e:
+        traceback.clear_frames(e.__traceback__)  # the frames would keep the DDP wrapper alive
+        raise
     finally:
         if world > 1:
             _teardown_distributed()

@@ -267,3 +267,26 @@ def test_the_search_can_add_a_feature_based_estimate():
     res = register(src, tgt, RegisterConfig(search="always", search_features=True), model=model)
     assert res.attempts == 2 and not res.likely_failed
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
+
+
+def test_search_settings_are_checked():
+    model = _NearSightedModel(np.eye(3))
+    src = blob(np.random.default_rng(0), 200)
+    with pytest.raises(InputError, match="search_features needs the search"):
+        register(src, src, RegisterConfig(search="off", search_features=True), model=model)
+    with pytest.raises(InputError, match="search='sometimes'; valid: auto, always, off"):
+        register(src, src, RegisterConfig(search="sometimes"), model=model)
+    with pytest.raises(InputError, match="search_points=4 is below the network's neighbourhood size K=8"):
+        register(src, src, RegisterConfig(search_points=4), model=model)
+
+
+def test_without_icp_the_search_keeps_its_top_ranked_estimate_as_it_is():
+    rng = np.random.default_rng(4)
+    src = blob(rng, 800)
+    T = np.eye(4)
+    T[:3, :3] = euler_to_matrix([160.0, -20.0, 100.0])
+    tgt = apply(T, src)
+    res = register(src, tgt, RegisterConfig(num_points=800, search="always", refine=False), model=_NearSightedModel(T[:3, :3]))
+    # The stand-in is exact from the start within 50 degrees; no ICP ran on the result.
+    assert res.searched and np.array_equal(res.transformation, res.coarse_transformation)
+    assert pair_errors(res.transformation, T).rotation_deg < 1e-3
