@@ -55,7 +55,7 @@ def main() -> None:
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
 @click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="Global search (the network from 24 starting rotations, for clouds with no rough alignment): auto = when the first result looks wrong.")
-@click.option("--search-features", is_flag=True, help="The search also tries FPFH features matched by RANSAC (for partial scans).")
+@click.option("--search-features/--no-search-features", default=True, show_default=True, help="The search also tries FPFH features matched by RANSAC (for partial scans, any rotation).")
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
 def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, strict):
@@ -257,7 +257,7 @@ def _bench_options(fn):
         click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC."),
         click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),
         click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
-        click.option("--search-features", is_flag=True, help="o3dsoft's search also tries FPFH + RANSAC (see register --help)."),
+        click.option("--search-features/--no-search-features", default=True, show_default=True, help="o3dsoft's search also tries FPFH + RANSAC (see register --help)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
@@ -281,7 +281,7 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, weights
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
     model = load_model(config.register.weights, device) if needs_model else None
-    description = {"command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]), **description}
+    description = {"command": shlex.join(["o3dsoft", *sys.argv[1:]]), **description}
     folder = prepare_folder(out or Path("runs") / f"bench-{name}-{time.strftime('%Y%m%d-%H%M%S')}", overwrite)
     result = run(pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True))
     click.echo(result.table)

@@ -10,8 +10,8 @@ The recipe, for scans in metres of up to a few million points:
 2. Give ICP an absolute correspondence distance (`--icp-distance`, metres): about the size of the
    error you expect from the coarse stage, here 10 x the voxel. ICP then runs at 1, 0.3 and 0.1 of
    it, so the last stage keeps only pairs closer than about one voxel.
-3. Let the global search try FPFH features too (`search_features`): scans overlap partly and can
-   be turned any way, where a learned coarse stage trained on whole objects is least reliable.
+3. Keep the global search's FPFH feature match (`search_features`, on by default): scans overlap
+   partly and can be turned any way, where a coarse stage trained on whole objects is least reliable.
 4. Read the confidence: below 0.5 the result is flagged as likely failed; scans that share less
    than ~80 % of their surface can be flagged although right, so look at them (`--render`).
 """
@@ -46,10 +46,7 @@ def main() -> None:
         print(f"{path.name}: {len(points)} points, {len(down)} after the {args.voxel:g} voxel grid")
         clouds.append(down)
 
-    config = o3dsoft.RegisterConfig(
-        icp=o3dsoft.ICPConfig(distance=args.icp_distance or 10 * args.voxel, absolute=True),
-        search_features=True,
-    )
+    config = o3dsoft.RegisterConfig(icp=o3dsoft.ICPConfig(distance=args.icp_distance or 10 * args.voxel, absolute=True))
     result = o3dsoft.register(*clouds, config)
     print("T_target_source:\n" + np.array2string(result.transformation, precision=6, suppress_small=True))
     print(f"confidence {result.confidence:.3f} (0-1, higher is better){'  LIKELY FAILED' if result.likely_failed else ''}; "

@@ -42,7 +42,8 @@ class RegisterConfig:
             network's samples before the best of them is refined at full resolution.
         search_features: the search also considers the estimate of FPFH features matched by
             RANSAC (:mod:`o3dsoft.baselines`), a classical estimate that does not depend on the
-            network's training distribution (partial scans, large rotations).
+            network's training distribution (partial scans, large rotations). Part of the
+            search: unused when it does not run.
         refine: run ICP after the network.
         icp: settings of the fine stage.
         weights: TorchScript model file; None for the shipped default.
@@ -55,7 +56,7 @@ class RegisterConfig:
     search: str = "auto"
     search_points: int = 512
     search_refine: int = 3
-    search_features: bool = False
+    search_features: bool = True
     refine: bool = True
     icp: refine_stage.ICPConfig = field(default_factory=refine_stage.ICPConfig)
     weights: Optional[str] = None
@@ -72,8 +73,6 @@ class RegisterConfig:
         for name in ("num_points", "search_points"):
             if getattr(self, name) < k:
                 raise InputError(f"{name}={getattr(self, name)} is below the network's neighbourhood size K={k}")
-        if self.search_features and self.search == "off":
-            raise InputError("search_features needs the search: set search to 'auto' or 'always'")
         if self.search_refine < 1:
             raise InputError(f"search_refine must be at least 1, got {self.search_refine}")
 

@@ -72,7 +72,7 @@ def test_command_line_overrides_the_config_file(modelnet_root, tmp_path):
     assert r.exit_code == 1 and "unknown key 'epoch'" in r.output and "Traceback" not in r.output
 
 
-@pytest.mark.parametrize("name", ["paper.yaml", "default-1-wide45.yaml", "default-2-finetune.yaml"])
+@pytest.mark.parametrize("name", ["paper.yaml", "default-1-wide45.yaml", "default-2-finetune.yaml", "partial-finetune.yaml"])
 def test_shipped_configs_are_valid(name):
     from .conftest import REPO
 

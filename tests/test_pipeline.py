@@ -262,9 +262,9 @@ def test_the_search_can_add_a_feature_based_estimate():
     tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
     T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
     model = _AlwaysWrongModel(T[:3, :3] @ euler_to_matrix([180.0, 0.0, 0.0]))  # upside down
-    without = register(src, tgt, RegisterConfig(search="always"), model=model)
+    without = register(src, tgt, RegisterConfig(search="always", search_features=False), model=model)
     assert without.likely_failed and pair_errors(without.transformation, T).rotation_deg > 90
-    res = register(src, tgt, RegisterConfig(search="always", search_features=True), model=model)
+    res = register(src, tgt, RegisterConfig(search="always"), model=model)  # features on by default
     assert res.attempts == 2 and not res.likely_failed
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
 
@@ -272,8 +272,6 @@ def test_the_search_can_add_a_feature_based_estimate():
 def test_search_settings_are_checked():
     model = _NearSightedModel(np.eye(3))
     src = blob(np.random.default_rng(0), 200)
-    with pytest.raises(InputError, match="search_features needs the search"):
-        register(src, src, RegisterConfig(search="off", search_features=True), model=model)
     with pytest.raises(InputError, match="search='sometimes'; valid: auto, always, off"):
         register(src, src, RegisterConfig(search="sometimes"), model=model)
     with pytest.raises(InputError, match="search_points=4 is below the network's neighbourhood size K=8"):
