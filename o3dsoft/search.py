@@ -1,7 +1,10 @@
-"""Global search: the coarse stage started from many rotations, for pairs with no initial guess.
+"""Global search, for pairs with no initial guess: a feature match, and the coarse stage started
+from many rotations.
 
-The network is trained on rotations of up to 45 degrees per axis, and far beyond that its
-estimate is unreliable (the paper's experiment 10). The search pre-rotates the source by each of
+The pipeline first tries FPFH features matched by RANSAC (:func:`feature_candidate`), which does
+not depend on how the network was trained. Then, while no result is confident: the network is
+trained on rotations of up to 45 degrees per axis, and far beyond that its estimate is
+unreliable (the paper's experiment 10), so the search pre-rotates the source by each of
 the 24 rotations of a cube, which cover SO(3) (every rotation lies within 62.8 degrees of one of
 them), runs the network on all of them as one batch, ranks the estimates by the share of sampled
 source points that land near the target, polishes the best few by ICP on the samples and keeps
@@ -58,21 +61,21 @@ def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarra
 
 
 class Choice(NamedTuple):
-    """The search's pick: `estimate` (4, 4), the candidate as the network (or the feature match)
-    gave it, and `polished` (4, 4), the same after ICP on the samples."""
+    """The search's pick: `estimate` (4, 4), the candidate as the network gave it, and
+    `polished` (4, 4), the same after ICP on the samples."""
 
     estimate: np.ndarray
     polished: np.ndarray
 
 
 def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, distance: float, keep: int,
-           icp: Optional[refine_stage.ICPConfig] = refine_stage.ICPConfig(), extra: Optional[np.ndarray] = None) -> Choice:
+           icp: Optional[refine_stage.ICPConfig] = refine_stage.ICPConfig()) -> Choice:
     """The candidate that fits best, after a quick ICP on small samples of the clouds.
 
     The candidates are ranked by the share of source points within distance / 2 of the target;
-    the `keep` best, and every `extra` one, are refined by ICP on the samples and compared by the
-    confidence's measurement (the share of points within the tight distance). With `icp` None
-    nothing is refined: the top-ranked candidate is picked.
+    the `keep` best are refined by ICP on the samples and compared by the confidence's
+    measurement (the share of points within the tight distance). With `icp` None nothing is
+    refined: the top-ranked candidate is picked.
 
     Args:
         source: (N, 3), target: (M, 3): samples of the clouds (ICP runs once per kept candidate).
@@ -80,16 +83,11 @@ def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, dista
         distance: the ICP correspondence distance (cloud units).
         keep: how many of the ranked candidates to refine.
         icp: ICP settings (its distance schedule and convergence criteria), or None.
-        extra: (E, 4, 4) candidates refined whatever their rank, or None.
     """
-    extra_ids = range(len(candidates), len(candidates) + (0 if extra is None else len(extra)))
-    if extra is not None:
-        candidates = np.concatenate([candidates, extra])
     fitness = [refine_stage.evaluate(source, target, T, 0.5 * distance).fitness for T in candidates]
-    order = sorted(range(len(candidates)), key=lambda h: -fitness[h])
+    kept = sorted(range(len(candidates)), key=lambda h: -fitness[h])[:keep]
     if icp is None:
-        return Choice(candidates[order[0]], candidates[order[0]])
-    kept = order[:keep] + [h for h in extra_ids if h not in order[:keep]]
+        return Choice(candidates[kept[0]], candidates[kept[0]])
     polished = [refine_stage.icp(source, target, candidates[h], distance, icp).transformation for h in kept]
     tight = [confidence_stage.features(source, target, T, distance).fitness_tight for T in polished]
     best = int(np.argmax(tight))
