@@ -49,6 +49,7 @@ def main() -> None:
 @click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")
 @click.option("--icp-distance", type=click.FloatRange(min=0, min_open=True), default=0.1, show_default=True, help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.")
 @click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
+@click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="Downsample both clouds on a voxel grid of this size (their units) first: for scans (see the README's Real scans).")
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
 @click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="Network passes, each on the source moved by the estimate so far (more: closer start for ICP, slower).")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
@@ -58,7 +59,7 @@ def main() -> None:
 @click.option("--search-features/--no-search-features", default=True, show_default=True, help="The search also tries FPFH features matched by RANSAC (for partial scans, any rotation).")
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, strict):
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, voxel, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, strict):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -82,6 +83,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     T_gt = io.read_transform(gt_path) if gt_path is not None else None
     read_ms = (time.perf_counter() - t0) * 1000.0
     config = RegisterConfig(
+        voxel=voxel,
         num_points=num_points,
         coarse_iterations=coarse_iterations,
         search=search,

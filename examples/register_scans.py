@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 import o3dsoft
-from o3dsoft.refine import to_open3d
 
 DATA = Path(__file__).resolve().parent / "data"
 
@@ -39,15 +38,14 @@ def main() -> None:
     args = ap.parse_args()
     gt = args.gt or (DATA / "bun045_to_bun000.txt" if args.source == DATA / "bun045.ply" else None)
 
-    clouds = []
-    for path in (args.source, args.target):
-        points = o3dsoft.read_points(path)
-        down = np.asarray(to_open3d(points).voxel_down_sample(args.voxel).points)
-        print(f"{path.name}: {len(points)} points, {len(down)} after the {args.voxel:g} voxel grid")
-        clouds.append(down)
-
-    config = o3dsoft.RegisterConfig(icp=o3dsoft.ICPConfig(distance=args.icp_distance or 10 * args.voxel, absolute=True))
-    result = o3dsoft.register(*clouds, config)
+    source, target = o3dsoft.read_points(args.source), o3dsoft.read_points(args.target)
+    config = o3dsoft.RegisterConfig(
+        voxel=args.voxel,  # step 1
+        icp=o3dsoft.ICPConfig(distance=args.icp_distance or 10 * args.voxel, absolute=True),  # step 2
+    )  # step 3: search_features is on by default
+    result = o3dsoft.register(source, target, config)
+    print(f"{args.source.name}: {len(source)} points, {args.target.name}: {len(target)} points; "
+          f"{result.num_source} and {result.num_target} on the {args.voxel:g} voxel grid")
     print("T_target_source:\n" + np.array2string(result.transformation, precision=6, suppress_small=True))
     print(f"confidence {result.confidence:.3f} (0-1, higher is better){'  LIKELY FAILED' if result.likely_failed else ''}; "
           f"fitness {result.fitness:.3f} (higher is better); inlier RMSE {result.inlier_rmse:.4g} units (lower is better)")

@@ -20,7 +20,7 @@ from . import confidence as confidence_stage
 from . import refine as refine_stage
 from . import search as search_stage
 from .errors import InputError
-from .preprocess import clean_points, denormalise_transform, normalise_pair, normalisation_for, sample_points
+from .preprocess import clean_points, denormalise_transform, normalise_pair, normalisation_for, sample_points, voxel_downsample
 
 SEARCH_MODES = ("auto", "always", "off")
 CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud"]  # noqa: F821
@@ -31,6 +31,8 @@ class RegisterConfig:
     """Settings of :func:`register` (dumped next to every result).
 
     Attributes:
+        voxel: downsample both clouds on a voxel grid of this size (cloud units) after cleaning,
+            which evens out the density of scans and bounds ICP's time; None: keep every point.
         num_points: points sampled from each cloud for the network.
         coarse_iterations: network passes, each on the source moved by the estimate so far.
         search: the global search (:mod:`o3dsoft.search`), for pairs with no usable initial
@@ -53,6 +55,7 @@ class RegisterConfig:
         seed: seed of the point sampling (the same input gives the same result).
     """
 
+    voxel: Optional[float] = None
     num_points: int = 1024
     coarse_iterations: int = 1
     search: str = "auto"
@@ -75,6 +78,8 @@ class RegisterConfig:
         for name in ("num_points", "search_points"):
             if getattr(self, name) < k:
                 raise InputError(f"{name}={getattr(self, name)} is below the network's neighbourhood size K={k}")
+        if self.voxel is not None and not self.voxel > 0:
+            raise InputError(f"voxel must be positive, got {self.voxel}")
         if self.search_refine < 1:
             raise InputError(f"search_refine must be at least 1, got {self.search_refine}")
 
@@ -102,7 +107,7 @@ class RegistrationResult:
         correspondence_distance: the ICP / scoring distance used (cloud units).
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
-        num_source, num_target: points after cleaning.
+        num_source, num_target: points registered (after cleaning and the voxel grid).
         attempts: estimates refined by ICP at full resolution and scored (1, or up to 3 after a
             search).
         searched: whether the global search ran.
@@ -194,28 +199,32 @@ def register(
     config.validate(model.config.k)
     k = model.config.k
 
-    # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds.
+    # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds; even out the density.
     src = clean_points(as_points(source, source_name), source_name, min_points=k)
     tgt = clean_points(as_points(target, target_name), target_name, min_points=k)
+    src_points, tgt_points = src.points, tgt.points
+    if config.voxel is not None:
+        src_points = voxel_downsample(src_points, config.voxel, source_name, min_points=k)
+        tgt_points = voxel_downsample(tgt_points, config.voxel, target_name, min_points=k)
     lap("clean")
 
     # Sample the network's input and normalise the pair (own centroids, one common scale).
-    norm = normalisation_for(src.points, tgt.points)
+    norm = normalisation_for(src_points, tgt_points)
     distance = config.icp.distance_for(norm.scale)
-    src_net = sample_points(src.points, config.num_points, seed=config.seed)
-    tgt_net = sample_points(tgt.points, config.num_points, seed=config.seed + 1)
+    src_net = sample_points(src_points, config.num_points, seed=config.seed)
+    tgt_net = sample_points(tgt_points, config.num_points, seed=config.seed + 1)
     src_norm, tgt_norm, _ = normalise_pair(src_net, tgt_net, norm)
     lap("sample_normalise")
 
     def finish(start: np.ndarray, T_coarse: np.ndarray) -> _Attempt:
         # Refine: point-to-point ICP at full resolution from `start` (or just score it).
         if config.refine:
-            fine = refine_stage.icp(src.points, tgt.points, start, distance, config.icp)
+            fine = refine_stage.icp(src_points, tgt_points, start, distance, config.icp)
         else:
-            fine = refine_stage.evaluate(src.points, tgt.points, start, distance, config.icp.max_points)
+            fine = refine_stage.evaluate(src_points, tgt_points, start, distance, config.icp.max_points)
         lap("refine")
         # Score: how much to trust the result.
-        scored = confidence_stage.features(src.points, tgt.points, fine.transformation, distance, config.icp.max_points)
+        scored = confidence_stage.features(src_points, tgt_points, fine.transformation, distance, config.icp.max_points)
         trust = confidence_stage.confidence(scored)
         lap("score")
         return _Attempt(trust, scored, fine, T_coarse)
@@ -230,7 +239,7 @@ def register(
     if searched and config.search_features:
         # Search, first: FPFH features matched by RANSAC. Cheap, and on flagged pairs more often
         # right than the network's starts (ModelNet40 so3: 10 of 10 flagged pairs against 4).
-        T_features = search_stage.feature_candidate(src.points, tgt.points, norm.scale, config.seed)
+        T_features = search_stage.feature_candidate(src_points, tgt_points, norm.scale, config.seed)
         lap("search")
         attempts.append(finish(T_features, T_features))
     if searched and max(a.trust for a in attempts) < confidence_stage.LIKELY_FAILED_BELOW:
@@ -260,8 +269,8 @@ def register(
         correspondence_distance=distance,
         scale=norm.scale,
         timings_ms=timings,
-        num_source=len(src.points),
-        num_target=len(tgt.points),
+        num_source=len(src_points),
+        num_target=len(tgt_points),
         attempts=len(attempts),
         searched=searched,
         removed={

@@ -65,6 +65,29 @@ def check_spread(points: np.ndarray, name: str = "cloud") -> None:
         raise InputError(f"{name}: all points lie on one line; the rotation about it cannot be estimated")
 
 
+def voxel_downsample(points: np.ndarray, voxel: float, name: str = "cloud", min_points: int = 1) -> np.ndarray:
+    """The centroids of the occupied cells of a voxel grid (Open3D), for evening out density.
+
+    Args:
+        points: (N, 3).
+        voxel: cell size, in the points' units.
+        name: how to call the cloud in error messages.
+        min_points: fewest points accepted after downsampling.
+    Returns:
+        (N', 3) float64, N' <= N.
+    Raises:
+        InputError: fewer than ``min_points`` points are left (the voxel is too large).
+    """
+    from ._open3d import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    down = np.asarray(cloud.voxel_down_sample(voxel).points)
+    if len(down) < min_points:
+        raise InputError(f"{name}: {len(down)} points left on a voxel grid of {voxel:g} units, fewer than the {min_points} needed; "
+                         "use a smaller voxel")
+    return down
+
+
 def sample_points(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """A random subset of n points (all of them, shuffled, when there are fewer than n).
 

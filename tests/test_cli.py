@@ -112,3 +112,16 @@ def test_bad_input_clear_error_no_traceback_no_output(pair_files, tiny_model_pat
 def test_bench_lists_its_commands():
     r = run("bench", "--help")
     assert r.exit_code == 0 and "modelnet40" in r.output and "bunny" in r.output
+
+
+def test_voxel_option_downsamples_scans_before_registering():
+    from .conftest import EXAMPLES
+
+    r = CliRunner().invoke(main, ["register", str(EXAMPLES / "bun045.ply"), str(EXAMPLES / "bun000.ply"), "--voxel", "0.004",
+                                  "--icp-distance", "0.04", "--icp-absolute", "--gt", str(EXAMPLES / "bun045_to_bun000.txt"), "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output)
+    assert out["num_source"] < 6804 / 2  # 2 mm demo scans on a 4 mm grid
+    assert out["errors"]["final"]["rotation_deg"] < 1.0 and out["errors"]["final"]["translation"] < 0.002
+    r = CliRunner().invoke(main, ["register", str(EXAMPLES / "bun045.ply"), str(EXAMPLES / "bun000.ply"), "--voxel", "1"])
+    assert r.exit_code == 1 and "points left on a voxel grid of 1 units" in r.output and "Traceback" not in r.output

@@ -290,3 +290,15 @@ def test_without_icp_the_search_keeps_its_top_ranked_estimate_as_it_is():
     # The stand-in is exact from the start within 50 degrees; no ICP ran on the result.
     assert res.searched and np.array_equal(res.transformation, res.coarse_transformation)
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
+
+
+def test_voxel_grid_evens_out_the_clouds_before_registering():
+    rng = np.random.default_rng(5)
+    src = blob(rng, 3000)
+    T = random_transform(rng, 30.0, 0.2)
+    tgt = apply(T, src)
+    res = register(src, tgt, RegisterConfig(voxel=0.2), model=_NearSightedModel(T[:3, :3]))
+    assert res.num_source < 3000 and res.num_target < 3000
+    assert pair_errors(res.transformation, T).rotation_deg < 1.0
+    with pytest.raises(InputError, match=r"source: \d+ points left on a voxel grid of 50 units, fewer than the 8 needed"):
+        register(src, tgt, RegisterConfig(voxel=50.0), model=_NearSightedModel(T[:3, :3]))
