@@ -1,10 +1,12 @@
 """``register``: the whole pipeline, one commented stage per line.
 
-    clean (drop NaN/inf, duplicates) -> sample N points for the net -> normalise (centre, one scale)
-    -> coarse net (TorchScript) -> map back -> refine (Open3D point-to-point ICP, full resolution)
+    clean (drop NaN/inf, duplicates; optional voxel grid) -> sample N points for the net
+    -> normalise (centre, one scale) -> coarse net (TorchScript) -> map back
+    -> refine (Open3D point-to-point ICP, full resolution) -> score (confidence)
+    -> if flagged: search (feature match, then the net from 24 starts), the most confident kept
 
 Each stage is a function of its own module (:mod:`o3dsoft.preprocess`, :mod:`o3dsoft.coarse`,
-:mod:`o3dsoft.refine`) and can be called alone.
+:mod:`o3dsoft.refine`, :mod:`o3dsoft.confidence`, :mod:`o3dsoft.search`) and can be called alone.
 """
 
 from __future__ import annotations

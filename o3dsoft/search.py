@@ -19,6 +19,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 import torch
 
+from . import baselines
 from . import confidence as confidence_stage
 from . import refine as refine_stage
 from .coarse import CoarseModel
@@ -97,8 +98,6 @@ def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, dista
 def feature_candidate(source: np.ndarray, target: np.ndarray, scale: float, seed: int) -> np.ndarray:
     """(4, 4) T_target_source from FPFH features matched by RANSAC, with the settings of
     :class:`o3dsoft.baselines.GlobalConfig` (clouds voxel-downsampled to 0.05 x `scale` first)."""
-    from . import baselines
-
     fs = baselines.fpfh_features(source, scale)
     ft = baselines.fpfh_features(target, scale)
     return baselines.ransac(fs, ft, scale, seed)
