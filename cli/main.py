@@ -122,7 +122,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
             payload["errors"] = {k: _errors_dict(e) for k, e in errors.items()}
         click.echo(json.dumps(payload, indent=2))
     else:
-        click.echo(_format_result(source, target, result, errors, model_info, config.refine, config.search))
+        click.echo(_format_result(source, target, result, errors, model_info, config))
     if result.likely_failed:
         click.echo(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: only {100 * result.fitness_tight:.0f} % of the "
@@ -142,11 +142,13 @@ def _errors_dict(e) -> dict:
     return d
 
 
-def _format_result(source, target, result, errors, model_info, refined: bool, search_mode: str) -> str:
+def _format_result(source, target, result, errors, model_info, config) -> str:
+    refined, search_mode = config.refine, config.search
+    grid = f" and the {config.voxel:g} voxel grid" if config.voxel is not None else ""
     T = result.transformation
     lines = [
         f"o3dsoft register  {source} -> {target}",
-        f"  points: source {result.num_source}, target {result.num_target} (after cleaning); scale {result.scale:.4g} units",
+        f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}); scale {result.scale:.4g} units",
         f"  model:  {model_info['path']}",
         "",
         "T_target_source (maps the source onto the target):",
