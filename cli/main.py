@@ -262,6 +262,7 @@ def _bench_options(fn):
         click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),
         click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
         click.option("--search-features/--no-search-features", default=True, show_default=True, help="o3dsoft's search also tries FPFH + RANSAC (see register --help)."),
+        click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="o3dsoft's voxel grid, in the clouds' units (see register --help)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
@@ -271,7 +272,7 @@ def _bench_options(fn):
     return fn
 
 
-def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, out, overwrite, no_progress):
+def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, voxel, out, overwrite, no_progress):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -280,7 +281,7 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, weights
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed,
                          register=RegisterConfig(weights=str(weights) if weights else None, device=device, coarse_iterations=coarse_iterations,
-                                                  search=search, search_features=search_features))
+                                                  search=search, search_features=search_features, voxel=voxel))
     if recall is not None:
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
