@@ -14,6 +14,10 @@ import click
 from .. import __version__
 from ..errors import O3dsoftError
 
+# The values of RegisterConfig.search (o3dsoft.pipeline.SEARCH_MODES, not imported here: it would
+# load torch before --help); a test keeps the two equal.
+SEARCH_MODES = ("auto", "always", "off")
+
 
 def _friendly_errors(fn):
     """Print o3dsoft's own errors as one line on stderr and exit 1 (failure) or 2 (usage)."""
@@ -55,8 +59,8 @@ def main() -> None:
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
-@click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="Global search (the network from 24 starting rotations, for clouds with no rough alignment): auto = when the first result looks wrong.")
-@click.option("--search-features/--no-search-features", default=True, show_default=True, help="The search also tries FPFH features matched by RANSAC (for partial scans, any rotation).")
+@click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="Global search, for clouds with no rough alignment (a feature match, then the network from 24 starting rotations): auto = when the first result looks wrong.")
+@click.option("--search-features/--no-search-features", default=True, show_default=True, help="The search starts with FPFH features matched by RANSAC (for partial scans, any rotation).")
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
 def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, voxel, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, strict):
@@ -127,7 +131,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
         click.echo(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: only {100 * result.fitness_tight:.0f} % of the "
             f"points lie within {result.tight_distance:.3g} units of the other cloud"
-            + ("; the search from 24 starting rotations found nothing better" if result.searched else "")
+            + ("; the global search found nothing better" if result.searched else "")
             + "). If the clouds overlap only partly, a right alignment can read as doubtful: check it visually (--render).",
             err=True,
         )
@@ -161,7 +165,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     ]
     if result.searched:
         why = "the first result looked wrong" if search_mode == "auto" else "--search always"
-        lines.append(f"  search       ran ({why}); the more confident of its result and the first kept")
+        lines.append(f"  search       ran ({why}); {result.attempts} estimates refined, the most confident kept")
     if errors is not None:
         f, c = errors["final"], errors["coarse"]
         stage = "network + ICP" if refined else "network"
@@ -260,8 +264,8 @@ def _bench_options(fn):
         click.option("--device", default="cpu", show_default=True, help="Torch device of the network."),
         click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC."),
         click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),
-        click.option("--search", type=click.Choice(["auto", "always", "off"]), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
-        click.option("--search-features/--no-search-features", default=True, show_default=True, help="o3dsoft's search also tries FPFH + RANSAC (see register --help)."),
+        click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
+        click.option("--search-features/--no-search-features", default=True, show_default=True, help="o3dsoft's search starts with FPFH + RANSAC (see register --help)."),
         click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="o3dsoft's voxel grid, in the clouds' units (see register --help)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),

@@ -78,10 +78,9 @@ def voxel_downsample(points: np.ndarray, voxel: float, name: str = "cloud", min_
     Raises:
         InputError: fewer than ``min_points`` points are left (the voxel is too large).
     """
-    from ._open3d import open3d as o3d
+    from .refine import to_open3d  # Open3D only when a grid is asked for
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    down = np.asarray(cloud.voxel_down_sample(voxel).points)
+    down = np.asarray(to_open3d(points).voxel_down_sample(voxel).points)
     if len(down) < min_points:
         raise InputError(f"{name}: {len(down)} points left on a voxel grid of {voxel:g} units, fewer than the {min_points} needed; "
                          "use a smaller voxel")

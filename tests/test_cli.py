@@ -125,3 +125,10 @@ def test_voxel_option_downsamples_scans_before_registering():
     assert out["errors"]["final"]["rotation_deg"] < 1.0 and out["errors"]["final"]["translation"] < 0.002
     r = CliRunner().invoke(main, ["register", str(EXAMPLES / "bun045.ply"), str(EXAMPLES / "bun000.ply"), "--voxel", "1"])
     assert r.exit_code == 1 and "points left on a voxel grid of 1 units" in r.output and "Traceback" not in r.output
+
+
+def test_cli_search_modes_match_the_library():
+    from o3dsoft.cli.main import SEARCH_MODES as cli_modes
+    from o3dsoft.pipeline import SEARCH_MODES
+
+    assert cli_modes == SEARCH_MODES
