@@ -58,6 +58,19 @@ def test_gather_max_matches_naive_and_gradients():
     assert torch.allclose(gz, gz_naive)
 
 
+def test_gather_at_once_path_matches_chunked_loops():
+    # The path GPUs take, checked on the CPU against the chunked loops: values, arg-max slots
+    # (no ties in random features) and the rows the gradient flows to.
+    from o3dsoft.model import _gather_argmax_rows, _gather_argmax_rows_at_once
+
+    rows = torch.randn(700, 9, dtype=torch.float64)
+    flat = torch.randint(0, 700, (700, 6))
+    out_loop, slot_loop = _gather_argmax_rows(rows, flat, chunk=128)
+    out_once, slot_once = _gather_argmax_rows_at_once(rows, flat)
+    assert torch.equal(out_loop, out_once)
+    assert torch.equal(slot_loop, slot_once)
+
+
 @pytest.mark.parametrize("c_in,c_out", [(3, 16), (16, 32)])
 def test_fast_layer_equals_literal_conv2d_layer(c_in, c_out):
     torch.manual_seed(0)
