@@ -1,11 +1,12 @@
 """Ship a trained model as the package default: copy it into weights/ with a card that holds its
 training record and its accuracy measured here, on ModelNet40 test pairs.
 
-    python -m benchmarks.ship_model RUN_DIR [--limit 300] [--protocol paper dcp wide45] [--iterations 1 2] [--note TEXT]
+    python -m benchmarks.ship_model RUN_DIR [--name default] [--limit 300] [--protocol paper dcp wide45] [--iterations 1 2] [--note TEXT]
 
 RUN_DIR is an `o3dsoft train` output folder (checkpoint.pt, model_card.json). The model is
-exported again from the checkpoint with the current code. Writes weights/o3dsoft_default.pt and
-weights/o3dsoft_default.json.
+exported again from the checkpoint with the current code. Writes weights/o3dsoft_NAME.pt and
+weights/o3dsoft_NAME.json (NAME "default": the model o3dsoft uses unless told otherwise; others
+are loaded by name, e.g. ``--weights paper``).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.eval_model import DEFAULT_DATA, evaluate_protocol
-from o3dsoft.coarse import DEFAULT_WEIGHTS_NAME, load_model, sha256_of
+from o3dsoft.coarse import load_model, sha256_of
 from o3dsoft.train import export_checkpoint
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
@@ -32,10 +33,11 @@ def main() -> None:
     ap.add_argument("--protocol", nargs="+", default=["paper", "dcp", "wide45"])
     ap.add_argument("--data", default=str(DEFAULT_DATA))
     ap.add_argument("--note", default="")
+    ap.add_argument("--name", default="default", help="shipped as weights/o3dsoft_NAME.pt")
     args = ap.parse_args()
 
     card = json.loads((args.run_dir / "model_card.json").read_text())
-    target = WEIGHTS / DEFAULT_WEIGHTS_NAME
+    target = WEIGHTS / f"o3dsoft_{args.name}.pt"
     # Re-exported from the checkpoint, so that the shipped file carries the current inference code.
     export_checkpoint(args.run_dir / "checkpoint.pt", target)
     model = load_model(target)
@@ -53,7 +55,7 @@ def main() -> None:
             "with 1 or more coarse-stage network passes; "
             "errors: rotation in degrees, translation in shape units (shapes have radius 1), lower is better; "
             "recall: share of pairs, higher is better",
-            "command": f"python -m benchmarks.ship_model {args.run_dir} --limit {args.limit} --protocol {' '.join(args.protocol)} "
+            "command": f"python -m benchmarks.ship_model {args.run_dir} --name {args.name} --limit {args.limit} --protocol {' '.join(args.protocol)} "
             f"--iterations {' '.join(map(str, args.iterations))}",
             "machine": f"{platform.machine()}, {torch.get_num_threads()} torch threads, torch {torch.__version__}",
             "results": evaluation,

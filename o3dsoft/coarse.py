@@ -41,7 +41,18 @@ def _quiet_jit() -> Iterator[None]:
 
 def default_weights_path() -> Path:
     """The model shipped with the package."""
-    return Path(str(resources.files("o3dsoft.weights").joinpath(DEFAULT_WEIGHTS_NAME)))
+    return bundled_weights_path("default")
+
+
+def bundled_weights_path(name: str) -> Path:
+    """The shipped model of that name: "default" or "paper" (weights/o3dsoft_<name>.pt)."""
+    return Path(str(resources.files("o3dsoft.weights").joinpath(f"o3dsoft_{name}.pt")))
+
+
+def bundled_model_names() -> list:
+    """Names of the models shipped with the package, for ``load_model("paper")``."""
+    folder = resources.files("o3dsoft.weights")
+    return sorted(f.name[len("o3dsoft_") : -len(".pt")] for f in folder.iterdir() if f.name.startswith("o3dsoft_") and f.name.endswith(".pt"))
 
 
 def sha256_of(path: Union[str, Path]) -> str:
@@ -101,14 +112,21 @@ class CoarseModel:
 
 
 def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.device] = "cpu") -> CoarseModel:
-    """Load a TorchScript model file (the shipped default when `path` is None).
+    """Load a TorchScript model file, or a shipped model by name.
 
+    Args:
+        path: a model file; the name of a shipped model ("default", "paper"); None: "default".
+        device: where the network runs ("cpu", "cuda", "cuda:1").
     Raises:
         InputError: the file is missing, is not a TorchScript archive, or is not an o3dsoft model.
     """
-    path = Path(path) if path is not None else default_weights_path()
+    if path is None:
+        path = default_weights_path()
+    elif not Path(path).is_file() and str(path) in bundled_model_names():
+        path = bundled_weights_path(str(path))
+    path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: weights file not found")
+        raise InputError(f"{path}: weights file not found (shipped models, by name: {', '.join(bundled_model_names())})")
     try:
         device = torch.device(device)
     except RuntimeError as e:

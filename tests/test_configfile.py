@@ -6,6 +6,7 @@ from o3dsoft.configfile import read_config, write_config
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.model import NetConfig
 from o3dsoft.train import TrainConfig
+from .conftest import REPO
 
 
 def _yaml(tmp_path, text):
@@ -72,10 +73,8 @@ def test_command_line_overrides_the_config_file(modelnet_root, tmp_path):
     assert r.exit_code == 1 and "unknown key 'epoch'" in r.output and "Traceback" not in r.output
 
 
-@pytest.mark.parametrize("name", ["paper.yaml", "default-1-wide45.yaml", "default-2-finetune.yaml", "partial-finetune.yaml"])
+@pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "configs").glob("*.yaml")))
 def test_shipped_configs_are_valid(name):
-    from .conftest import REPO
-
     config = TrainConfig(**read_config(REPO / "configs" / name, TrainConfig))
     config.validate()
     assert config.net == NetConfig()

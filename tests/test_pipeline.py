@@ -122,6 +122,23 @@ def test_bad_weights(tmp_path):
         load_model(tmp_path / "missing.pt")
 
 
+def test_shipped_models_load_by_name(tmp_path, monkeypatch):
+    from o3dsoft.coarse import bundled_model_names
+
+    assert {"default", "paper"} <= set(bundled_model_names())
+    paper = load_model("paper")
+    assert paper.path.name == "o3dsoft_paper.pt" and paper.meta["info"]["protocol"] == "paper"
+    assert load_model("default").meta["info"]["protocol"] == "wide45"
+    with pytest.raises(InputError, match="shipped models, by name: default, paper"):
+        load_model("nonesuch")
+    # A file of that name in the working folder wins over the shipped model.
+    import shutil
+
+    shutil.copy(paper.path, tmp_path / "default")
+    monkeypatch.chdir(tmp_path)
+    assert load_model("default").meta["info"]["protocol"] == "paper"
+
+
 def test_downsample_bounds_large_clouds():
     pts = np.random.default_rng(0).uniform(-1, 1, size=(300_000, 3)) * [1, 1, 0.01]
     down = downsample(pts, 50_000)
