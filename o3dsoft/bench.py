@@ -22,7 +22,7 @@ import numpy as np
 
 from . import baselines
 from . import refine as refine_stage
-from .coarse import CoarseModel, default_weights_path, sha256_of
+from .coarse import CoarseModel, sha256_of
 from .confidence import LIKELY_FAILED_BELOW
 from .data import get_protocol, load_pairs
 from .errors import InputError, O3dsoftError, UsageError
@@ -541,15 +541,13 @@ def run(
     summaries = summarise_rows(rows, errors, config)
     table = format_table(summaries, config.recall)
     write_csv(out / "pairs.csv", rows)
-    weights = config.register.weights
-    weights_path = Path(weights) if weights else default_weights_path()
     summary_doc = {
         "description": description,
         "interrupted": interrupted,
         "pairs_completed": len(rows) // max(len(config.methods), 1),
         "pairs_failed": failed,
         "seconds": round(time.monotonic() - t_start, 1),
-        "weights": {"path": str(weights_path), "sha256": sha256_of(weights_path)} if model is not None else None,
+        "weights": {"path": str(model.path), "sha256": sha256_of(model.path)} if model is not None else None,
         "versions": versions(),
         "recall_thresholds": [{"rotation_deg": d, "translation": t} for d, t in config.recall],
         "methods": {m: METHODS[m] for m in config.methods},

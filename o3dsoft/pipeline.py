@@ -52,7 +52,8 @@ class RegisterConfig:
             search: unused when it does not run.
         refine: run ICP after the network.
         icp: settings of the fine stage.
-        weights: TorchScript model file; None for the shipped default.
+        weights: TorchScript model file, or a shipped model's name ("default", "paper"); None for
+            the shipped default.
         device: torch device of the network ("cpu", "cuda", "cuda:1"...).
         seed: seed of the point sampling (the same input gives the same result).
     """

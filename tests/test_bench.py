@@ -175,3 +175,15 @@ def test_bench_bunny_command(two_scans, tmp_path):
     assert o3d_row["rotation_deg_median"] < 2.0  # the shipped model + ICP on real scans 45 degrees apart
     r = _bench(["bunny", "--data", str(tmp_path / "nowhere")])
     assert r.exit_code == 2 and "no such folder of scans" in r.output
+
+
+def test_bench_takes_a_shipped_model_by_name(modelnet_root, tmp_path):
+    out = tmp_path / "run"
+    r = _bench(["modelnet40", "--data", str(modelnet_root), "--protocol", "paper", "--limit", "1", "--method", "o3dsoft-coarse",
+                "--weights", "paper", "--out", str(out), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((out / "summary.json").read_text())
+    from o3dsoft.coarse import bundled_weights_path, sha256_of
+
+    assert summary["weights"]["path"].endswith("o3dsoft_paper.pt")
+    assert summary["weights"]["sha256"] == sha256_of(bundled_weights_path("paper"))
