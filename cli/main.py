@@ -17,6 +17,7 @@ from ..errors import O3dsoftError
 # The values of RegisterConfig.search (o3dsoft.pipeline.SEARCH_MODES, not imported here: it would
 # load torch before --help); a test keeps the two equal.
 SEARCH_MODES = ("auto", "always", "off")
+WEIGHTS_HELP = "TorchScript model file, or a shipped model by name: default, paper (default: default)."
 
 
 def _friendly_errors(fn):
@@ -49,7 +50,7 @@ def main() -> None:
 @click.option("--out", "out_path", type=click.Path(path_type=Path), help="Write the transformed source here (.ply .pcd .xyz .xyzn .xyzrgb .pts .npy).")
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
-@click.option("--weights", type=click.Path(path_type=Path), help="TorchScript model file, or a shipped model by name: default, paper (default: default).")
+@click.option("--weights", type=click.Path(path_type=Path), help=WEIGHTS_HELP)
 @click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")
 @click.option("--icp-distance", type=click.FloatRange(min=0, min_open=True), default=0.1, show_default=True, help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.")
 @click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
@@ -260,7 +261,7 @@ def _bench_options(fn):
 
     options = [
         click.option("--method", "methods", multiple=True, help=f"Methods to run (repeat the option; default all): {', '.join(METHODS)}."),
-        click.option("--weights", type=click.Path(path_type=Path), help="TorchScript model file, or a shipped model by name: default, paper (default: default)."),
+        click.option("--weights", type=click.Path(path_type=Path), help=WEIGHTS_HELP),
         click.option("--device", default="cpu", show_default=True, help="Torch device of the network."),
         click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC."),
         click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),

@@ -132,3 +132,10 @@ def test_cli_search_modes_match_the_library():
     from o3dsoft.pipeline import SEARCH_MODES
 
     assert cli_modes == SEARCH_MODES
+
+
+def test_weights_help_names_every_shipped_model():
+    from o3dsoft.cli.main import WEIGHTS_HELP
+    from o3dsoft.coarse import bundled_model_names
+
+    assert all(f" {name}" in WEIGHTS_HELP.split("(")[0] for name in bundled_model_names())
