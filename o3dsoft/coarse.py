@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any, Dict, Iterator, NamedTuple, Optional, Union
+from typing import Any, Dict, Iterator, List, NamedTuple, Optional, Union
 
 import numpy as np
 import torch
@@ -28,7 +28,6 @@ from .transforms import rigid
 FORMAT = "o3dsoft-softalign"
 FORMAT_VERSION = 1
 META_NAME = "o3dsoft.json"
-DEFAULT_WEIGHTS_NAME = "o3dsoft_default.pt"
 
 
 @contextmanager
@@ -49,7 +48,7 @@ def bundled_weights_path(name: str) -> Path:
     return Path(str(resources.files("o3dsoft.weights").joinpath(f"o3dsoft_{name}.pt")))
 
 
-def bundled_model_names() -> list:
+def bundled_model_names() -> List[str]:
     """Names of the models shipped with the package, for ``load_model("paper")``."""
     folder = resources.files("o3dsoft.weights")
     return sorted(f.name[len("o3dsoft_") : -len(".pt")] for f in folder.iterdir() if f.name.startswith("o3dsoft_") and f.name.endswith(".pt"))

@@ -59,8 +59,8 @@ def test_gather_max_matches_naive_and_gradients():
 
 
 def test_gather_at_once_path_matches_chunked_loops():
-    # The path GPUs take, checked on the CPU against the chunked loops: values, arg-max slots
-    # (no ties in random features) and the rows the gradient flows to.
+    # The path GPUs take, checked on the CPU against the chunked loops: values and arg-max slots
+    # (no ties in random features; the slot picks the row the gradient flows to).
     from o3dsoft.model import _gather_argmax_rows, _gather_argmax_rows_at_once
 
     rows = torch.randn(700, 9, dtype=torch.float64)
