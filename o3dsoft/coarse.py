@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, NamedTuple, Optional, Union
+from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 import torch
@@ -109,6 +109,21 @@ class CoarseModel:
         with torch.no_grad():
             return self.module(source.to(self.device), target.to(self.device))
 
+    def aligner(self, target: torch.Tensor) -> Callable[[torch.Tensor], Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """A function source (B, N, 3) -> (R, t, w) onto one target (1, M, 3), whose descriptors
+        are computed once here (model files written before ``align`` existed recompute them)."""
+        target = target.to(self.device)
+        if not hasattr(self.module, "align"):
+            return lambda source: self.run(source, target.expand(source.shape[0], -1, -1))
+        with torch.no_grad():
+            g = self.module.describe_target(target)
+
+        def run(source: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            with torch.no_grad():
+                return self.module.align(source.to(self.device), target, g)
+
+        return run
+
 
 def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.device] = "cpu") -> CoarseModel:
     """Load a TorchScript model file, or a shipped model by name.
@@ -175,14 +190,14 @@ def estimate(model: CoarseModel, source: np.ndarray, target: np.ndarray, iterati
     """
     if iterations < 1:
         raise InputError(f"coarse iterations must be at least 1, got {iterations}")
-    tgt = torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0)
+    run = model.aligner(torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0))
     T = np.eye(4)
     source = np.asarray(source, dtype=np.float64)
     for _ in range(iterations):
         moved = source @ T[:3, :3].T + T[:3, 3]
         centre = moved.mean(axis=0)
         src = torch.as_tensor(moved - centre, dtype=torch.float32).unsqueeze(0)
-        R, t, w = model.run(src, tgt)
+        R, t, w = run(src)
         R_np, t_np = R[0].double().cpu().numpy(), t[0].double().cpu().numpy()
         T = rigid(R_np, t_np - R_np @ centre) @ T  # the step maps `moved` (not re-centred) onto the target
     return CoarseEstimate(T, w[0].float().cpu().numpy())

@@ -358,10 +358,27 @@ class SoftAlignNet(nn.Module):
         return torch.softmax(scores, dim=-1)
 
     def forward(self, source: torch.Tensor, target: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.align(source, target, self.describe_target(target))
+
+    @torch.jit.export
+    def describe_target(self, target: torch.Tensor) -> torch.Tensor:
+        """Target descriptors g (B, M, C) from target (B, M, 3), for :meth:`align`.
+
+        Computed once, they serve every source aligned to that target: further network passes
+        and the rotation hypotheses of the search only encode the moved source.
+        """
+        return self.encoder_q(target, ball_query(target, self.k, self.radius))
+
+    @torch.jit.export
+    def align(self, source: torch.Tensor, target: torch.Tensor, g: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """forward(source, target) given target's descriptors g = describe_target(target).
+
+        source (B, N, 3); target (B, M, 3) and g (B, M, C), or (1, M, 3) and (1, M, C) shared by
+        all B sources. Returns R (B, 3, 3), t (B, 3), w (B, N).
+        """
         f = self.encoder_p(source, ball_query(source, self.k, self.radius))
-        g = self.encoder_q(target, ball_query(target, self.k, self.radius))
         W = self.soft_alignment(f, g)
-        virtual = torch.matmul(W, target)  # (B, N, 3)
+        virtual = torch.matmul(W, target)  # (B, N, 3); a batch-1 target broadcasts
         w = W.amax(dim=-1)  # (B, N)
         R, t = weighted_procrustes(source, virtual, w)
         return R, t, w

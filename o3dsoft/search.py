@@ -53,8 +53,8 @@ def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarra
     centre = source.mean(axis=0)
     starts = np.einsum("hij,nj->hni", rotations, source - centre)  # the network expects a centred source
     src = torch.as_tensor(starts, dtype=torch.float32)
-    tgt = torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0).expand(len(rotations), -1, -1)
-    R, t, _ = model.run(src, tgt)
+    run = model.aligner(torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0))
+    R, t, _ = run(src)
     R, t = R.double().cpu().numpy(), t.double().cpu().numpy()
     # p -> R (Rh (p - c)) + t
     full = R @ rotations

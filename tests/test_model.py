@@ -133,6 +133,17 @@ def test_scripted_model_equals_eager():
         assert torch.allclose(a, b, atol=1e-6)
 
 
+def test_align_with_shared_target_descriptors_equals_forward():
+    torch.manual_seed(0)
+    scripted = torch.jit.script(SoftAlignNet(TINY).eval())
+    src, tgt = _cloud(b=3, n=64, dtype=torch.float32), _cloud(b=1, n=50, seed=1, dtype=torch.float32)
+    with torch.no_grad():
+        g = scripted.describe_target(tgt)
+        assert g.shape == (1, 50, TINY.channels[-1])
+        for a, b in zip(scripted.align(src, tgt, g), scripted(src, tgt.expand(3, -1, -1))):
+            assert torch.allclose(a, b, atol=1e-6)
+
+
 def test_outputs_shapes_and_ranges():
     net = SoftAlignNet(TINY).eval()
     R, t, w = net(_cloud(n=64, dtype=torch.float32), _cloud(n=50, seed=1, dtype=torch.float32))

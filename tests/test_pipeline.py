@@ -146,7 +146,14 @@ def test_downsample_bounds_large_clouds():
     assert downsample(pts[:1000], 50_000) is not None and len(downsample(pts[:1000], 50_000)) == 1000
 
 
-class _HalfwayModel:
+class _StubModel:
+    """A stand-in for CoarseModel: subclasses define run(source (B, N, 3), target (B, M, 3))."""
+
+    def aligner(self, target):
+        return lambda source: self.run(source, target.expand(len(source), -1, -1))
+
+
+class _HalfwayModel(_StubModel):
     """Stands in for a network: returns exactly half of the true rotation (points keep their order)."""
 
     def run(self, source, target):
@@ -205,7 +212,7 @@ def test_sparse_target_is_not_mistaken_for_a_failure():
     assert point_spacing(grid) == pytest.approx(0.5)
 
 
-class _NearSightedModel:
+class _NearSightedModel(_StubModel):
     """Stands in for a network that finds the rotation left to do only when it is under 50 degrees
     (roughly like the trained one) and returns the identity otherwise. It knows the true rotation
     (rotations are the same in the normalised frame) and, in a batch of 24, that the sources come
@@ -253,7 +260,7 @@ def test_a_large_rotation_is_found_by_the_search():
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
 
 
-class _AlwaysWrongModel:
+class _AlwaysWrongModel(_StubModel):
     """Stands in for a network that returns the same wrong rotation R_wrong from every start of
     the search (it undoes the start, whose order it knows), the centroids put onto each other."""
 
@@ -319,3 +326,34 @@ def test_voxel_grid_evens_out_the_clouds_before_registering():
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
     with pytest.raises(InputError, match=r"source: \d+ points left on a voxel grid of 50 units, fewer than the 8 needed"):
         register(src, tgt, RegisterConfig(voxel=50.0), model=_NearSightedModel(T[:3, :3]))
+
+
+def test_aligner_matches_the_plain_call_also_for_files_without_align(tiny_model_path, tmp_path):
+    import json
+
+    import torch
+
+    from o3dsoft.coarse import META_NAME
+
+    class ForwardOnly(torch.nn.Module):
+        """A model file as written before describe_target/align were exported."""
+
+        def __init__(self, net):
+            super().__init__()
+            self.net = net
+
+        def forward(self, source, target):
+            return self.net(source, target)
+
+    model = load_model(tiny_model_path)
+    old_path = tmp_path / "forward_only.pt"
+    torch.jit.save(torch.jit.script(ForwardOnly(model.module)), str(old_path), _extra_files={META_NAME: json.dumps(model.meta)})
+    old = load_model(old_path)
+    assert not hasattr(old.module, "align") and hasattr(model.module, "align")
+    rng = np.random.default_rng(0)
+    src = torch.as_tensor(rng.normal(size=(4, 80, 3)) * 0.4, dtype=torch.float32)
+    tgt = torch.as_tensor(rng.normal(size=(1, 70, 3)) * 0.4, dtype=torch.float32)
+    expected = model.run(src, tgt.expand(4, -1, -1))
+    for m in (model, old):
+        for a, b in zip(m.aligner(tgt)(src), expected):
+            assert torch.allclose(a, b, atol=1e-6)
