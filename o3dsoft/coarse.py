@@ -20,14 +20,18 @@ from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Tu
 import numpy as np
 import torch
 
+from ._open3d import open3d
 from .errors import InputError
 from .io import atomic_output
-from .model import NetConfig, SoftAlignNet
+from .model import NetConfig, SoftAlignNet, ball_query
 from .transforms import rigid
+
+o3c = open3d.core
 
 FORMAT = "o3dsoft-softalign"
 FORMAT_VERSION = 1
 META_NAME = "o3dsoft.json"
+CPU_BATCH = 2  # clouds per network call on the CPU (see CoarseModel.aligner)
 
 
 @contextmanager
@@ -109,18 +113,52 @@ class CoarseModel:
         with torch.no_grad():
             return self.module(source.to(self.device), target.to(self.device))
 
-    def aligner(self, target: torch.Tensor) -> Callable[[torch.Tensor], Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
-        """A function source (B, N, 3) -> (R, t, w) onto one target (1, M, 3), whose descriptors
-        are computed once here (model files written before ``align`` existed recompute them)."""
+    def neighbours(self, points: torch.Tensor) -> torch.Tensor:
+        """(B, N, 3) -> (B, N, K) int64 neighbour indices, the sets of the network's ball query.
+
+        On the CPU through Open3D's hybrid search, several times faster than the network's
+        top-k over all N^2 distances; the sets are the same, and their order does not matter
+        at inference (a max over each neighbourhood). Elsewhere :func:`o3dsoft.model.ball_query`.
+        """
+        k, radius = self.config.k, self.config.radius
+        if self.device.type != "cpu":
+            return ball_query(points.to(self.device), k, radius)
+        out = []
+        for cloud in points.detach().float().numpy():
+            search = o3c.nns.NearestNeighborSearch(o3c.Tensor(np.ascontiguousarray(cloud)))
+            search.hybrid_index(radius)
+            idx, _, _ = search.hybrid_search(o3c.Tensor(np.ascontiguousarray(cloud)), radius, k)
+            idx = torch.from_numpy(idx.numpy()).long()
+            # Missing neighbours come as -1: fill them with the point itself, as ball_query does.
+            out.append(torch.where(idx < 0, idx[:, :1], idx))
+        return torch.stack(out)
+
+    def aligner(self, target: torch.Tensor) -> Callable[..., Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """A function run(source (B, N, 3), idx=None) -> (R, t, w) aligning sources to one target
+        (1, M, 3), whose descriptors are computed once, here.
+
+        idx: the source's neighbours (B or 1, N, K) from :meth:`neighbours`, computed by the
+        caller once for a source it moves rigidly (neighbourhoods do not change); None: computed
+        in each call. Model files written before ``align`` existed fall back to the plain call.
+        """
         target = target.to(self.device)
         if not hasattr(self.module, "align"):
-            return lambda source: self.run(source, target.expand(source.shape[0], -1, -1))
+            return lambda source, idx=None: self.run(source, target.expand(source.shape[0], -1, -1))
         with torch.no_grad():
-            g = self.module.describe_target(target)
+            g = self.module.describe_target(target, self.neighbours(target))
 
-        def run(source: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        def run(source: torch.Tensor, idx: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            source = source.to(self.device)
+            idx = self.neighbours(source) if idx is None else idx.to(self.device).expand(source.shape[0], -1, -1)
+            # On the CPU, a few clouds at a time keep the gather-max's working set in cache: 24
+            # rotation hypotheses ran 4.6x faster in batches of 2 than as one batch (2-core machine).
+            step = CPU_BATCH if self.device.type == "cpu" else source.shape[0]
+            parts = []
             with torch.no_grad():
-                return self.module.align(source.to(self.device), target, g)
+                for s in range(0, source.shape[0], step):
+                    f = self.module.describe_source(source[s : s + step], idx[s : s + step])
+                    parts.append(self.module.align(source[s : s + step], f, target, g))
+            return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts]), torch.cat([p[2] for p in parts])
 
         return run
 
@@ -193,11 +231,12 @@ def estimate(model: CoarseModel, source: np.ndarray, target: np.ndarray, iterati
     run = model.aligner(torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0))
     T = np.eye(4)
     source = np.asarray(source, dtype=np.float64)
+    idx = model.neighbours(torch.as_tensor(source, dtype=torch.float32).unsqueeze(0))  # kept by rigid moves
     for _ in range(iterations):
         moved = source @ T[:3, :3].T + T[:3, 3]
         centre = moved.mean(axis=0)
         src = torch.as_tensor(moved - centre, dtype=torch.float32).unsqueeze(0)
-        R, t, w = run(src)
+        R, t, w = run(src, idx)
         R_np, t_np = R[0].double().cpu().numpy(), t[0].double().cpu().numpy()
         T = rigid(R_np, t_np - R_np @ centre) @ T  # the step maps `moved` (not re-centred) onto the target
     return CoarseEstimate(T, w[0].float().cpu().numpy())

@@ -208,9 +208,19 @@ def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     if torch.jit.is_scripting():
         # A single loop over K: 4x faster than one big gather at inference, and unlike the
         # chunked double loop it does not send TorchScript's optimiser into multi-second passes.
-        out = rows.index_select(0, flat[:, 0])
-        for k in range(1, flat.shape[1]):
-            out = torch.maximum(out, rows.index_select(0, flat[:, k]))
+        # Contiguous index columns and reused buffers: 20-25 % faster than slicing flat[:, k]
+        # and allocating each step (2-core machine, N = 1024, C = 64-512).
+        # (out= variants do not record gradients: only without them.)
+        cols = flat.t().contiguous()
+        out = rows.index_select(0, cols[0])
+        if rows.requires_grad:
+            for k in range(1, cols.shape[0]):
+                out = torch.maximum(out, rows.index_select(0, cols[k]))
+            return out.view(b, n, c)
+        cand = torch.empty_like(out)
+        for k in range(1, cols.shape[0]):
+            torch.index_select(rows, 0, cols[k], out=cand)
+            torch.maximum(out, cand, out=out)
         return out.view(b, n, c)
     if not z.requires_grad:
         return _gather_max_rows(rows, flat).view(b, n, c)
@@ -358,27 +368,33 @@ class SoftAlignNet(nn.Module):
         return torch.softmax(scores, dim=-1)
 
     def forward(self, source: torch.Tensor, target: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        return self.align(source, target, self.describe_target(target))
+        f = self.describe_source(source, self.neighbours(source))
+        g = self.describe_target(target, self.neighbours(target))
+        return self.align(source, f, target, g)
+
+    # The exported steps of forward, for callers that reuse parts of it: neighbourhoods are the
+    # same for a cloud however it is rotated, and a target's descriptors serve every source
+    # aligned to it (further network passes, the search's rotation hypotheses).
+    def neighbours(self, points: torch.Tensor) -> torch.Tensor:
+        """(B, N, 3) -> (B, N, K) neighbour indices: :func:`ball_query` with this network's K and r."""
+        return ball_query(points, self.k, self.radius)
 
     @torch.jit.export
-    def describe_target(self, target: torch.Tensor) -> torch.Tensor:
-        """Target descriptors g (B, M, C) from target (B, M, 3), for :meth:`align`.
-
-        Computed once, they serve every source aligned to that target: further network passes
-        and the rotation hypotheses of the search only encode the moved source.
-        """
-        return self.encoder_q(target, ball_query(target, self.k, self.radius))
+    def describe_source(self, source: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """Source descriptors f (B, N, C) from source (B, N, 3) and its neighbours idx (B, N, K)."""
+        return self.encoder_p(source, idx)
 
     @torch.jit.export
-    def align(self, source: torch.Tensor, target: torch.Tensor, g: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """forward(source, target) given target's descriptors g = describe_target(target).
+    def describe_target(self, target: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """Target descriptors g (B, M, C) from target (B, M, 3) and its neighbours idx (B, M, K)."""
+        return self.encoder_q(target, idx)
 
-        source (B, N, 3); target (B, M, 3) and g (B, M, C), or (1, M, 3) and (1, M, C) shared by
-        all B sources. Returns R (B, 3, 3), t (B, 3), w (B, N).
-        """
-        f = self.encoder_p(source, ball_query(source, self.k, self.radius))
+    @torch.jit.export
+    def align(self, source: torch.Tensor, f: torch.Tensor, target: torch.Tensor, g: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """R (B, 3, 3), t (B, 3), w (B, N) from source (B, N, 3) with descriptors f (B, N, C) and
+        target (B, M, 3) with g (B, M, C); a target of batch 1 serves all B sources."""
         W = self.soft_alignment(f, g)
-        virtual = torch.matmul(W, target)  # (B, N, 3); a batch-1 target broadcasts
+        virtual = torch.matmul(W, target)  # (B, N, 3)
         w = W.amax(dim=-1)  # (B, N)
         R, t = weighted_procrustes(source, virtual, w)
         return R, t, w

@@ -54,7 +54,7 @@ def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarra
     starts = np.einsum("hij,nj->hni", rotations, source - centre)  # the network expects a centred source
     src = torch.as_tensor(starts, dtype=torch.float32)
     run = model.aligner(torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0))
-    R, t, _ = run(src)
+    R, t, _ = run(src, model.neighbours(src[:1]))  # rotations keep the neighbourhoods
     R, t = R.double().cpu().numpy(), t.double().cpu().numpy()
     # p -> R (Rh (p - c)) + t
     full = R @ rotations

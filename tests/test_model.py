@@ -131,16 +131,20 @@ def test_scripted_model_equals_eager():
     src, tgt = _cloud(n=64, dtype=torch.float32), _cloud(n=50, seed=1, dtype=torch.float32)
     for a, b in zip(net(src, tgt), scripted(src, tgt)):
         assert torch.allclose(a, b, atol=1e-6)
+    with torch.no_grad():  # the scripted gather-max reuses buffers when no gradient is recorded
+        for a, b in zip(net(src, tgt), scripted(src, tgt)):
+            assert torch.allclose(a, b, atol=1e-6)
 
 
-def test_align_with_shared_target_descriptors_equals_forward():
+def test_exported_steps_with_a_shared_target_equal_forward():
     torch.manual_seed(0)
     scripted = torch.jit.script(SoftAlignNet(TINY).eval())
     src, tgt = _cloud(b=3, n=64, dtype=torch.float32), _cloud(b=1, n=50, seed=1, dtype=torch.float32)
     with torch.no_grad():
-        g = scripted.describe_target(tgt)
-        assert g.shape == (1, 50, TINY.channels[-1])
-        for a, b in zip(scripted.align(src, tgt, g), scripted(src, tgt.expand(3, -1, -1))):
+        g = scripted.describe_target(tgt, ball_query(tgt, TINY.k, TINY.radius))
+        f = scripted.describe_source(src, ball_query(src, TINY.k, TINY.radius))
+        assert g.shape == (1, 50, TINY.channels[-1]) and f.shape == (3, 64, TINY.channels[-1])
+        for a, b in zip(scripted.align(src, f, tgt, g), scripted(src, tgt.expand(3, -1, -1))):
             assert torch.allclose(a, b, atol=1e-6)
 
 

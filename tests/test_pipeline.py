@@ -149,8 +149,11 @@ def test_downsample_bounds_large_clouds():
 class _StubModel:
     """A stand-in for CoarseModel: subclasses define run(source (B, N, 3), target (B, M, 3))."""
 
+    def neighbours(self, points):
+        return None
+
     def aligner(self, target):
-        return lambda source: self.run(source, target.expand(len(source), -1, -1))
+        return lambda source, idx=None: self.run(source, target.expand(len(source), -1, -1))
 
 
 class _HalfwayModel(_StubModel):
@@ -357,3 +360,21 @@ def test_aligner_matches_the_plain_call_also_for_files_without_align(tiny_model_
     for m in (model, old):
         for a, b in zip(m.aligner(tgt)(src), expected):
             assert torch.allclose(a, b, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_open3d_neighbourhoods_are_the_ball_query_sets(tiny_model_path, seed):
+    import torch
+
+    from o3dsoft.model import ball_query
+
+    model = load_model(tiny_model_path)
+    k, radius = model.config.k, model.config.radius
+    rng = np.random.default_rng(seed)
+    # A dense clump (more than K points within the radius), a sparse spread and lone points.
+    clouds = np.concatenate([rng.normal(size=(150, 3)) * 0.05, rng.uniform(-1, 1, size=(100, 3)), [[5.0, 5, 5], [-5, 5, 5]]])
+    points = torch.as_tensor(clouds[rng.permutation(len(clouds))], dtype=torch.float32)[None]
+    fast, reference = model.neighbours(points)[0], ball_query(points, k, radius)[0]
+    assert fast.shape == reference.shape == (len(clouds), k)
+    assert all(set(a.tolist()) == set(b.tolist()) for a, b in zip(fast, reference))
+    assert (fast[:, 0] == torch.arange(len(clouds))).all()  # the point itself, always
