@@ -8,7 +8,8 @@ Measures, in one run on the same batches (protocol `paper`, batch 10, N = 1024, 
   separate encoders) and of the literal form, medians over the steps after one warm-up step, and
   the literal / fast ratio;
 - peak resident memory of training with each form (a fresh process each, one or two steps);
-- the coarse stage on one 1024-point pair through the TorchScript file: median latency.
+- the coarse stage on one 1024-point pair through the TorchScript file: median latency of one
+  network pass, of two, and of the search's batch of 24 rotation hypotheses.
 Times are wall-clock on whatever machine runs it; compare ratios, not absolute values, across runs.
 """
 
@@ -107,21 +108,33 @@ def _network(literal: bool):
 
 
 def inference_latency(weights: str | None, runs: int, data: str) -> dict:
+    """The coarse stage on one 1024-point `paper` test pair: one network pass (the default), two
+    passes, and the search's batch of 24 rotation hypotheses (on its smaller samples)."""
     from o3dsoft.coarse import estimate, load_model
     from o3dsoft.data import get_protocol, load_pairs
-    from o3dsoft.preprocess import normalise_pair
+    from o3dsoft.pipeline import RegisterConfig
+    from o3dsoft.preprocess import normalise_pair, sample_points
+    from o3dsoft.search import cube_rotations, network_candidates
 
     model = load_model(weights)
     pairs = load_pairs(data, "test", get_protocol("paper"))
-    times = []
-    for i in range(runs + 3):
-        p = pairs[i]
-        s, t, _ = normalise_pair(p.source, p.target)
-        t0 = time.perf_counter()
-        estimate(model, s, t)
-        times.append(time.perf_counter() - t0)
-    warm = times[3:]  # TorchScript's profiling executor optimises during the first calls
-    return {"first_call_ms": times[0] * 1000, "median_ms": statistics.median(warm) * 1000, "p90_ms": float(np.percentile(warm, 90)) * 1000, "runs": len(warm)}
+    normalised = [normalise_pair(pairs[i].source, pairs[i].target)[:2] for i in range(runs + 3)]
+    small = RegisterConfig().search_points
+    jobs = {
+        "one_pass": lambda s, t: estimate(model, s, t),
+        "two_passes": lambda s, t: estimate(model, s, t, iterations=2),
+        "search_24_hypotheses": lambda s, t: network_candidates(model, sample_points(s, small), sample_points(t, small), cube_rotations()),
+    }
+    report = {"search_points": small}
+    for name, job in jobs.items():
+        times = []
+        for s, t in normalised:
+            t0 = time.perf_counter()
+            job(s, t)
+            times.append(time.perf_counter() - t0)
+        warm = times[3:]  # TorchScript's profiling executor optimises during the first calls
+        report[name] = {"first_call_ms": times[0] * 1000, "median_ms": statistics.median(warm) * 1000, "p90_ms": float(np.percentile(warm, 90)) * 1000, "runs": len(warm)}
+    return report
 
 
 def main() -> None:

@@ -6,6 +6,12 @@ parts of one cloud with no partner in the other (partial overlap) stop biasing t
 bundled bunny scans, from 10 starts perturbed by up to 8 degrees, the median rotation error was
 2.7 degrees with the single distance 0.1 and 0.48 degrees with the schedule 0.1 / 0.03 / 0.01.
 
+Open3D's ICP stops about 1e-5 degrees short of the least-squares optimum even when every
+correspondence is right: on the first ModelNet40 `paper` test pair (identical point sets) it
+settled at 1.7e-5 degrees, where one float64 Procrustes step on the same nearest neighbours gives
+4e-8 degrees. ICP therefore ends with such a step (:func:`polish`), kept only if it lowers the
+RMS distance of those pairs.
+
 Clouds larger than ``max_points`` (default 100,000) are voxel-downsampled first, which keeps ICP's
 time bounded for scans of millions of points. Measured on a 1,000,000-point synthetic surface
 (a stretched torus, 1-2 m across, moved by 28 degrees; 2-core machine): refine took 17.9 s with
@@ -19,8 +25,12 @@ from dataclasses import dataclass
 from typing import NamedTuple, Tuple
 
 import numpy as np
+import torch
+from scipy.spatial import cKDTree
 
 from ._open3d import open3d as o3d
+from .procrustes import weighted_procrustes
+from .transforms import apply_transform, rigid
 
 
 @dataclass(frozen=True)
@@ -34,6 +44,7 @@ class ICPConfig:
         absolute: `distance` is in the clouds' own units.
         max_iterations, relative_fitness, relative_rmse: Open3D's convergence criteria.
         max_points: clouds above this size are voxel-downsampled before ICP.
+        polish: end with one float64 point-to-point step at the last distance (:func:`polish`).
     """
 
     distance: float = 0.1
@@ -43,6 +54,7 @@ class ICPConfig:
     relative_fitness: float = 1e-7
     relative_rmse: float = 1e-7
     max_points: int = 100_000
+    polish: bool = True
 
     def distance_for(self, scale: float) -> float:
         """The correspondence distance in cloud units for a pair of this scale."""
@@ -104,8 +116,33 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
     for factor in config.schedule:
         result = reg.registration_icp(src, tgt, distance * factor, T, reg.TransformationEstimationPointToPoint(), criteria)
         T = np.asarray(result.transformation).copy()
+    if config.polish:
+        T = polish(np.asarray(src.points), np.asarray(tgt.points), T, distance * config.schedule[-1])
     scored = reg.evaluate_registration(src, tgt, distance, T)
     return ICPResult(T, float(scored.fitness), float(scored.inlier_rmse))
+
+
+def polish(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float) -> np.ndarray:
+    """One exact point-to-point step: the float64 least-squares transform of the nearest-neighbour
+    pairs within `distance`, returned only if it lowers their RMS distance (else `transformation`).
+
+    Args:
+        source: (N, 3); target: (M, 3); transformation: (4, 4) T_target_source.
+        distance: max pair distance, cloud units.
+    Returns:
+        (4, 4) float64 T_target_source.
+    """
+    T = np.asarray(transformation, dtype=np.float64)
+    dist, j = cKDTree(target).query(apply_transform(T, source), distance_upper_bound=distance)
+    keep = np.isfinite(dist)
+    if keep.sum() < 3:
+        return T
+    p, q = source[keep], target[j[keep]]
+    R, t = weighted_procrustes(torch.from_numpy(p)[None], torch.from_numpy(q)[None])
+    T_new = rigid(R[0].numpy(), t[0].numpy())
+    before = np.mean(dist[keep] ** 2)
+    after = np.mean(np.sum((apply_transform(T_new, p) - q) ** 2, axis=1))
+    return T_new if after < before else T
 
 
 def evaluate(
