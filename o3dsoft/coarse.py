@@ -125,9 +125,10 @@ class CoarseModel:
             return ball_query(points.to(self.device), k, radius)
         out = []
         for cloud in points.detach().float().numpy():
-            search = o3c.nns.NearestNeighborSearch(o3c.Tensor(np.ascontiguousarray(cloud)))
+            cloud = o3c.Tensor(np.ascontiguousarray(cloud))
+            search = o3c.nns.NearestNeighborSearch(cloud)
             search.hybrid_index(radius)
-            idx, _, _ = search.hybrid_search(o3c.Tensor(np.ascontiguousarray(cloud)), radius, k)
+            idx, _, _ = search.hybrid_search(cloud, radius, k)  # each point's neighbours in its own cloud
             idx = torch.from_numpy(idx.numpy()).long()
             # Missing neighbours come as -1: fill them with the point itself, as ball_query does.
             out.append(torch.where(idx < 0, idx[:, :1], idx))
