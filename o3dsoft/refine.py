@@ -6,6 +6,13 @@ parts of one cloud with no partner in the other (partial overlap) stop biasing t
 bundled bunny scans, from 10 starts perturbed by up to 8 degrees, the median rotation error was
 2.7 degrees with the single distance 0.1 and 0.48 degrees with the schedule 0.1 / 0.03 / 0.01.
 
+The last stage's distance must not fall below the noise: with noise of 0.01 per cloud
+(`rpmnet-crop`) the true nearest neighbours lie ~0.02 apart, and a distance of 0.01 keeps only a
+lucky few of them, whose fit drifts. So that stage runs at no less than 2.5 times the median
+distance of the pairs the stage before it kept (:func:`residual`; ~0 for identical point sets,
+where nothing changes). Started at the ground truth of the first 150 `rpmnet-crop` test pairs,
+the share within 1 degree went from 77 % to 90 % and the median error from 0.55 to 0.26 degrees.
+
 Open3D's ICP stops about 1e-5 degrees short of the least-squares optimum even when every
 correspondence is right: on the first ModelNet40 `paper` test pair (identical point sets) it
 settled at 1.7e-5 degrees, where one float64 Procrustes step on the same nearest neighbours gives
@@ -22,7 +29,7 @@ the limit at 200,000 points (rotation error 0.003 degrees), 6.0 s at 100,000 (0.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Tuple
+from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch
@@ -45,6 +52,8 @@ class ICPConfig:
         max_iterations, relative_fitness, relative_rmse: Open3D's convergence criteria.
         max_points: clouds above this size are voxel-downsampled before ICP.
         polish: end with one float64 point-to-point step at the last distance (:func:`polish`).
+        noise_factor: the last stage's distance is at least this many times the residual of the
+            stage before it (:func:`residual`), so that noisy clouds keep their true pairs; 0: off.
     """
 
     distance: float = 0.1
@@ -55,6 +64,7 @@ class ICPConfig:
     relative_rmse: float = 1e-7
     max_points: int = 100_000
     polish: bool = True
+    noise_factor: float = 2.5
 
     def distance_for(self, scale: float) -> float:
         """The correspondence distance in cloud units for a pair of this scale."""
@@ -113,27 +123,48 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
         max_iteration=config.max_iterations,
     )
     T = np.asarray(init, dtype=np.float64)
-    for factor in config.schedule:
-        result = reg.registration_icp(src, tgt, distance * factor, T, reg.TransformationEstimationPointToPoint(), criteria)
+    distances = [distance * factor for factor in config.schedule]
+    src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
+    tree = cKDTree(tgt_points)
+    for stage, stage_distance in enumerate(distances):
+        if stage == len(distances) - 1 and stage > 0 and config.noise_factor > 0:
+            stage_distance = max(stage_distance, config.noise_factor * residual(src_points, tree, T, distances[stage - 1]))
+            distances[stage] = stage_distance
+        result = reg.registration_icp(src, tgt, stage_distance, T, reg.TransformationEstimationPointToPoint(), criteria)
         T = np.asarray(result.transformation).copy()
     if config.polish:
-        T = polish(np.asarray(src.points), np.asarray(tgt.points), T, distance * config.schedule[-1])
+        T = polish(src_points, tgt_points, T, distances[-1], tree)
     scored = reg.evaluate_registration(src, tgt, distance, T)
     return ICPResult(T, float(scored.fitness), float(scored.inlier_rmse))
 
 
-def polish(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float) -> np.ndarray:
+def residual(source: np.ndarray, tree: cKDTree, transformation: np.ndarray, distance: float) -> float:
+    """Median distance from a moved source point to its nearest target point, over the points
+    with one within `distance` (0 if none): the noise level of an aligned pair, ~0 for identical
+    point sets.
+
+    Args:
+        source: (N, 3); tree: KD-tree of the (M, 3) target; transformation: (4, 4) T_target_source.
+    """
+    dist, _ = tree.query(apply_transform(np.asarray(transformation, dtype=np.float64), source), distance_upper_bound=distance)
+    near = dist[np.isfinite(dist)]
+    return float(np.median(near)) if len(near) else 0.0
+
+
+def polish(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float,
+           tree: Optional[cKDTree] = None) -> np.ndarray:
     """One exact point-to-point step: the float64 least-squares transform of the nearest-neighbour
     pairs within `distance`, returned only if it lowers their RMS distance (else `transformation`).
 
     Args:
         source: (N, 3); target: (M, 3); transformation: (4, 4) T_target_source.
         distance: max pair distance, cloud units.
+        tree: a KD-tree of `target`, if one is built already.
     Returns:
         (4, 4) float64 T_target_source.
     """
     T = np.asarray(transformation, dtype=np.float64)
-    dist, j = cKDTree(target).query(apply_transform(T, source), distance_upper_bound=distance)
+    dist, j = (tree if tree is not None else cKDTree(target)).query(apply_transform(T, source), distance_upper_bound=distance)
     keep = np.isfinite(dist)
     if keep.sum() < 3:
         return T
