@@ -30,7 +30,7 @@ from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig, register
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
-NAMES = ("fitness_tight",)
+NAMES = ("consistency",)
 
 
 def make_problems(data: str, per_group: int, seed: int):

@@ -17,7 +17,7 @@ from ..errors import O3dsoftError
 # The values of RegisterConfig.search (o3dsoft.pipeline.SEARCH_MODES, not imported here: it would
 # load torch before --help); a test keeps the two equal.
 SEARCH_MODES = ("auto", "always", "off")
-WEIGHTS_HELP = "TorchScript model file, or a shipped model by name: default, paper (default: default)."
+WEIGHTS_HELP = "TorchScript model file, or a shipped model by name: default, paper, partial (default: default; partial is the search network, trained on cropped, noisy clouds)."
 
 
 def _friendly_errors(fn):
@@ -130,10 +130,10 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
         click.echo(_format_result(source, target, result, errors, model_info, config))
     if result.likely_failed:
         click.echo(
-            f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: only {100 * result.fitness_tight:.0f} % of the "
-            f"points lie within {result.tight_distance:.3g} units of the other cloud"
+            f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: of the points near the other cloud, only "
+            f"{100 * result.consistency:.0f} % lie within {result.tight_distance:.3g} units of it"
             + ("; the global search found nothing better" if result.searched else "")
-            + "). If the clouds overlap only partly, a right alignment can read as doubtful: check it visually (--render).",
+            + "). Check it visually (--render).",
             err=True,
         )
         if strict:
@@ -291,9 +291,12 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, weights
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
     model = load_model(config.register.weights, device) if needs_model else None
+    searches = needs_model and config.register.search != "off" and config.register.search_weights is not None
+    search_model = load_model(config.register.search_weights, device) if searches else None
     description = {"command": shlex.join(["o3dsoft", *sys.argv[1:]]), **description}
     folder = prepare_folder(out or Path("runs") / f"bench-{name}-{time.strftime('%Y%m%d-%H%M%S')}", overwrite)
-    result = run(pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True))
+    result = run(pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True),
+                 search_model=search_model)
     click.echo(result.table)
     click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
     if result.interrupted:

@@ -267,8 +267,10 @@ class MethodResult(NamedTuple):
     confidence: Optional[float] = None
 
 
-def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel]) -> List[MethodResult]:
-    """Run every method of `config` on one pair."""
+def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel],
+                search_model: Optional[CoarseModel] = None) -> List[MethodResult]:
+    """Run every method of `config` on one pair (`search_model`: o3dsoft's search network, else
+    loaded when needed)."""
     methods = config.methods
     src, tgt = pair.source.astype(np.float64), pair.target.astype(np.float64)
     scale = normalisation_for(src, tgt).scale
@@ -279,7 +281,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         return time.perf_counter() * 1000.0
 
     if {"o3dsoft", "o3dsoft-coarse"} & set(methods):
-        result = register(src, tgt, config.register, model=model)
+        result = register(src, tgt, config.register, model=model, search_model=search_model)
         t = result.timings_ms
         coarse_ms = {"coarse": t["clean"] + t["sample_normalise"] + t["coarse"], **({"search": t["search"]} if "search" in t else {})}
         # The coarse estimate the kept result was refined from. After a search it is one of the
@@ -508,6 +510,7 @@ def run(
     description: dict,
     progress: bool = True,
     log: Callable[[str], None] = print,
+    search_model: Optional[CoarseModel] = None,
 ) -> BenchRun:
     """Run the methods of `config` on every pair and write the run folder `out` (already created).
 
@@ -524,7 +527,7 @@ def run(
     try:
         for pair in pairs:
             try:
-                scored = [score(pair, r) for r in run_methods(pair, config, model)]
+                scored = [score(pair, r) for r in run_methods(pair, config, model, search_model)]
             except (O3dsoftError, RuntimeError) as e:  # an unusable pair (or an Open3D failure) is reported, not fatal
                 failed.append({"protocol": pair.protocol, "index": pair.index, "error": str(e)})
                 log(f"pair {pair.protocol}/{pair.index} skipped: {e}")
@@ -548,6 +551,7 @@ def run(
         "pairs_failed": failed,
         "seconds": round(time.monotonic() - t_start, 1),
         "weights": {"path": str(model.path), "sha256": sha256_of(model.path)} if model is not None else None,
+        "search_weights": {"path": str(search_model.path), "sha256": sha256_of(search_model.path)} if search_model is not None else None,
         "versions": versions(),
         "recall_thresholds": [{"rotation_deg": d, "translation": t} for d, t in config.recall],
         "methods": {m: METHODS[m] for m in config.methods},

@@ -46,6 +46,10 @@ class RegisterConfig:
         search_points: points per cloud for the search's batch of network passes.
         search_refine: how many of the search's best-ranked estimates are polished by ICP on the
             network's samples before the best of them is refined at full resolution.
+        search_weights: a second network for the search (a file or a shipped model's name;
+            default "partial", trained on cropped, noisy clouds), run from 15 starts around the
+            pose the clouds are given in (:func:`o3dsoft.search.local_rotations`); its estimates
+            join those of the 24 starts for ranking. None: only the main network searches.
         search_features: the search starts with the estimate of FPFH features matched by
             RANSAC (:mod:`o3dsoft.baselines`), a classical estimate that does not depend on the
             network's training distribution (partial scans, large rotations). Part of the
@@ -64,6 +68,7 @@ class RegisterConfig:
     search: str = "auto"
     search_points: int = 256
     search_refine: int = 3
+    search_weights: Optional[str] = "partial"
     search_features: bool = True
     refine: bool = True
     icp: refine_stage.ICPConfig = field(default_factory=refine_stage.ICPConfig)
@@ -99,12 +104,15 @@ class RegistrationResult:
         coarse_transformation: (4, 4) the coarse estimate the result was refined from, before
             any ICP: the network's, or after a search one of its starts (or the feature match).
         confidence: estimated probability that the alignment is right (0-1, higher is better),
-            from the share of source points close to the target (:mod:`o3dsoft.confidence`).
+            from `consistency` (:mod:`o3dsoft.confidence`).
         likely_failed: confidence below 0.5: treat the transform as wrong.
         fitness_tight: share of source points within `tight_distance` of a target point, or of
             target points near the source when the target is much sparser (0-1).
         tight_distance: max(0.3 x correspondence_distance, 1.5 x the point spacing of the
             denser cloud).
+        consistency: of the points counted by `fitness_tight` that lie within
+            `correspondence_distance` of the other cloud, the share within `tight_distance` (0-1,
+            higher is better; partial overlap does not lower it).
         mean_weight: mean of the network's per-point weights w_i = max_j W_ij in its first
             pass (0-1).
         correspondence_distance: the ICP / scoring distance used (cloud units).
@@ -125,6 +133,7 @@ class RegistrationResult:
     likely_failed: bool
     fitness_tight: float
     tight_distance: float
+    consistency: float
     mean_weight: float
     correspondence_distance: float
     scale: float
@@ -169,6 +178,7 @@ def register(
     target: CloudLike,
     config: RegisterConfig = RegisterConfig(),
     model: Optional[coarse_stage.CoarseModel] = None,
+    search_model: Optional[coarse_stage.CoarseModel] = None,
     source_name: str = "source",
     target_name: str = "target",
 ) -> RegistrationResult:
@@ -179,6 +189,8 @@ def register(
         target: (M, 3) array or Open3D PointCloud, same units as source.
         config: pipeline settings.
         model: an already loaded model (else loaded from ``config.weights``).
+        search_model: an already loaded search network (else loaded from
+            ``config.search_weights`` when the search needs it).
         source_name, target_name: how to call the clouds in error messages (e.g. file names).
     Returns:
         RegistrationResult.
@@ -252,6 +264,13 @@ def register(
         src_small = sample_points(src_norm, config.search_points, seed=config.seed + 2)
         tgt_small = sample_points(tgt_norm, config.search_points, seed=config.seed + 3)
         candidates = search_stage.network_candidates(model, src_small, tgt_small, search_stage.cube_rotations())
+        if config.search_weights is not None:
+            if search_model is None:
+                search_model = coarse_stage.load_model(config.search_weights, config.device)
+            if search_model.config.k > config.search_points:
+                raise InputError(f"search_points={config.search_points} is below the search network's neighbourhood size K={search_model.config.k}")
+            local = search_stage.network_candidates(search_model, src_small, tgt_small, search_stage.local_rotations())
+            candidates = np.concatenate([candidates, local])
         candidates = np.stack([denormalise_transform(T, norm) for T in candidates])
         chosen = search_stage.select(src_net, tgt_net, candidates, distance, config.search_refine, config.icp if config.refine else None)
         lap("search")
@@ -268,6 +287,7 @@ def register(
         likely_failed=best.trust < confidence_stage.LIKELY_FAILED_BELOW,
         fitness_tight=best.scored.fitness_tight,
         tight_distance=best.scored.tight_distance,
+        consistency=best.scored.consistency,
         mean_weight=float(np.mean(estimate.weights)),
         correspondence_distance=distance,
         scale=norm.scale,

@@ -38,6 +38,20 @@ def cube_rotations() -> np.ndarray:
     return np.stack(rotations)
 
 
+def local_rotations(angle_deg: float = 45.0) -> np.ndarray:
+    """The identity and the 14 rotations by `angle_deg` about the axes through a cube's 6 faces
+    and 8 corners: starts around the pose the clouds are given in, (15, 3, 3) float64."""
+    axes = [np.array(a, dtype=np.float64) for a in itertools.product((-1.0, 0.0, 1.0), repeat=3)
+            if np.count_nonzero(a) in (1, 3)]
+    rotations = [np.eye(3)]
+    for axis in axes:
+        k = axis / np.linalg.norm(axis)
+        K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        a = np.radians(angle_deg)
+        rotations.append(np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * K @ K)  # Rodrigues
+    return np.stack(rotations)
+
+
 def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     """The network's estimate from each starting rotation, as one batch.
 
@@ -74,8 +88,7 @@ def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, dista
     """The candidate that fits best, after a quick ICP on small samples of the clouds.
 
     The candidates are ranked by the share of source points within distance / 2 of the target;
-    the `keep` best are refined by ICP on the samples and compared by the confidence's
-    measurement (the share of points within the tight distance). With `icp` None nothing is
+    the `keep` best are refined by ICP on the samples and compared by their confidence. With `icp` None nothing is
     refined: the top-ranked candidate is picked.
 
     Args:
@@ -90,8 +103,8 @@ def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, dista
     if icp is None:
         return Choice(candidates[kept[0]], candidates[kept[0]])
     polished = [refine_stage.icp(source, target, candidates[h], distance, icp).transformation for h in kept]
-    tight = [confidence_stage.features(source, target, T, distance).fitness_tight for T in polished]
-    best = int(np.argmax(tight))
+    trust = [confidence_stage.confidence(confidence_stage.features(source, target, T, distance)) for T in polished]
+    best = int(np.argmax(trust))
     return Choice(candidates[kept[best]], polished[best])
 
 

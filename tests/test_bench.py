@@ -116,11 +116,11 @@ def test_interrupted_run_keeps_what_finished(modelnet_root, tmp_path, monkeypatc
     real = bench.run_methods
     calls = []
 
-    def interrupt_on_third(pair, config, model):
+    def interrupt_on_third(pair, config, model, search_model=None):
         calls.append(pair.index)
         if len(calls) == 3:
             raise KeyboardInterrupt
-        return real(pair, config, model)
+        return real(pair, config, model, search_model)
 
     monkeypatch.setattr(bench, "run_methods", interrupt_on_third)
     config = bench.BenchConfig(methods=("icp",))

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -289,7 +291,7 @@ def test_the_search_can_add_a_feature_based_estimate():
     tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
     T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
     model = _AlwaysWrongModel(T[:3, :3] @ euler_to_matrix([180.0, 0.0, 0.0]))  # upside down
-    without = register(src, tgt, RegisterConfig(search="always", search_features=False), model=model)
+    without = register(src, tgt, RegisterConfig(search="always", search_features=False, search_weights=None), model=model)
     assert without.likely_failed and pair_errors(without.transformation, T).rotation_deg > 90
     res = register(src, tgt, RegisterConfig(search="always"), model=model)  # features on by default
     # The feature match comes first and is confident: the network's starts are not needed.
@@ -430,3 +432,53 @@ def test_residual_is_the_noise_level():
     # The nearest-neighbour distance of 3-D Gaussian noise of sigma 0.01 has a median of ~0.015.
     assert 0.008 < residual(noisy, tree, np.eye(4), 0.5) < 0.02
     assert residual(target + 10.0, tree, np.eye(4), 0.5) == 0.0  # no pair within the distance
+
+
+def test_local_starts_surround_the_given_pose():
+    from o3dsoft.search import local_rotations
+
+    R = local_rotations()
+    assert R.shape == (15, 3, 3) and np.array_equal(R[0], np.eye(3))
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3)) and np.allclose(np.linalg.det(R), 1.0)
+    assert all(rotation_error_deg(r, np.eye(3)) == pytest.approx(45.0) for r in R[1:])
+    pairwise = [rotation_error_deg(R[i], R[j]) for i in range(15) for j in range(i)]
+    assert min(pairwise) > 20.0  # 14 distinct axes
+
+
+class _LocalModel(_StubModel):
+    """Stands in for the search network: from each of the 15 local starts (in their order) it
+    returns the rotation left to do exactly."""
+
+    def __init__(self, R_true, k=8):
+        from o3dsoft.model import NetConfig
+
+        self.config = NetConfig(k=k)
+        self.R_true = R_true
+        self.batches = []
+
+    def run(self, source, target):
+        import torch
+
+        from o3dsoft.search import local_rotations
+
+        self.batches.append(len(source))
+        R = torch.as_tensor(self.R_true @ local_rotations().transpose(0, 2, 1), dtype=torch.float32)
+        t = target.mean(1) - torch.einsum("bij,bj->bi", R, source.mean(1))
+        return R, t, torch.ones(len(source), source.shape[1])
+
+
+def test_the_search_network_joins_the_ranking():
+    rng = np.random.default_rng(6)
+    src = blob(rng, 800)
+    T = random_transform(rng, 30.0, 0.2)
+    tgt = apply(T, src)
+    wrong = _AlwaysWrongModel(T[:3, :3] @ euler_to_matrix([180.0, 0.0, 0.0]))
+    config = RegisterConfig(num_points=800, search_points=400, search="always", search_features=False)
+    alone = register(src, tgt, replace(config, search_weights=None), model=wrong)
+    assert alone.likely_failed and pair_errors(alone.transformation, T).rotation_deg > 90
+    local = _LocalModel(T[:3, :3])
+    res = register(src, tgt, config, model=wrong, search_model=local)
+    assert local.batches == [15] and not res.likely_failed
+    assert pair_errors(res.transformation, T).rotation_deg < 1e-3
+    with pytest.raises(InputError, match="search_points=400 is below the search network's neighbourhood size K=500"):
+        register(src, tgt, config, model=wrong, search_model=_LocalModel(T[:3, :3], k=500))
