@@ -1,9 +1,10 @@
 """Write the README's "Results" section from a bench run folder (never typed by hand).
 
-    python -m benchmarks.results_table RUN_DIR [--readme README.md]
+    python -m benchmarks.results_table RUN_DIR [--readme README.md] [--marker results]
 
-Replaces the text between the markers ``<!-- results:start -->`` and ``<!-- results:end -->``
-with the run's command, machine, versions and one table per protocol (from summary.json).
+Replaces the text between the markers ``<!-- MARKER:start -->`` and ``<!-- MARKER:end -->``
+(MARKER: ``results`` unless told) with the run's command, machine, versions and one table per
+protocol (from summary.json).
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ import argparse
 import json
 from pathlib import Path
 
-START, END = "<!-- results:start -->", "<!-- results:end -->"
 
 
 def markdown(run: Path) -> str:
@@ -55,7 +55,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
     ap.add_argument("--readme", type=Path, default=Path(__file__).resolve().parents[1] / "README.md")
+    ap.add_argument("--marker", default="results", help="the README section's marker name")
     args = ap.parse_args()
+    START, END = f"<!-- {args.marker}:start -->", f"<!-- {args.marker}:end -->"
     text = args.readme.read_text()
     if START not in text or END not in text:
         raise SystemExit(f"{args.readme}: no {START} ... {END} markers")
