@@ -60,7 +60,7 @@ def main() -> None:
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
-@click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="Global search, for clouds with no rough alignment (a feature match, then the network from 24 starting rotations): auto = when the first result looks wrong.")
+@click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="Global search, for clouds with no rough alignment (a feature match, then the networks from 39 starting rotations, then the feature match with other seeds): auto = when the first result looks wrong.")
 @click.option("--search-features/--no-search-features", default=True, show_default=True, help="The search starts with FPFH features matched by RANSAC (for partial scans, any rotation).")
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors

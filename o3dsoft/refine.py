@@ -40,6 +40,9 @@ from .procrustes import weighted_procrustes
 from .transforms import apply_transform, rigid
 
 
+NOISE_ROUNDS = 3
+
+
 @dataclass(frozen=True)
 class ICPConfig:
     """Settings of the fine stage.
@@ -127,11 +130,19 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
     src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
     tree = cKDTree(tgt_points)
     for stage, stage_distance in enumerate(distances):
-        if stage == len(distances) - 1 and stage > 0 and config.noise_factor > 0:
-            stage_distance = max(stage_distance, config.noise_factor * residual(src_points, tree, T, distances[stage - 1]))
-            distances[stage] = stage_distance
-        result = reg.registration_icp(src, tgt, stage_distance, T, reg.TransformationEstimationPointToPoint(), criteria)
-        T = np.asarray(result.transformation).copy()
+        noise_aware = stage == len(distances) - 1 and stage > 0 and config.noise_factor > 0
+        wider = distances[stage - 1] if noise_aware else stage_distance
+        for _ in range(NOISE_ROUNDS if noise_aware else 1):
+            if noise_aware:
+                # The residual is the noise plus what is left of the misalignment; as the fit
+                # tightens, so does the distance, until it stops shrinking.
+                stage_distance = max(distances[stage], config.noise_factor * residual(src_points, tree, T, wider))
+                if stage_distance > 0.9 * wider and wider != distances[stage - 1]:
+                    break
+                wider = stage_distance
+            result = reg.registration_icp(src, tgt, stage_distance, T, reg.TransformationEstimationPointToPoint(), criteria)
+            T = np.asarray(result.transformation).copy()
+        distances[stage] = stage_distance
     if config.polish:
         T = polish(src_points, tgt_points, T, distances[-1], tree)
     scored = reg.evaluate_registration(src, tgt, distance, T)

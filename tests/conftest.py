@@ -28,6 +28,13 @@ def modelnet_root() -> Path:
 
 
 @pytest.fixture(scope="session")
+def bunny_root() -> Path:
+    if not (BUNNY / "bun.conf").is_file():
+        pytest.skip(f"Stanford Bunny scans not found at {BUNNY}")
+    return BUNNY
+
+
+@pytest.fixture(scope="session")
 def tiny_model_path(tmp_path_factory) -> Path:
     """A small, untrained network exported to TorchScript (fast to load and run)."""
     torch.manual_seed(0)

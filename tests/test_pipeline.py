@@ -306,6 +306,10 @@ def test_search_settings_are_checked():
         register(src, src, RegisterConfig(search="sometimes"), model=model)
     with pytest.raises(InputError, match="search_points=4 is below the network's neighbourhood size K=8"):
         register(src, src, RegisterConfig(search_points=4), model=model)
+    with pytest.raises(InputError, match="attempt_points=4 is below the network's neighbourhood size K=8"):
+        register(src, src, RegisterConfig(attempt_points=4), model=model)
+    with pytest.raises(InputError, match="search_feature_tries must be at least 1, got 0"):
+        register(src, src, RegisterConfig(search_feature_tries=0), model=model)
 
 
 def test_without_icp_the_search_keeps_its_top_ranked_estimate_as_it_is():
@@ -419,6 +423,25 @@ def test_icp_keeps_the_true_pairs_of_noisy_partial_clouds(modelnet_root):
     assert np.median(errors[2.5]) < 0.7 * np.median(errors[0.0])
 
 
+def test_the_noise_aware_stage_tightens_as_the_fit_does(bunny_root, monkeypatch):
+    from o3dsoft import refine
+    from o3dsoft.preprocess import normalisation_for
+    from o3dsoft.scans import read_conf, relative_pose
+
+    # Two real scans that overlap by 39 %, ICP started at the ground truth. After the loose
+    # stages the residual is mostly misalignment, not noise: a last stage at 2.5x that residual
+    # alone stays 2.3 degrees off; tightened while the residual shrinks, it comes back.
+    source = o3dsoft.read_points(bunny_root / "bun090.ply")
+    target = o3dsoft.read_points(bunny_root / "bun180.ply")
+    truth = relative_pose(read_conf(bunny_root / "bun.conf"), "bun090.ply", "bun180.ply")
+    distance = 0.1 * normalisation_for(source, target).scale
+    T = refine.icp(source, target, truth, distance).transformation
+    assert rotation_error_deg(T[:3, :3], truth[:3, :3]) < 1.0
+    monkeypatch.setattr(refine, "NOISE_ROUNDS", 1)
+    T = refine.icp(source, target, truth, distance).transformation
+    assert rotation_error_deg(T[:3, :3], truth[:3, :3]) > 1.5
+
+
 def test_residual_is_the_noise_level():
     from scipy.spatial import cKDTree
 
@@ -482,3 +505,71 @@ def test_the_search_network_joins_the_ranking():
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
     with pytest.raises(InputError, match="search_points=400 is below the search network's neighbourhood size K=500"):
         register(src, tgt, config, model=wrong, search_model=_LocalModel(T[:3, :3], k=500))
+
+
+def test_the_feature_match_is_retried_while_nothing_is_confident(monkeypatch):
+    from o3dsoft import search
+
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    upside_down = T @ np.diag([1.0, -1.0, -1.0, 1.0])
+    seeds = []
+
+    def lucky_with_seed_2(source, target, scale, seed):  # RANSAC stand-in: right only with seed 2
+        seeds.append(seed)
+        return T if seed == 2 else upside_down
+
+    monkeypatch.setattr(search, "feature_candidate", lucky_with_seed_2)
+    model = _AlwaysWrongModel(upside_down[:3, :3])
+    config = RegisterConfig(search="always", search_weights=None)
+    res = register(src, tgt, config, model=model)
+    # first estimate, features (seed 0), the network's starts, then seeds 1 and 2
+    assert seeds == [0, 1, 2] and res.attempts == 5 and not res.likely_failed
+    assert pair_errors(res.transformation, T).rotation_deg < 1.0
+    seeds.clear()
+    res = register(src, tgt, replace(config, search_feature_tries=2), model=model)
+    assert seeds == [0, 1] and res.attempts == 4 and res.likely_failed
+
+
+def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolution(monkeypatch):
+    from o3dsoft import refine
+
+    rng = np.random.default_rng(8)
+    src = blob(rng, 6000)
+    T = random_transform(rng, 30.0, 0.2)
+    tgt = apply(T, src)
+    sizes = []
+    real_icp = refine.icp
+
+    def recording_icp(source, target, init, distance, config=refine.ICPConfig()):
+        sizes.append((len(source), config.schedule))
+        return real_icp(source, target, init, distance, config)
+
+    monkeypatch.setattr(refine, "icp", recording_icp)
+    res = register(src, tgt, RegisterConfig(attempt_points=1000, search="off"), model=_NearSightedModel(T[:3, :3]))
+    assert sizes[0][0] <= 1000 and sizes[0][1] == (1.0, 0.3, 0.1)
+    assert sizes[-1] == (6000, (0.3, 0.1))  # the tight stages at full resolution
+    assert res.num_source == 6000 and pair_errors(res.transformation, T).rotation_deg < 1e-3
+    sizes.clear()
+    register(src[:900], tgt[:900], RegisterConfig(attempt_points=1000, search="off"), model=_NearSightedModel(T[:3, :3]))
+    assert sizes == [(900, (1.0, 0.3, 0.1))]  # small clouds: refined once, as they are
+
+
+def test_a_right_alignment_of_two_partial_scans_is_trusted():
+    from o3dsoft.confidence import confidence, features
+    from o3dsoft.preprocess import normalisation_for
+
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    # Opposite ends of the two scans: much of each lies beyond the other's edge, within ICP's
+    # distance of it. Those points have no partner and must not count against the alignment.
+    src = src[src[:, 1] > np.quantile(src[:, 1], 0.4)]
+    tgt = tgt[tgt[:, 1] < np.quantile(tgt[:, 1], 0.6)]
+    distance = 0.1 * normalisation_for(src, tgt).scale
+    right = features(src, tgt, T, distance)
+    assert right.fitness_tight < 0.5 and confidence(right) > 0.9
+    off = T.copy()
+    off[:3, :3] = euler_to_matrix([3.0, 0.0, 0.0]) @ T[:3, :3]
+    assert confidence(features(src, tgt, off, distance)) < 0.5
