@@ -129,20 +129,24 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
     distances = [distance * factor for factor in config.schedule]
     src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
     tree = cKDTree(tgt_points)
+
+    def run(T: np.ndarray, stage_distance: float) -> np.ndarray:
+        result = reg.registration_icp(src, tgt, stage_distance, T, reg.TransformationEstimationPointToPoint(), criteria)
+        return np.asarray(result.transformation).copy()
+
     for stage, stage_distance in enumerate(distances):
-        noise_aware = stage == len(distances) - 1 and stage > 0 and config.noise_factor > 0
-        wider = distances[stage - 1] if noise_aware else stage_distance
-        for _ in range(NOISE_ROUNDS if noise_aware else 1):
-            if noise_aware:
-                # The residual is the noise plus what is left of the misalignment; as the fit
-                # tightens, so does the distance, until it stops shrinking.
-                stage_distance = max(distances[stage], config.noise_factor * residual(src_points, tree, T, wider))
-                if stage_distance > 0.9 * wider and wider != distances[stage - 1]:
+        if stage == len(distances) - 1 and stage > 0 and config.noise_factor > 0:
+            # The residual is the noise plus what is left of the misalignment: as the fit
+            # tightens, so does the distance, while it shrinks by more than a tenth.
+            wider = distances[stage - 1]
+            for round_ in range(NOISE_ROUNDS):
+                proposed = max(stage_distance, config.noise_factor * residual(src_points, tree, T, wider))
+                if round_ > 0 and proposed > 0.9 * wider:
                     break
-                wider = stage_distance
-            result = reg.registration_icp(src, tgt, stage_distance, T, reg.TransformationEstimationPointToPoint(), criteria)
-            T = np.asarray(result.transformation).copy()
-        distances[stage] = stage_distance
+                T, wider = run(T, proposed), proposed
+            distances[stage] = wider
+        else:
+            T = run(T, stage_distance)
     if config.polish:
         T = polish(src_points, tgt_points, T, distances[-1], tree)
     scored = reg.evaluate_registration(src, tgt, distance, T)
