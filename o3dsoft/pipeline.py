@@ -275,7 +275,8 @@ def register(
     if searched and config.search_features:
         # Search, first: FPFH features matched by RANSAC. Cheap, and on flagged pairs more often
         # right than the network's starts (ModelNet40 so3: 10 of 10 flagged pairs against 4).
-        T_features = search_stage.feature_candidate(src_points, tgt_points, norm.scale, config.seed)
+        matcher = search_stage.FeatureMatch(src_points, tgt_points, norm.scale)
+        T_features = matcher.estimate(config.seed)
         lap("search")
         attempts.append(finish(T_features, T_features))
     if searched and max(a.trust for a in attempts) < confidence_stage.LIKELY_FAILED_BELOW:
@@ -300,7 +301,7 @@ def register(
         # Search, last: while nothing is confident, the feature match with another RANSAC seed.
         if max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW:
             break
-        T_features = search_stage.feature_candidate(src_points, tgt_points, norm.scale, config.seed + extra)
+        T_features = matcher.estimate(config.seed + extra)
         lap("search")
         attempts.append(finish(T_features, T_features))
     best = max(attempts, key=lambda a: a.trust)

@@ -1,7 +1,7 @@
 """Global search, for pairs with no initial guess: a feature match, and the coarse stage started
 from many rotations.
 
-The pipeline first tries FPFH features matched by RANSAC (:func:`feature_candidate`), which does
+The pipeline first tries FPFH features matched by RANSAC (:class:`FeatureMatch`), which does
 not depend on how the network was trained. Then, while no result is confident: the network is
 trained on rotations of up to 45 degrees per axis, and far beyond that its estimate is
 unreliable (the paper's experiment 10), so the search pre-rotates the source by each of
@@ -108,9 +108,21 @@ def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, dista
     return Choice(candidates[kept[best]], polished[best])
 
 
-def feature_candidate(source: np.ndarray, target: np.ndarray, scale: float, seed: int) -> np.ndarray:
-    """(4, 4) T_target_source from FPFH features matched by RANSAC, with the settings of
-    :class:`o3dsoft.baselines.GlobalConfig` (clouds voxel-downsampled to 0.05 x `scale` first)."""
-    fs = baselines.fpfh_features(source, scale)
-    ft = baselines.fpfh_features(target, scale)
-    return baselines.ransac(fs, ft, scale, seed)
+class FeatureMatch:
+    """FPFH features of both clouds, computed once with the settings of
+    :class:`o3dsoft.baselines.GlobalConfig` (clouds voxel-downsampled to 0.05 x `scale` first);
+    :meth:`estimate` matches them by RANSAC, as many times as asked.
+
+    Args:
+        source: (N, 3); target: (M, 3), in their original frames.
+        scale: the pair's scale (cloud units).
+    """
+
+    def __init__(self, source: np.ndarray, target: np.ndarray, scale: float) -> None:
+        self.source = baselines.fpfh_features(source, scale)
+        self.target = baselines.fpfh_features(target, scale)
+        self.scale = scale
+
+    def estimate(self, seed: int) -> np.ndarray:
+        """(4, 4) T_target_source from RANSAC with this seed."""
+        return baselines.ransac(self.source, self.target, self.scale, seed)

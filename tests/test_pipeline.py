@@ -508,7 +508,7 @@ def test_the_search_network_joins_the_ranking():
 
 
 def test_the_feature_match_is_retried_while_nothing_is_confident(monkeypatch):
-    from o3dsoft import search
+    from o3dsoft import baselines
 
     src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
     tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
@@ -516,16 +516,20 @@ def test_the_feature_match_is_retried_while_nothing_is_confident(monkeypatch):
     upside_down = T @ np.diag([1.0, -1.0, -1.0, 1.0])
     seeds = []
 
-    def lucky_with_seed_2(source, target, scale, seed):  # RANSAC stand-in: right only with seed 2
+    def lucky_with_seed_2(source, target, scale, seed, config=None):  # RANSAC stand-in: right only with seed 2
         seeds.append(seed)
         return T if seed == 2 else upside_down
 
-    monkeypatch.setattr(search, "feature_candidate", lucky_with_seed_2)
+    monkeypatch.setattr(baselines, "ransac", lucky_with_seed_2)
+    described = []
+    real_features = baselines.fpfh_features
+    monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale: described.append(len(points)) or real_features(points, scale))
     model = _AlwaysWrongModel(upside_down[:3, :3])
     config = RegisterConfig(search="always", search_weights=None)
     res = register(src, tgt, config, model=model)
     # first estimate, features (seed 0), the network's starts, then seeds 1 and 2
     assert seeds == [0, 1, 2] and res.attempts == 5 and not res.likely_failed
+    assert described == [len(src), len(tgt)]  # the features are computed once for all tries
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
     seeds.clear()
     res = register(src, tgt, replace(config, search_feature_tries=2), model=model)
