@@ -3,8 +3,8 @@
     python -m benchmarks.results_table RUN_DIR [--readme README.md] [--marker results]
 
 Replaces the text between the markers ``<!-- MARKER:start -->`` and ``<!-- MARKER:end -->``
-(MARKER: ``results`` unless told) with the run's command, machine, versions and one table per
-protocol (from summary.json).
+(MARKER: ``results`` unless told) with the run's command, machine, versions, a short table of
+o3dsoft against FPFH + RANSAC + ICP, and one table per protocol (from summary.json).
 """
 
 from __future__ import annotations
@@ -13,6 +13,30 @@ import argparse
 import json
 from pathlib import Path
 
+
+
+def compared(doc: dict, ours: str, theirs: str) -> list:
+    """Lines of a short table, one row per protocol (all categories): recall at the first
+    threshold and median time of `ours` and `theirs`, the time ratio, and ours' confidence AUC.
+    Empty when the run lacks either method."""
+    rows = {(s["protocol"], s["method"]): s for s in doc["summaries"] if s["subset"] == "all"}
+    protocols = list(dict.fromkeys(p for p, _ in rows))
+    if not all((p, m) in rows for p in protocols for m in (ours, theirs)):
+        return []
+    name = doc["methods"]
+    r1 = doc["recall_thresholds"][0]
+    lines = ["", f"In short, {name[ours]} against {name[theirs]} in the same run (recall at "
+             f"{r1['rotation_deg']:g} deg / {r1['translation']:g}, higher is better; median time per pair, lower is better):", "",
+             f"| protocol | {name[ours]} recall | {name[theirs]} recall | {name[ours]} time (ms) | {name[theirs]} time (ms) | "
+             f"time ratio | {name[ours]} confidence ROC AUC |",
+             "|---|---|---|---|---|---|---|"]
+    for p in protocols:
+        a, b = rows[p, ours], rows[p, theirs]
+        key = sorted(k for k in a if k.startswith("recall_"))[0]
+        auc = a.get("confidence_auc")
+        lines.append(f"| `{p}` | {100 * a[key]:.1f} % | {100 * b[key]:.1f} % | {a['time_ms_median']:.0f} | {b['time_ms_median']:.0f} | "
+                     f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {'-' if auc is None else f'{auc:.3f}'} |")
+    return lines
 
 
 def markdown(run: Path) -> str:
@@ -33,6 +57,7 @@ def markdown(run: Path) -> str:
         f"Recall: share of pairs with rotation error < {r1['rotation_deg']:g} deg and translation error < {r1['translation']:g} "
         f"(and < {r5['rotation_deg']:g} deg, < {r5['translation']:g}): higher is better. Time: per pair, lower is better.",
     ]
+    lines += compared(doc, "o3dsoft", "fpfh-ransac+icp")
     block = None
     for s in doc["summaries"]:
         if (s["protocol"], s["subset"]) != block:

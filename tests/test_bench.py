@@ -38,6 +38,10 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
 
     md = markdown(out)
     assert "**dcp**" in md and "| Open3D FPFH + RANSAC + ICP | 2 |" in md and "first 2 test pairs" in md
+    short = [line for line in md.splitlines() if line.startswith("| `dcp` |")]
+    ours = next(s for s in summary["summaries"] if s["method"] == "o3dsoft" and s["subset"] == "all")
+    theirs = next(s for s in summary["summaries"] if s["method"] == "fpfh-ransac+icp" and s["subset"] == "all")
+    assert len(short) == 1 and f"| {ours['time_ms_median'] / theirs['time_ms_median']:.2f} |" in short[0]
 
     # The same folder again is refused; --overwrite reuses it.
     r = _bench(["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--out", str(out)])
