@@ -297,13 +297,14 @@ def register(
         chosen = search_stage.select(src_net, tgt_net, candidates, distance, config.search_refine, config.icp if config.refine else None)
         lap("search")
         attempts.append(finish(chosen.polished, chosen.estimate))
-    for extra in range(1, config.search_feature_tries if searched and config.search_features else 0):
-        # Search, last: while nothing is confident, the feature match with another RANSAC seed.
-        if max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW:
-            break
-        T_features = matcher.estimate(config.seed + extra)
-        lap("search")
-        attempts.append(finish(T_features, T_features))
+    if searched and config.search_features:
+        # Search, last: while nothing is confident, the feature match with other RANSAC seeds.
+        for extra in range(1, config.search_feature_tries):
+            if max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW:
+                break
+            T_features = matcher.estimate(config.seed + extra)
+            lap("search")
+            attempts.append(finish(T_features, T_features))
     best = max(attempts, key=lambda a: a.trust)
     if reduced:
         # At full resolution, only the tight stages: the loose first one would pull the converged
