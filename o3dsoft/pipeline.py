@@ -69,7 +69,8 @@ class RegisterConfig:
         weights: TorchScript model file, or a shipped model's name ("default", "paper"); None for
             the shipped default.
         device: torch device of the network ("cpu", "cuda", "cuda:1"...).
-        seed: seed of the point sampling (the same input gives the same result).
+        seed: seed of the point sampling and of the search's RANSAC. Without a search the same
+            input gives the same result; Open3D's multi-threaded RANSAC can vary between runs.
     """
 
     voxel: Optional[float] = None
