@@ -22,7 +22,9 @@ source points within the tight distance, still reported) had a ROC AUC of 0.773 
 `rpmnet-crop` test pairs, against 0.991 for the consistency without the edge rule. That version
 still counted the band of points just beyond the other cloud's edge: right alignments of real
 scans, whose overlap has long edges, scored 0.70-0.88 and were flagged (on 38 bunny scan pairs,
-every right alignment but 3). With the edge rule they score 0.93-1.0, wrong ones at most 0.84.
+every right alignment but 3). With the edge rule, on the same 76 alignments (o3dsoft's and FPFH +
+RANSAC + ICP's), the right ones score 0.94-1.0 and the wrong ones at most 0.77, but for four
+near misses 1.9-2.3 degrees off (0.93).
 
 The coefficients were fitted by ``python -m benchmarks.fit_confidence`` (logistic regression) on
 ModelNet40 *train* pairs of the protocols dcp, so3, rpmnet-crop and so3-crop, plus pairs of
