@@ -21,8 +21,8 @@ Measurements used before read partial overlap as failure: ``fitness_tight`` (the
 source points within the tight distance, still reported) had a ROC AUC of 0.773 on the first 300
 `rpmnet-crop` test pairs, against 0.991 for the consistency without the edge rule. That version
 still counted the band of points just beyond the other cloud's edge: right alignments of real
-scans, whose overlap has long edges, scored 0.70-0.88 and were flagged (on 38 bunny scan pairs,
-every right alignment but 3). With the edge rule, on the same 76 alignments (o3dsoft's and FPFH +
+scans, whose overlap has long edges, scored 0.70-0.88 and were flagged (in a bench run on 38
+bunny scan pairs, 23 of o3dsoft's 30 right alignments). With the edge rule, on the same 76 alignments (o3dsoft's and FPFH +
 RANSAC + ICP's), the right ones score 0.94-1.0 and the wrong ones at most 0.77, but for four
 near misses 1.9-2.3 degrees off (0.93).
 
