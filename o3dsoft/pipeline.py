@@ -58,7 +58,9 @@ class RegisterConfig:
             match is tried again with other RANSAC seeds, up to this many tries in all, until one
             is confident: RANSAC's random draws decide many hard pairs (on the bundled bunny
             scans, 4 of the 8 pairs that seed 0 got wrong came out right, and confident, with
-            another seed).
+            another seed). On the first 200 test pairs of ModelNet40 `rpmnet-crop` / `so3-crop`,
+            6 tries against 3: recall at 1 deg 66.0 -> 71.0 % / 51.5 -> 58.5 %, median time
+            120 -> 139 ms / 325 -> 351 ms (each try costs only on pairs still flagged).
         attempt_points: every estimate (the network's, the search's) is refined by ICP and
             scored on the clouds voxel-downsampled to at most this many points each; the most
             confident is then refined again, and scored, at full resolution. Clouds this small
@@ -81,7 +83,7 @@ class RegisterConfig:
     search_refine: int = 3
     search_weights: Optional[str] = "partial"
     search_features: bool = True
-    search_feature_tries: int = 3
+    search_feature_tries: int = 6
     attempt_points: int = 5_000
     refine: bool = True
     icp: refine_stage.ICPConfig = field(default_factory=refine_stage.ICPConfig)
