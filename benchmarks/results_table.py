@@ -13,6 +13,7 @@ import argparse
 import json
 from pathlib import Path
 
+from o3dsoft.bench import recall_keys
 
 
 def compared(doc: dict, ours: str, theirs: str) -> list:
@@ -32,7 +33,7 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
              "|---|---|---|---|---|---|---|"]
     for p in protocols:
         a, b = rows[p, ours], rows[p, theirs]
-        key = sorted(k for k in a if k.startswith("recall_"))[0]
+        key = recall_keys(a)[0]
         auc = a.get("confidence_auc")
         lines.append(f"| `{p}` | {100 * a[key]:.1f} % | {100 * b[key]:.1f} % | {a['time_ms_median']:.0f} | {b['time_ms_median']:.0f} | "
                      f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {'-' if auc is None else f'{auc:.3f}'} |")
@@ -67,7 +68,7 @@ def markdown(run: Path) -> str:
                       "| method | pairs | rotation mean / median (deg) | translation mean | Euler RMSE (deg) | "
                       f"recall {r1['rotation_deg']:g} deg | recall {r5['rotation_deg']:g} deg | time median / p90 (ms) |",
                       "|---|---|---|---|---|---|---|---|"]
-        rk = sorted(k for k in s if k.startswith("recall_"))
+        rk = recall_keys(s)
         lines.append(
             f"| {doc['methods'][s['method']]} | {int(s['pairs'])} | {s['rotation_deg_mean']:.3g} / {s['rotation_deg_median']:.3g} | "
             f"{s['translation_mean']:.3g} | {s['euler_rmse_deg']:.3g} | {100 * s[rk[0]]:.1f} % | {100 * s[rk[-1]]:.1f} % | "

@@ -383,6 +383,11 @@ def roc_auc(score: np.ndarray, success: np.ndarray) -> Optional[float]:
     return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
 
 
+def recall_keys(summary: dict) -> List[str]:
+    """The recall entries of one summary row, in the order of their thresholds."""
+    return [k for k in summary if k.startswith("recall_")]
+
+
 def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]]) -> str:
     """The table a person reads: one block per protocol and subset, one row per method."""
     (d1, t1), (d5, t5) = recall[0], recall[-1]
@@ -398,7 +403,7 @@ def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]
             if s["subset"] != "all":
                 title += " (without symmetric categories: " + ", ".join(SYMMETRIC_CATEGORIES) + ")"
             lines += ["", title, head, units]
-        rk = [k for k in s if k.startswith("recall_")]
+        rk = recall_keys(s)
         lines.append(
             f"{s['method']:18s} {int(s['pairs']):>5d} {s['rotation_deg_mean']:>9.3g} {s['rotation_deg_median']:>9.3g} "
             f"{s['translation_mean']:>10.3g} {s['euler_rmse_deg']:>10.3g} {100 * s[rk[0]]:>14.1f} {100 * s[rk[-1]]:>14.1f} "
