@@ -308,8 +308,11 @@ def test_search_settings_are_checked():
         register(src, src, RegisterConfig(search_points=4), model=model)
     with pytest.raises(InputError, match="attempt_points=4 is below the network's neighbourhood size K=8"):
         register(src, src, RegisterConfig(attempt_points=4), model=model)
-    with pytest.raises(InputError, match="search_feature_tries must be at least 1, got 0"):
-        register(src, src, RegisterConfig(search_feature_tries=0), model=model)
+    with pytest.raises(InputError, match="search_feature_candidates must be at least 1, got 0"):
+        register(src, src, RegisterConfig(search_feature_candidates=0), model=model)
+    for bad in (0.0, -5.0, 200.0):
+        with pytest.raises(InputError, match=r"max_rotation must be in \(0, 180\] degrees"):
+            register(src, src, RegisterConfig(max_rotation=bad), model=model)
 
 
 def test_without_icp_the_search_keeps_its_top_ranked_estimate_as_it_is():
@@ -507,33 +510,80 @@ def test_the_search_network_joins_the_ranking():
         register(src, tgt, config, model=wrong, search_model=_LocalModel(T[:3, :3], k=500))
 
 
-def test_the_feature_match_is_retried_while_nothing_is_confident(monkeypatch):
-    from o3dsoft import baselines
-
+def _bundled_scan_pair():
     src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
     tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
-    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    return src, tgt, o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+
+
+def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(monkeypatch):
+    from o3dsoft import baselines, search
+
+    src, tgt, T = _bundled_scan_pair()
     upside_down = T @ np.diag([1.0, -1.0, -1.0, 1.0])
-    seeds = []
+    sideways = T @ np.diag([-1.0, 1.0, -1.0, 1.0])
+    asked = []
 
-    def lucky_with_seed_2(source, target, scale, seed, config=None):  # RANSAC stand-in: right only with seed 2
-        seeds.append(seed)
-        return T if seed == 2 else upside_down
+    def right_third(self, seed, count):  # RANSAC stand-in: its third estimate is the right one
+        asked.append((seed, count))
+        return np.stack([upside_down, sideways, T][:count])
 
-    monkeypatch.setattr(baselines, "ransac", lucky_with_seed_2)
+    monkeypatch.setattr(search.FeatureMatch, "candidates", right_third)
     described = []
     real_features = baselines.fpfh_features
-    monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale: described.append(len(points)) or real_features(points, scale))
+    monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale, config: described.append(len(points)) or real_features(points, scale, config))
     model = _AlwaysWrongModel(upside_down[:3, :3])
     config = RegisterConfig(search="always", search_weights=None)
     res = register(src, tgt, config, model=model)
-    # first estimate, features (seed 0), the network's starts, then seeds 1 and 2
-    assert seeds == [0, 1, 2] and res.attempts == 5 and not res.likely_failed
-    assert described == [len(src), len(tgt)]  # the features are computed once for all tries
+    # the network's estimate, then the feature match's three; the right one ends the search
+    assert asked == [(0, 20)] and res.attempts == 4 and not res.likely_failed
+    assert described == [len(src), len(tgt)]  # the features are computed once
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
-    seeds.clear()
-    res = register(src, tgt, replace(config, search_feature_tries=2), model=model)
-    assert seeds == [0, 1] and res.attempts == 4 and res.likely_failed
+    res = register(src, tgt, replace(config, search_feature_candidates=2), model=model)
+    # two wrong estimates, then the network's starts, also wrong
+    assert asked[-1] == (0, 2) and res.attempts == 4 and res.likely_failed
+
+
+def test_feature_match_candidates_are_distinct_reproducible_and_find_a_large_rotation():
+    from o3dsoft.preprocess import normalisation_for
+    from o3dsoft.search import DISTINCT_DEG, FeatureMatch
+
+    src, tgt, T = _bundled_scan_pair()
+    turn = np.eye(4)
+    turn[:3, :3] = euler_to_matrix([150.0, -40.0, 70.0])
+    moved = apply(turn, src)  # T @ inv(turn) maps it onto the target: 150+ degrees from the given pose
+    truth = T @ np.linalg.inv(turn)
+    scale = normalisation_for(moved, tgt).scale
+    match = FeatureMatch(moved, tgt, scale)
+    first = match.candidates(seed=0, count=8)
+    assert 1 < len(first) <= 8 and first.shape[1:] == (4, 4)
+    assert np.array_equal(first, match.candidates(seed=0, count=8))  # same seed, same estimates
+    assert pair_errors(first[0], truth).rotation_deg < 10.0  # the best-supported is near the truth, before ICP
+    for i in range(len(first)):
+        for j in range(i):
+            apart = rotation_error_deg(first[i][:3, :3], first[j][:3, :3]) >= DISTINCT_DEG
+            assert apart or np.linalg.norm(first[i][:3, 3] - first[j][:3, 3]) >= 0.1 * scale
+    assert len(match.candidates(seed=0, count=1)) == 1
+
+
+def test_a_rotation_prior_rejects_a_confident_answer_beyond_it(monkeypatch):
+    from o3dsoft import search
+
+    rng = np.random.default_rng(3)
+    half = rng.uniform(-1.0, 1.0, size=(750, 3)) * [1.0, 0.6, 0.3]
+    box = np.concatenate([half, half * [1.0, -1.0, -1.0]])  # the half turn about x maps it onto itself
+    T = random_transform(rng, 20.0, 0.2)
+    flipped = T @ np.diag([1.0, -1.0, -1.0, 1.0])  # fits just as well, 160-200 degrees from the given pose
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.stack([flipped, T]))
+    model = _AlwaysWrongModel(flipped[:3, :3])
+    tgt = apply(T, box)
+    assert 10.0 < rotation_error_deg(T[:3, :3], np.eye(3)) < 60.0
+    res = register(box, tgt, RegisterConfig(search_weights=None), model=model)
+    assert not res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg > 150.0
+    res = register(box, tgt, RegisterConfig(search_weights=None, max_rotation=60.0), model=model)
+    assert res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
+    res = register(box, tgt, RegisterConfig(search_weights=None, max_rotation=10.0), model=model)
+    assert res.likely_failed and res.confidence == 0.0  # nothing found within the bound
 
 
 def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolution(monkeypatch):
