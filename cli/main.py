@@ -18,6 +18,8 @@ from ..errors import O3dsoftError
 # load torch before --help); a test keeps the two equal.
 SEARCH_MODES = ("auto", "always", "off")
 WEIGHTS_HELP = "TorchScript model file, or a shipped model by name: default, paper, partial (default: default; partial is the search network, trained on cropped, noisy clouds)."
+MAX_ROTATION_HELP = ("The clouds are given within this many degrees of their true relative rotation (e.g. from odometry): "
+                     "estimates beyond it are not trusted and the search goes on (default: any rotation).")
 
 
 def _friendly_errors(fn):
@@ -60,11 +62,12 @@ def main() -> None:
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
-@click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="Global search, for clouds with no rough alignment (a feature match, then the networks from 39 starting rotations, then the feature match with other seeds): auto = when the first result looks wrong.")
+@click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the networks from 39 starting rotations): auto = when the first result looks wrong.")
 @click.option("--search-features/--no-search-features", default=True, show_default=True, help="The search starts with FPFH features matched by RANSAC (for partial scans, any rotation).")
+@click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP)
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, voxel, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, strict):
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, voxel, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, max_rotation, strict):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -75,7 +78,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     from ..metrics import pair_errors
     from ..pipeline import RegisterConfig, register as run_register
     from ..refine import ICPConfig
-    from ..transforms import apply_transform
+    from ..transforms import apply_transform, rotation_angle_deg
 
     for opt, p in (("--out", out_path), ("--render", render_path)):
         if p is not None and p.suffix == "":
@@ -93,6 +96,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
         coarse_iterations=coarse_iterations,
         search=search,
         search_features=search_features,
+        max_rotation=max_rotation,
         refine=not no_refine,
         icp=ICPConfig(distance=icp_distance, absolute=icp_absolute),
         weights=str(weights) if weights else None,
@@ -129,9 +133,14 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     else:
         click.echo(_format_result(source, target, result, errors, model_info, config))
     if result.likely_failed:
+        turn = rotation_angle_deg(result.transformation[:3, :3])
+        if max_rotation is not None and turn > max_rotation:
+            why = f"it rotates the source by {turn:.1f} degrees, beyond --max-rotation {max_rotation:g}"
+        else:
+            why = (f"of the points near the other cloud, only {100 * result.consistency:.0f} % lie within "
+                   f"{result.tight_distance:.3g} units of it")
         click.echo(
-            f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: of the points near the other cloud, only "
-            f"{100 * result.consistency:.0f} % lie within {result.tight_distance:.3g} units of it"
+            f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: {why}"
             + ("; the global search found nothing better" if result.searched else "")
             + "). Check it visually (--render).",
             err=True,
@@ -268,6 +277,7 @@ def _bench_options(fn):
         click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
         click.option("--search-features/--no-search-features", default=True, show_default=True, help="o3dsoft's search starts with FPFH + RANSAC (see register --help)."),
         click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="o3dsoft's voxel grid, in the clouds' units (see register --help)."),
+        click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help="o3dsoft's rotation prior, in degrees (see register --help)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
@@ -277,7 +287,7 @@ def _bench_options(fn):
     return fn
 
 
-def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, voxel, out, overwrite, no_progress):
+def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, voxel, max_rotation, out, overwrite, no_progress):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -286,7 +296,7 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, weights
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed,
                          register=RegisterConfig(weights=str(weights) if weights else None, device=device, coarse_iterations=coarse_iterations,
-                                                  search=search, search_features=search_features, voxel=voxel))
+                                                  search=search, search_features=search_features, voxel=voxel, max_rotation=max_rotation))
     if recall is not None:
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)

@@ -93,6 +93,7 @@ def test_no_refine(pair_files, tiny_model_path):
         (None, ["src.ply", "tgt.pcd", "--out", "no_dir/out.ply"], 1, "folder no_dir does not exist"),
         (None, ["src.ply", "tgt.pcd", "--out", "out.off"], 2, "unknown extension '.off'"),
         (None, ["src.ply", "tgt.pcd", "--points", "0"], 2, "Invalid value for '--points'"),
+        (None, ["src.ply", "tgt.pcd", "--max-rotation", "270"], 2, "Invalid value for '--max-rotation'"),
     ],
 )
 def test_bad_input_clear_error_no_traceback_no_output(pair_files, tiny_model_path, monkeypatch, make, args, code, message):
@@ -125,6 +126,17 @@ def test_voxel_option_downsamples_scans_before_registering():
     assert out["errors"]["final"]["rotation_deg"] < 1.0 and out["errors"]["final"]["translation"] < 0.002
     r = CliRunner().invoke(main, ["register", str(EXAMPLES / "bun045.ply"), str(EXAMPLES / "bun000.ply"), "--voxel", "1"])
     assert r.exit_code == 1 and "points left on a voxel grid of 1 units" in r.output and "Traceback" not in r.output
+
+
+def test_max_rotation_option_reaches_the_library(pair_files, tiny_model_path):
+    d, _, _ = pair_files
+    r = CliRunner().invoke(main, ["register", str(d / "src.ply"), str(d / "tgt.pcd"), "--weights", str(tiny_model_path),
+                                  "--max-rotation", "0.001", "--search", "off", "--json"])
+    # the test pair is rotated by more than 0.001 degrees: whatever comes back is beyond the bound
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["confidence"] == 0.0 and out["likely_failed"]
+    assert "beyond --max-rotation 0.001" in r.output  # the warning on stderr says why
 
 
 def test_cli_search_modes_match_the_library():
