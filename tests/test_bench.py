@@ -191,3 +191,18 @@ def test_bench_takes_a_shipped_model_by_name(modelnet_root, tmp_path):
 
     assert summary["weights"]["path"].endswith("o3dsoft_paper.pt")
     assert summary["weights"]["sha256"] == sha256_of(bundled_weights_path("paper"))
+
+
+def test_feature_match_benchmark_reports_each_estimate(modelnet_root, monkeypatch, capsys):
+    import sys
+
+    from benchmarks import feature_match
+
+    monkeypatch.setattr(sys, "argv", ["feature_match", "--data", str(modelnet_root), "--protocol", "rpmnet-crop", "--pairs", "2", "--candidates", "3"])
+    feature_match.main()
+    out = capsys.readouterr().out
+    assert "rpmnet-crop, first 2 test pairs" in out
+    shares = {line.split("  ")[1].strip(): float(line.split()[-2]) for line in out.splitlines()[1:5]}
+    assert set(shares) == {"open3d", "first", "most confident", "best"}
+    assert shares["best"] >= max(shares["first"], shares["most confident"])  # the best candidate bounds the others
+    assert "3 candidates" in out
