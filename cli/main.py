@@ -272,7 +272,7 @@ def _bench_options(fn):
         click.option("--method", "methods", multiple=True, help=f"Methods to run (repeat the option; default all): {', '.join(METHODS)}."),
         click.option("--weights", type=click.Path(path_type=Path), help=WEIGHTS_HELP),
         click.option("--device", default="cpu", show_default=True, help="Torch device of the network."),
-        click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC (Open3D's multi-threaded RANSAC can still vary between runs)."),
+        click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC (o3dsoft's search repeats exactly; Open3D's multi-threaded RANSAC, in the FPFH baselines, can vary between runs)."),
         click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),
         click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
         click.option("--search-features/--no-search-features", default=True, show_default=True, help="o3dsoft's search starts with FPFH + RANSAC (see register --help)."),

@@ -27,6 +27,9 @@ from .transforms import rotation_angle_deg
 from .preprocess import clean_points, denormalise_transform, normalise_pair, normalisation_for, sample_points, voxel_downsample
 
 SEARCH_MODES = ("auto", "always", "off")
+# Estimates are screened against RegisterConfig.max_rotation before ICP with this margin
+# (degrees), since ICP can still move them into the bound; the result itself must lie within it.
+PRIOR_MARGIN_DEG = 10.0
 CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud"]  # noqa: F821
 
 
@@ -42,8 +45,9 @@ class RegisterConfig:
         search: the global search (:mod:`o3dsoft.search`), for pairs with no usable initial
             guess: "auto" runs it when the first result is flagged likely failed, "always" on
             every pair, "off" never. It tries the feature match's estimates first (if
-            `search_features`), then, while no result is confident, the networks from 24 + 15
-            starting rotations; the most confident result is returned. Without `refine`, the search's top-ranked
+            `search_features`), then, while no result is confident, the network from 24
+            starting rotations (and the search network from 15, see `search_weights`); the most
+            confident result is returned. Without `refine`, the search's top-ranked
             estimate is taken as it is.
         search_points: points per cloud for the search's batch of network passes.
         search_refine: how many of the search's best-ranked estimates are polished by ICP on the
@@ -75,8 +79,8 @@ class RegisterConfig:
         weights: TorchScript model file, or a shipped model's name ("default", "paper"); None for
             the shipped default.
         device: torch device of the network ("cpu", "cuda", "cuda:1"...).
-        seed: seed of the point sampling and of the search's RANSAC. Without a search the same
-            input gives the same result; Open3D's multi-threaded RANSAC can vary between runs.
+        seed: seed of the point sampling and of the search's RANSAC: the same input and seed
+            give the same result, searched or not.
     """
 
     voxel: Optional[float] = None
@@ -261,8 +265,8 @@ def register(
     tgt_work = refine_stage.downsample(tgt_points, config.attempt_points)
     reduced = len(src_work) < len(src_points) or len(tgt_work) < len(tgt_points)
 
-    def admissible(T: np.ndarray) -> bool:
-        return config.max_rotation is None or rotation_angle_deg(T[:3, :3]) <= config.max_rotation
+    def admissible(T: np.ndarray, margin: float = 0.0) -> bool:
+        return config.max_rotation is None or rotation_angle_deg(T[:3, :3]) <= config.max_rotation + margin
 
     def finish(start: np.ndarray, T_coarse: np.ndarray, src_at: np.ndarray = src_work, tgt_at: np.ndarray = tgt_work,
                icp: refine_stage.ICPConfig = config.icp) -> _Attempt:
@@ -292,10 +296,10 @@ def register(
         matcher = search_stage.FeatureMatch(src_points, tgt_points, norm.scale)
         feature_candidates = matcher.candidates(config.seed, config.search_feature_candidates)
         lap("search")
-        for T_features in filter(admissible, feature_candidates):
-            attempts.append(finish(T_features, T_features))
-            if attempts[-1].trust >= confidence_stage.LIKELY_FAILED_BELOW:
+        for i, T_features in enumerate(filter(lambda T: admissible(T, PRIOR_MARGIN_DEG), feature_candidates)):
+            if i > 0 and max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW:
                 break
+            attempts.append(finish(T_features, T_features))
     if searched and max(a.trust for a in attempts) < confidence_stage.LIKELY_FAILED_BELOW:
         # Search, last: the network from the 24 cube rotations on smaller samples; the best-ranked
         # are polished by ICP on the network's samples, and the one that fits best there is
@@ -310,10 +314,8 @@ def register(
                 raise InputError(f"search_points={config.search_points} is below the search network's neighbourhood size K={search_model.config.k}")
             local = search_stage.network_candidates(search_model, src_small, tgt_small, search_stage.local_rotations())
             candidates = np.concatenate([candidates, local])
-        candidates = np.stack([denormalise_transform(T, norm) for T in candidates])
-        inside = [T for T in candidates if admissible(T)]
-        if inside:
-            candidates = np.stack(inside)
+        candidates = [T for T in (denormalise_transform(T, norm) for T in candidates) if admissible(T, PRIOR_MARGIN_DEG)]
+        candidates = np.stack(candidates or [np.eye(4)])  # none within the prior: the pose as given
         chosen = search_stage.select(src_net, tgt_net, candidates, distance, config.search_refine, config.icp if config.refine else None)
         lap("search")
         attempts.append(finish(chosen.polished, chosen.estimate))

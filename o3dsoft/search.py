@@ -161,10 +161,16 @@ class FeatureMatch:
         Draws `hypotheses` triplets of matches, keeps those whose three edge lengths agree in
         both clouds (within the edge-length ratio), fits each by least squares, and ranks them by
         how many matches they carry to within the RANSAC distance. The `count` best that differ
-        (by DISTINCT_DEG in rotation or DISTINCT_SHIFT x scale in translation) are refitted on
+        (by DISTINCT_DEG in rotation or DISTINCT_SHIFT x scale in where they move the matches'
+        centre) are refitted on
         all the matches they carry; refits that meet are kept once. Empty when there are fewer
         than 3 matches or no triplet passes the check.
+
+        Raises:
+            ValueError: count below 1.
         """
+        if count < 1:
+            raise ValueError(f"count must be at least 1, got {count}")
         a, b = self.matches()
         if len(a) < 3:
             return np.empty((0, 4, 4))
@@ -183,6 +189,7 @@ class FeatureMatch:
         scored = rng.choice(len(a), size=SCORED_MATCHES, replace=False) if len(a) > SCORED_MATCHES else np.arange(len(a))
         distance = self.config.ransac_distance * self.config.voxel * self.scale
         support = _support(R, t, a[scored], b[scored], distance)
+        centre = a.mean(axis=0)
         kept: List[int] = []
         free = np.ones(len(R), dtype=bool)  # not near a kept hypothesis
         for h in np.argsort(-support, kind="stable"):
@@ -190,11 +197,11 @@ class FeatureMatch:
                 kept.append(int(h))
                 if len(kept) == count:
                     break
-                free &= ~_near(R, t, R[h], t[h], self.scale)
+                free &= ~_near(R, t, R[h], t[h], centre, self.scale)
         fitted: List[np.ndarray] = []
         for h in kept:  # refitted hypotheses can meet: keep the first of each pose
             T = self._refit(R[h], t[h], a, b, distance)
-            if not any(_near(F[None, :3, :3], F[None, :3, 3], T[:3, :3], T[:3, 3], self.scale)[0] for F in fitted):
+            if not any(_near(F[None, :3, :3], F[None, :3, 3], T[:3, :3], T[:3, 3], centre, self.scale)[0] for F in fitted):
                 fitted.append(T)
         return np.stack(fitted)
 
@@ -226,8 +233,10 @@ def _support(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distanc
     return counts
 
 
-def _near(R: np.ndarray, t: np.ndarray, R0: np.ndarray, t0: np.ndarray, scale: float) -> np.ndarray:
-    """Which poses (R (H, 3, 3), t (H, 3)) are one with (R0, t0): within DISTINCT_DEG in rotation
-    and DISTINCT_SHIFT x scale in translation. (H,) bool."""
+def _near(R: np.ndarray, t: np.ndarray, R0: np.ndarray, t0: np.ndarray, centre: np.ndarray, scale: float) -> np.ndarray:
+    """Which poses (R (H, 3, 3), t (H, 3)) are one with (R0, t0): within DISTINCT_DEG in rotation,
+    and moving the source's `centre` (3,) to within DISTINCT_SHIFT x scale of where (R0, t0) moves
+    it (not compared by t itself, which depends on where the frame's origin lies). (H,) bool."""
     cos = (np.einsum("ij,hij->h", R0, R) - 1.0) / 2.0  # cos of the angle of R0^T R, from its trace
-    return (cos > np.cos(np.radians(DISTINCT_DEG))) & (np.linalg.norm(t - t0, axis=1) < DISTINCT_SHIFT * scale)
+    shift = np.linalg.norm(R @ centre + t - (R0 @ centre + t0), axis=1)
+    return (cos > np.cos(np.radians(DISTINCT_DEG))) & (shift < DISTINCT_SHIFT * scale)

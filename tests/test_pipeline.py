@@ -67,6 +67,11 @@ def test_deterministic(tiny_model_path):
     src, tgt, _ = _pair(seed=4)
     cfg = RegisterConfig(weights=str(tiny_model_path))
     assert np.array_equal(register(src, tgt, cfg).transformation, register(src, tgt, cfg).transformation)
+    # the search too: its RANSAC draws from a seeded generator
+    src, tgt = o3dsoft.read_points(EXAMPLES / "bun045.ply"), o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    cfg = RegisterConfig(weights=str(tiny_model_path), search="always", search_weights=None, voxel=0.004)
+    first, again = register(src, tgt, cfg), register(src, tgt, cfg)
+    assert first.attempts > 1 and np.array_equal(first.transformation, again.transformation)
 
 
 @pytest.mark.parametrize(
@@ -524,24 +529,27 @@ def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(mo
     sideways = T @ np.diag([-1.0, 1.0, -1.0, 1.0])
     asked = []
 
-    def right_third(self, seed, count):  # RANSAC stand-in: its third estimate is the right one
+    def right_second(self, seed, count):  # RANSAC stand-in: its second estimate is the right one
         asked.append((seed, count))
-        return np.stack([upside_down, sideways, T][:count])
+        return np.stack([upside_down, T, sideways][:count])
 
-    monkeypatch.setattr(search.FeatureMatch, "candidates", right_third)
+    monkeypatch.setattr(search.FeatureMatch, "candidates", right_second)
     described = []
     real_features = baselines.fpfh_features
     monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale, config: described.append(len(points)) or real_features(points, scale, config))
     model = _AlwaysWrongModel(upside_down[:3, :3])
     config = RegisterConfig(search="always", search_weights=None)
     res = register(src, tgt, config, model=model)
-    # the network's estimate, then the feature match's three; the right one ends the search
-    assert asked == [(0, 20)] and res.attempts == 4 and not res.likely_failed
+    # the network's estimate, then the feature match's first two; the right one ends the search
+    assert asked == [(0, 20)] and res.attempts == 3 and not res.likely_failed
     assert described == [len(src), len(tgt)]  # the features are computed once
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
-    res = register(src, tgt, replace(config, search_feature_candidates=2), model=model)
-    # two wrong estimates, then the network's starts, also wrong
-    assert asked[-1] == (0, 2) and res.attempts == 4 and res.likely_failed
+    res = register(src, tgt, replace(config, search_feature_candidates=1), model=model)
+    # one wrong estimate, then the network's starts, also wrong
+    assert asked[-1] == (0, 1) and res.attempts == 3 and res.likely_failed
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.empty((0, 4, 4)))
+    res = register(src, tgt, config, model=model)  # no feature estimate at all: on to the network's starts
+    assert res.attempts == 2 and res.likely_failed
 
 
 def test_feature_match_candidates_are_distinct_reproducible_and_find_a_large_rotation():
@@ -564,6 +572,34 @@ def test_feature_match_candidates_are_distinct_reproducible_and_find_a_large_rot
             apart = rotation_error_deg(first[i][:3, :3], first[j][:3, :3]) >= DISTINCT_DEG
             assert apart or np.linalg.norm(first[i][:3, 3] - first[j][:3, 3]) >= 0.1 * scale
     assert len(match.candidates(seed=0, count=1)) == 1
+    with pytest.raises(ValueError, match="count must be at least 1"):
+        match.candidates(seed=0, count=0)
+
+
+def test_support_counts_the_matches_each_hypothesis_carries():
+    from o3dsoft.search import _support
+    from o3dsoft.transforms import random_rotation
+
+    rng = np.random.default_rng(0)
+    R = np.stack([random_rotation(rng) for _ in range(300)])
+    t = rng.normal(size=(300, 3))
+    a = rng.normal(size=(200, 3)) + [100.0, -50.0, 20.0]  # far from the origin
+    b = a @ R[7].T + t[7] + rng.normal(scale=0.05, size=(200, 3))
+    moved = np.einsum("hij,nj->hni", R, a) + t[:, None]
+    brute = (np.linalg.norm(moved - b, axis=2) < 0.1).sum(axis=1)
+    assert np.array_equal(_support(R, t, a, b, 0.1), brute) and brute[7] > 100
+
+
+def test_poses_are_one_within_ten_degrees_and_a_tenth_of_the_scale_wherever_the_origin_lies():
+    from o3dsoft.search import _near
+
+    centre = np.array([1000.0, 2000.0, 0.0])  # e.g. map coordinates
+    turns = np.stack([euler_to_matrix([0.0, 0.0, a]) for a in (0.0, 9.0, 11.0)])
+    t = centre - turns @ centre  # each turns about the centre, which stays put
+    assert _near(turns, t, np.eye(3), np.zeros(3), centre, scale=1.0).tolist() == [True, True, False]
+    shifted = t + [0.0, 0.09, 0.0], t + [0.0, 0.11, 0.0]
+    assert _near(turns[:1], shifted[0][:1], np.eye(3), np.zeros(3), centre, 1.0)[0]
+    assert not _near(turns[:1], shifted[1][:1], np.eye(3), np.zeros(3), centre, 1.0)[0]
 
 
 def test_a_rotation_prior_rejects_a_confident_answer_beyond_it(monkeypatch):
@@ -582,6 +618,7 @@ def test_a_rotation_prior_rejects_a_confident_answer_beyond_it(monkeypatch):
     assert not res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg > 150.0
     res = register(box, tgt, RegisterConfig(search_weights=None, max_rotation=60.0), model=model)
     assert res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
+    assert res.attempts == 2  # the flipped feature estimate is screened out before ICP
     res = register(box, tgt, RegisterConfig(search_weights=None, max_rotation=10.0), model=model)
     assert res.likely_failed and res.confidence == 0.0  # nothing found within the bound
 
