@@ -23,8 +23,8 @@ from . import confidence as confidence_stage
 from . import refine as refine_stage
 from . import search as search_stage
 from .errors import InputError
-from .transforms import rotation_angle_deg
 from .preprocess import clean_points, denormalise_transform, normalise_pair, normalisation_for, sample_points, voxel_downsample
+from .transforms import rotation_angle_deg
 
 SEARCH_MODES = ("auto", "always", "off")
 # Estimates are screened against RegisterConfig.max_rotation before ICP with this margin
