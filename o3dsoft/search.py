@@ -130,9 +130,9 @@ class FeatureMatch:
     ICP, within (1 deg, 0.01) (``python -m benchmarks.feature_match``): Open3D's estimate 56.5 /
     39.5 %, the first candidate here 69.0 / 46.0 %, the most confident of 20 82.0 / 68.5 % (the
     best of them 83.0 / 69.0 %); drawing them took 62 ms, Open3D's RANSAC 32 / 59 ms in the same
-    runs. It is also reproducible: the draws come from a
-    seeded generator (Open3D runs its hypotheses on several threads, and with its checkers the
-    same seed can give different results; Open3D issue #7475).
+    runs. It is also reproducible: the draws come from a seeded generator (Open3D runs its
+    hypotheses on several threads, and with its checkers the same seed can give different
+    results; Open3D issue #7475).
 
     Args:
         source: (N, 3); target: (M, 3), in their original frames.
@@ -162,10 +162,9 @@ class FeatureMatch:
         Draws `hypotheses` triplets of matches, keeps those whose three edge lengths agree in
         both clouds (within the edge-length ratio), fits each by least squares, and ranks them by
         how many matches they carry to within the RANSAC distance. The `count` best that differ
-        (by DISTINCT_DEG in rotation or DISTINCT_SHIFT x scale in where they move the matches'
-        centre) are refitted on
-        all the matches they carry; refits that meet are kept once. Empty when there are fewer
-        than 3 matches or no triplet passes the check.
+        (by DISTINCT_DEG in rotation or DISTINCT_SHIFT x scale in where they put the matches'
+        centre) are refitted on all the matches they carry; refits that meet are kept once.
+        Empty when there are fewer than 3 matches or no triplet passes the check.
 
         Raises:
             ValueError: count below 1.
@@ -191,6 +190,7 @@ class FeatureMatch:
         distance = self.config.ransac_distance * self.config.voxel * self.scale
         support = _support(R, t, a[scored], b[scored], distance)
         centre = a.mean(axis=0)
+        moved = R @ centre + t  # where each hypothesis puts the matches' centre
         kept: List[int] = []
         free = np.ones(len(R), dtype=bool)  # not near a kept hypothesis
         for h in np.argsort(-support, kind="stable"):
@@ -198,11 +198,12 @@ class FeatureMatch:
                 kept.append(int(h))
                 if len(kept) == count:
                     break
-                free &= ~_near(R, t, R[h], t[h], centre, self.scale)
+                free &= ~_near(R, moved, R[h], moved[h], self.scale)
         fitted: List[np.ndarray] = []
         for h in kept:  # refitted hypotheses can meet: keep the first of each pose
             T = self._refit(R[h], t[h], a, b, distance)
-            if not any(_near(F[None, :3, :3], F[None, :3, 3], T[:3, :3], T[:3, 3], centre, self.scale)[0] for F in fitted):
+            if not any(_near(F[None, :3, :3], F[None, :3, :3] @ centre + F[None, :3, 3], T[:3, :3], T[:3, :3] @ centre + T[:3, 3], self.scale)[0]
+                       for F in fitted):
                 fitted.append(T)
         return np.stack(fitted)
 
@@ -234,10 +235,10 @@ def _support(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distanc
     return counts
 
 
-def _near(R: np.ndarray, t: np.ndarray, R0: np.ndarray, t0: np.ndarray, centre: np.ndarray, scale: float) -> np.ndarray:
-    """Which poses (R (H, 3, 3), t (H, 3)) are one with (R0, t0): within DISTINCT_DEG in rotation,
-    and moving the source's `centre` (3,) to within DISTINCT_SHIFT x scale of where (R0, t0) moves
-    it (not compared by t itself, which depends on where the frame's origin lies). (H,) bool."""
+def _near(R: np.ndarray, moved: np.ndarray, R0: np.ndarray, moved0: np.ndarray, scale: float) -> np.ndarray:
+    """Which poses are one with a pose (R0 (3, 3), moved0 (3,)): within DISTINCT_DEG in rotation
+    (R (H, 3, 3)), and putting the source's centre (`moved` (H, 3), where each pose puts it)
+    within DISTINCT_SHIFT x scale of `moved0`. Not compared by t, which depends on where the
+    frame's origin lies. (H,) bool."""
     cos = (np.einsum("ij,hij->h", R0, R) - 1.0) / 2.0  # cos of the angle of R0^T R, from its trace
-    shift = np.linalg.norm(R @ centre + t - (R0 @ centre + t0), axis=1)
-    return (cos > np.cos(np.radians(DISTINCT_DEG))) & (shift < DISTINCT_SHIFT * scale)
+    return (cos > np.cos(np.radians(DISTINCT_DEG))) & (np.linalg.norm(moved - moved0, axis=1) < DISTINCT_SHIFT * scale)

@@ -596,10 +596,11 @@ def test_poses_are_one_within_ten_degrees_and_a_tenth_of_the_scale_wherever_the_
     centre = np.array([1000.0, 2000.0, 0.0])  # e.g. map coordinates
     turns = np.stack([euler_to_matrix([0.0, 0.0, a]) for a in (0.0, 9.0, 11.0)])
     t = centre - turns @ centre  # each turns about the centre, which stays put
-    assert _near(turns, t, np.eye(3), np.zeros(3), centre, scale=1.0).tolist() == [True, True, False]
-    shifted = t + [0.0, 0.09, 0.0], t + [0.0, 0.11, 0.0]
-    assert _near(turns[:1], shifted[0][:1], np.eye(3), np.zeros(3), centre, 1.0)[0]
-    assert not _near(turns[:1], shifted[1][:1], np.eye(3), np.zeros(3), centre, 1.0)[0]
+    moved = turns @ centre + t  # where each pose puts the centre: the centre itself
+    assert np.allclose(moved, centre) and np.linalg.norm(t[2]) > 100.0  # though t is far from 0
+    assert _near(turns, moved, np.eye(3), centre, scale=1.0).tolist() == [True, True, False]
+    assert _near(turns[:1], moved[:1] + [0.0, 0.09, 0.0], np.eye(3), centre, 1.0)[0]
+    assert not _near(turns[:1], moved[:1] + [0.0, 0.11, 0.0], np.eye(3), centre, 1.0)[0]
 
 
 def test_a_rotation_prior_rejects_a_confident_answer_beyond_it(monkeypatch):
