@@ -216,6 +216,7 @@ _TRAIN_FIELDS = ("data", "protocol", "epochs", "batch_size", "lr", "lr_schedule"
 @click.option("--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config.")
 @click.option("--k", "k", type=click.IntRange(min=1), default=None, help="Neighbourhood size K; default 32.")
 @click.option("--separate-encoders", is_flag=True, default=None, help="One encoder per cloud instead of a shared one.")
+@click.option("--relative", is_flag=True, default=None, help="First layer on neighbour offsets instead of coordinates: descriptors that do not move with a cropped cloud's centroid.")
 @click.option("--out", default="runs/train", show_default=True, help="Output folder: checkpoint, config, model, model card.")
 @click.option("--checkpoint-minutes", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True)
 @click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt exactly where it stopped, with the settings of OUT/config.yaml (options given here override them).")
@@ -226,7 +227,7 @@ _TRAIN_FIELDS = ("data", "protocol", "epochs", "batch_size", "lr", "lr_schedule"
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.pass_context
 @_friendly_errors
-def train(ctx, config_file, resume, radius, k, separate_encoders, **options):
+def train(ctx, config_file, resume, radius, k, separate_encoders, relative, **options):
     """Train the network on ModelNet40 and export TorchScript + a model card into OUT.
 
     Several processes or machines: run the same command under torchrun, e.g.
@@ -254,6 +255,8 @@ def train(ctx, config_file, resume, radius, k, separate_encoders, **options):
         net = replace(net, k=k)
     if separate_encoders is not None:
         net = replace(net, shared_encoder=not separate_encoders)
+    if relative is not None:
+        net = replace(net, relative=relative)
     config = TrainConfig(net=net, **settings)
     get_protocol(config.protocol)
     run_train(config, resume=resume, log=lambda m: click.echo(m, err=True))

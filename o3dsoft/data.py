@@ -84,6 +84,9 @@ PROTOCOLS: Dict[str, Protocol] = {
         # points without a partner while clean pairs stay in the mix).
         Protocol("wide45-partial", angle_min=-45.0, angle_max=45.0, translation=0.5, noise_std=0.01, noise_clip=0.05,
                  crop_keep=0.7, num_points=717, degraded_share=0.5),
+        # Training only: wide45 with every pair cropped and noisy like rpmnet-crop.
+        Protocol("wide45-crop", angle_min=-45.0, angle_max=45.0, translation=0.5, noise_std=0.01, noise_clip=0.05,
+                 crop_keep=0.7, num_points=717),
     )
 }
 

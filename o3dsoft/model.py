@@ -4,6 +4,7 @@
       -> radius-capped K-neighbourhoods of every point (computed once per cloud)
       -> encoder: five layers "gather K neighbours -> 1x1 conv -> BatchNorm -> ReLU -> max over K",
          channels 3 -> 64 -> 128 -> 256 -> 256 -> 512; a 512-d descriptor per point
+         (with ``NetConfig.relative``, the first layer sees neighbour offsets, see RelativeEdgeLayer)
       -> W = row-softmax(<f_i, g_j> / tau)       (B, N, M)
       -> virtual points vq_i = sum_j W_ij q_j, weights w_i = max_j W_ij
       -> weighted Procrustes -> R (B, 3, 3), t (B, 3) with Q ~ R P + t
@@ -42,6 +43,9 @@ class NetConfig:
         shared_encoder: one encoder for both clouds (True) or one per cloud, as the paper's
             parameter count suggests (False).
         learn_temperature: learn tau of the softmax (initialised at sqrt(descriptor size)).
+        relative: the first layer sees each neighbour's offset q_j - p_i instead of its
+            coordinates q_j, which makes the descriptors independent of where the cloud's
+            centroid lies (a cropped cloud's centroid moves with the crop).
     """
 
     k: int = 32
@@ -49,6 +53,7 @@ class NetConfig:
     channels: Tuple[int, ...] = (64, 128, 256, 256, 512)
     shared_encoder: bool = True
     learn_temperature: bool = True
+    relative: bool = False
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -278,6 +283,52 @@ class EdgeLayer(nn.Module):
         return gather_max(z, idx)
 
 
+class RelativeEdgeLayer(nn.Module):
+    """First encoder layer on neighbour offsets, exact fast form: max_j ReLU(BN(A (x_j - x_i) + c)).
+
+    The literal form gathers K offsets per point and runs the linear map and BatchNorm on all N*K
+    of them. Three facts make it as cheap as :class:`EdgeLayer`: A (x_j - x_i) = a_j - a_i with
+    a = A x computed on the N points; BatchNorm's statistics over the offsets follow from their
+    3x3 second moment (mean A mu + c, variance of channel k = A_k Sigma A_k^T); and BN is an affine
+    map s y + b per channel, so max_j ReLU(s (a_j - a_i) + b') = ReLU(max_j (s a_j) - s a_i + b'),
+    one gather-max of s a (whatever the sign of s). The bias c cancels in training, as in the
+    literal form.
+    """
+
+    def __init__(self, c_in: int, c_out: int) -> None:
+        super().__init__()
+        self.linear = nn.Linear(c_in, c_out)
+        self.bn = MultiplicityBatchNorm(c_out)
+
+    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor) -> torch.Tensor:
+        """x: (B, N, C_in); idx: (B, N, K); multiplicity: unused (every offset counts once).
+        Returns (B, N, C_out)."""
+        a = torch.matmul(x, self.linear.weight.t())  # (B, N, C_out), without the bias
+        bn = self.bn
+        if self.training:
+            b, n, c = x.shape
+            rows = x.reshape(b * n, c)
+            offsets = (rows[_flatten_neighbours(idx, n)] - rows.unsqueeze(1)).reshape(-1, c)  # (B*N*K, C_in)
+            count = float(offsets.shape[0])
+            mu = offsets.mean(dim=0)
+            centred = offsets - mu
+            sigma = torch.matmul(centred.t(), centred) / count  # (C_in, C_in), biased like BatchNorm's
+            mean = torch.matmul(self.linear.weight, mu) + self.linear.bias
+            var = (torch.matmul(self.linear.weight, sigma) * self.linear.weight).sum(dim=1)
+            with torch.no_grad():
+                bn.num_batches_tracked.add_(1)
+                unbiased = var * (count / max(count - 1.0, 1.0))
+                bn.running_mean.mul_(1.0 - bn.momentum).add_(bn.momentum * mean)
+                bn.running_var.mul_(1.0 - bn.momentum).add_(bn.momentum * unbiased)
+        else:
+            mean = bn.running_mean
+            var = bn.running_var
+        scale = bn.weight * torch.rsqrt(var + bn.eps)  # (C_out,)
+        shift = bn.bias + scale * (self.linear.bias - mean)
+        sa = a * scale
+        return F.relu(gather_max(sa, idx) - sa + shift)
+
+
 class LiteralEdgeLayer(nn.Module):
     """The paper's layer as written: gather to (B, C, K, N) -> Conv2d 1x1 -> BatchNorm2d -> ReLU -> max.
 
@@ -285,21 +336,26 @@ class LiteralEdgeLayer(nn.Module):
     benchmarked against. ``load_into`` copies its parameters into an :class:`EdgeLayer`.
     """
 
-    def __init__(self, c_in: int, c_out: int) -> None:
+    def __init__(self, c_in: int, c_out: int, relative: bool = False) -> None:
         super().__init__()
+        self.relative = relative
         self.conv = nn.Conv2d(c_in, c_out, kernel_size=1, stride=1, padding=0)
         self.bn = nn.BatchNorm2d(c_out)
 
     def forward(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-        """x: (B, C_in, N); idx: (B, N, K). Returns (B, C_out, N)."""
+        """x: (B, C_in, N); idx: (B, N, K). Returns (B, C_out, N).
+
+        With ``relative``, each gathered neighbour x_j becomes its offset x_j - x_i."""
         b, c, n = x.shape
         k = idx.shape[2]
         flat = idx.reshape(b, 1, n * k).expand(-1, c, -1)
         grouped = torch.gather(x, 2, flat).view(b, c, n, k).transpose(2, 3)  # (B, C, K, N)
+        if self.relative:
+            grouped = grouped - x.unsqueeze(2)
         y = F.relu(self.bn(self.conv(grouped)))
         return y.amax(dim=2)
 
-    def load_into(self, fast: EdgeLayer) -> None:
+    def load_into(self, fast: nn.Module) -> None:
         with torch.no_grad():
             fast.linear.weight.copy_(self.conv.weight[:, :, 0, 0])
             fast.linear.bias.copy_(self.conv.bias)
@@ -310,10 +366,11 @@ class LiteralEdgeLayer(nn.Module):
 class Encoder(nn.Module):
     """Five edge layers; per-point descriptors from coordinates and neighbourhoods."""
 
-    def __init__(self, channels: Tuple[int, ...]) -> None:
+    def __init__(self, channels: Tuple[int, ...], relative: bool = False) -> None:
         super().__init__()
         dims = [3] + list(channels)
-        self.layers = nn.ModuleList([EdgeLayer(dims[i], dims[i + 1]) for i in range(len(channels))])
+        first = RelativeEdgeLayer(3, dims[1]) if relative else EdgeLayer(3, dims[1])
+        self.layers = nn.ModuleList([first] + [EdgeLayer(dims[i], dims[i + 1]) for i in range(1, len(channels))])
 
     def forward(self, points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """points: (B, N, 3); idx: (B, N, K). Returns (B, N, channels[-1]) descriptors."""
@@ -327,10 +384,10 @@ class Encoder(nn.Module):
 class LiteralEncoder(nn.Module):
     """:class:`Encoder` built from the paper's literal layers; same interface, for tests and benchmarks."""
 
-    def __init__(self, channels: Tuple[int, ...]) -> None:
+    def __init__(self, channels: Tuple[int, ...], relative: bool = False) -> None:
         super().__init__()
         dims = [3] + list(channels)
-        self.layers = nn.ModuleList([LiteralEdgeLayer(dims[i], dims[i + 1]) for i in range(len(channels))])
+        self.layers = nn.ModuleList([LiteralEdgeLayer(dims[i], dims[i + 1], relative and i == 0) for i in range(len(channels))])
 
     def forward(self, points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         x = points.transpose(1, 2)
@@ -354,8 +411,8 @@ class SoftAlignNet(nn.Module):
         super().__init__()
         self.k = config.k
         self.radius = config.radius
-        self.encoder_p = Encoder(config.channels)
-        self.encoder_q = self.encoder_p if config.shared_encoder else Encoder(config.channels)
+        self.encoder_p = Encoder(config.channels, config.relative)
+        self.encoder_q = self.encoder_p if config.shared_encoder else Encoder(config.channels, config.relative)
         log_tau = torch.tensor(0.5 * math.log(config.channels[-1]))
         if config.learn_temperature:
             self.log_tau = nn.Parameter(log_tau)

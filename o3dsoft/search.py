@@ -176,15 +176,15 @@ class FeatureMatch:
             return np.empty((0, 4, 4))
         rng = np.random.default_rng(seed)
         pick = rng.integers(0, len(a), size=(hypotheses, 3))
-        P, Q = a[pick], b[pick]  # (H, 3, 3): three points per hypothesis
-        ok = np.ones(hypotheses, dtype=bool)
-        for i, j in ((0, 1), (1, 2), (0, 2)):  # squared edge lengths, against the squared ratio
-            dp = np.sum((P[:, i] - P[:, j]) ** 2, axis=1)
-            dq = np.sum((Q[:, i] - Q[:, j]) ** 2, axis=1)
-            ok &= (np.minimum(dp, dq) >= self.config.edge_length**2 * np.maximum(dp, dq)) & (dp > 0)
-        if not ok.any():
+        # Squared edge lengths against the squared ratio, one edge at a time on the triplets
+        # still in: few pass the first (under 1 in 100 pass all three on ModelNet40 crops).
+        for i, j in ((0, 1), (1, 2), (0, 2)):
+            dp = np.sum((a[pick[:, i]] - a[pick[:, j]]) ** 2, axis=1)
+            dq = np.sum((b[pick[:, i]] - b[pick[:, j]]) ** 2, axis=1)
+            pick = pick[(np.minimum(dp, dq) >= self.config.edge_length**2 * np.maximum(dp, dq)) & (dp > 0)]
+        if len(pick) == 0:
             return np.empty((0, 4, 4))
-        R, t = weighted_procrustes(torch.from_numpy(P[ok]), torch.from_numpy(Q[ok]))
+        R, t = weighted_procrustes(torch.from_numpy(a[pick]), torch.from_numpy(b[pick]))  # (H', 3, 3) triplets
         R, t = R.numpy(), t.numpy()
         scored = rng.choice(len(a), size=SCORED_MATCHES, replace=False) if len(a) > SCORED_MATCHES else np.arange(len(a))
         distance = self.config.ransac_distance * self.config.voxel * self.scale
@@ -200,8 +200,7 @@ class FeatureMatch:
                     break
                 free &= ~_near(R, moved, R[h], moved[h], self.scale)
         fitted: List[np.ndarray] = []
-        for h in kept:  # refitted hypotheses can meet: keep the first of each pose
-            T = self._refit(R[h], t[h], a, b, distance)
+        for T in self._refit(R[kept], t[kept], a, b, distance):  # refits can meet: keep the first of each pose
             if not any(_near(F[None, :3, :3], F[None, :3, :3] @ centre + F[None, :3, 3], T[:3, :3], T[:3, :3] @ centre + T[:3, 3], self.scale)[0]
                        for F in fitted):
                 fitted.append(T)
@@ -209,13 +208,15 @@ class FeatureMatch:
 
     @staticmethod
     def _refit(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distance: float) -> np.ndarray:
-        """The least-squares fit of all the matches a hypothesis carries (its three points only
-        fix it roughly), as Open3D's RANSAC ends: (4, 4)."""
-        inliers = np.sum((a @ R.T + t - b) ** 2, axis=1) < distance**2
-        if inliers.sum() < 3:
-            return rigid(R, t)
-        R_fit, t_fit = weighted_procrustes(torch.from_numpy(a[inliers])[None], torch.from_numpy(b[inliers])[None])
-        return rigid(R_fit[0].numpy(), t_fit[0].numpy())
+        """The least-squares fit of all the matches each hypothesis (R (K, 3, 3), t (K, 3))
+        carries (its three points only fix it roughly), as Open3D's RANSAC ends: (K, 4, 4). One
+        batched fit with each hypothesis's inliers weighted 1 and the rest 0; a hypothesis that
+        carries fewer than 3 matches is kept as it is."""
+        inliers = np.sum((np.einsum("kij,nj->kni", R, a) + t[:, None] - b) ** 2, axis=2) < distance**2  # (K, C)
+        source = torch.from_numpy(a).expand(len(R), -1, -1)
+        R_fit, t_fit = weighted_procrustes(source, torch.from_numpy(b).expand(len(R), -1, -1), torch.from_numpy(inliers.astype(a.dtype)))
+        enough = inliers.sum(axis=1) >= 3
+        return np.stack([rigid(R_fit[k].numpy(), t_fit[k].numpy()) if enough[k] else rigid(R[k], t[k]) for k in range(len(R))])
 
 
 def _support(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distance: float) -> np.ndarray:

@@ -14,7 +14,7 @@ import sys
 import time
 import traceback
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -45,7 +45,8 @@ class TrainConfig:
         lr_min: final learning rate of the cosine schedule.
         grad_clip: clip the gradients' total L2 norm to this value (None: no clipping, the paper's).
         init: start from the model weights of this training checkpoint instead of a random
-            initialisation (fine-tuning; optimiser and schedule start fresh).
+            initialisation (fine-tuning; optimiser and schedule start fresh). Its network must
+            have this run's settings, except ``net.relative``.
         seed: fixes model initialisation, pair draws and the order of pairs.
         device: "cpu" or "cuda".
         out: output folder (checkpoint, model, card).
@@ -275,7 +276,9 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     init_record = None
     if config.init is not None and not resume:
         init_ckpt = _load_checkpoint(Path(config.init))
-        if init_ckpt["config"]["net"] != config.net.to_dict():
+        # The relative first layer has the same parameters as the absolute one: a network can
+        # start from weights trained either way.
+        if replace(NetConfig.from_dict(init_ckpt["config"]["net"]), relative=config.net.relative) != config.net:
             raise InputError(f"{config.init}: its network settings differ from this run's ({init_ckpt['config']['net']})")
         model.load_state_dict(init_ckpt["model"])
         init_record = {"checkpoint": str(config.init), "protocol": init_ckpt["config"]["protocol"],
@@ -287,6 +290,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             raise InputError(f"{ckpt_path}: no checkpoint to resume from")
         ckpt = _load_checkpoint(ckpt_path)
         saved = ckpt["config"]
+        saved = dict(saved, net=NetConfig.from_dict(saved["net"]).to_dict())  # settings added since it was written
         mismatched = [k for k in RESUME_MUST_MATCH if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
         if mismatched:
             raise InputError(f"{ckpt_path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")

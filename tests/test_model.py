@@ -6,6 +6,7 @@ from o3dsoft.model import (
     Encoder,
     LiteralEdgeLayer,
     NetConfig,
+    RelativeEdgeLayer,
     SoftAlignNet,
     ball_query,
     count_parameters,
@@ -71,11 +72,11 @@ def test_gather_at_once_path_matches_chunked_loops():
     assert torch.equal(slot_loop, slot_once)
 
 
-@pytest.mark.parametrize("c_in,c_out", [(3, 16), (16, 32)])
-def test_fast_layer_equals_literal_conv2d_layer(c_in, c_out):
+@pytest.mark.parametrize("c_in,c_out,relative", [(3, 16, False), (16, 32, False), (3, 16, True)])
+def test_fast_layer_equals_literal_conv2d_layer(c_in, c_out, relative):
     torch.manual_seed(0)
-    lit = LiteralEdgeLayer(c_in, c_out).double()
-    fast = EdgeLayer(c_in, c_out).double()
+    lit = LiteralEdgeLayer(c_in, c_out, relative).double()
+    fast = (RelativeEdgeLayer if relative else EdgeLayer)(c_in, c_out).double()
     with torch.no_grad():  # non-trivial BN affine parameters, including negative scales
         lit.bn.weight.uniform_(-1.5, 1.5)
         lit.bn.bias.uniform_(-0.5, 0.5)
@@ -178,12 +179,13 @@ def test_training_steps_reduce_loss_without_nan(shared):
     assert losses[-1] < 0.5 * losses[0]
 
 
-def test_fast_encoder_equals_literal_encoder():
+@pytest.mark.parametrize("relative", [False, True])
+def test_fast_encoder_equals_literal_encoder(relative):
     from o3dsoft.model import LiteralEncoder
 
     torch.manual_seed(3)
     channels = (8, 16, 16, 16, 24)
-    lit, fast = LiteralEncoder(channels).double(), Encoder(channels).double()
+    lit, fast = LiteralEncoder(channels, relative).double(), Encoder(channels, relative).double()
     lit.load_into(fast)
     pts = _cloud(b=2, n=90, dtype=torch.float64)
     idx = ball_query(pts, 12, 0.4)
@@ -196,3 +198,33 @@ def test_fast_encoder_equals_literal_encoder():
     assert torch.allclose(p1.grad, p2.grad, atol=1e-5, rtol=0)
     for a, b in zip(lit.layers, fast.layers):
         assert torch.allclose(a.conv.weight.grad[:, :, 0, 0], b.linear.weight.grad, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("training", [False, True])
+def test_relative_descriptors_do_not_depend_on_where_the_cloud_lies(training):
+    # A cropped cloud's centroid moves with the crop; the relative first layer makes the
+    # descriptors blind to that shift, in training (batch statistics) and at inference alike.
+    torch.manual_seed(4)
+    pts = _cloud(b=2, n=90, dtype=torch.float64)
+    # One cloud of the batch moved: in training a shift of the whole batch would cancel in the
+    # absolute form's batch statistics too.
+    shift = torch.tensor([[[0.3, -0.2, 0.15]], [[0.0, 0.0, 0.0]]], dtype=torch.float64)
+    idx = ball_query(pts, 12, 0.4)
+    out = []
+    for relative in (True, False):
+        enc = Encoder((8, 16, 16, 16, 24), relative).double().train(training)
+        out.append((enc(pts, idx), enc(pts + shift, idx)))
+    assert torch.allclose(out[0][0], out[0][1], atol=1e-9)
+    assert not torch.allclose(out[1][0], out[1][1], atol=1e-3)  # the absolute form does depend on it
+
+
+def test_relative_network_scripts_and_round_trips_its_config():
+    torch.manual_seed(5)
+    config = NetConfig(k=8, radius=0.5, channels=(8, 16, 16, 16, 24), relative=True)
+    assert NetConfig.from_dict(config.to_dict()) == config
+    assert NetConfig.from_dict({k: v for k, v in config.to_dict().items() if k != "relative"}).relative is False
+    net = SoftAlignNet(config).eval()
+    src, tgt = _cloud(b=2, n=64, dtype=torch.float32), _cloud(b=2, n=64, seed=1, dtype=torch.float32)
+    scripted = torch.jit.script(net)
+    for a, b in zip(net(src, tgt), scripted(src, tgt)):
+        assert torch.allclose(a, b, atol=1e-5)

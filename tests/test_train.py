@@ -1,4 +1,5 @@
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -83,6 +84,24 @@ def test_train_cli_smoke(modelnet_root, tmp_path):
                                   "--limit-train", "4", "--batch-size", "2", "--eval-pairs", "0", "--epochs", "1"])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "model.pt").is_file() and (tmp_path / "model_card.json").is_file()
+    assert load_model(tmp_path / "model.pt").config.relative is False
+    r = CliRunner().invoke(main, ["train", "--data", str(modelnet_root), "--out", str(tmp_path / "rel"), "--max-steps", "1",
+                                  "--limit-train", "4", "--batch-size", "2", "--eval-pairs", "0", "--epochs", "1", "--relative"])
+    assert r.exit_code == 0, r.output
+    assert load_model(tmp_path / "rel" / "model.pt").config.relative is True
+
+
+def test_checkpoints_written_before_the_relative_setting_resume_and_initialise(modelnet_root, tmp_path):
+    train(_config(modelnet_root, tmp_path / "a", max_steps=1, eval_pairs=0), log=lambda m: None)
+    path = tmp_path / "a" / "checkpoint.pt"
+    ckpt = torch.load(path, weights_only=False)
+    del ckpt["config"]["net"]["relative"]
+    torch.save(ckpt, path)
+    train(_config(modelnet_root, tmp_path / "a", max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
+    train(_config(modelnet_root, tmp_path / "b", max_steps=1, eval_pairs=0, init=str(path)), log=lambda m: None)
+    # The relative first layer has the same parameters: it may start from absolute-layer weights.
+    train(_config(modelnet_root, tmp_path / "c", max_steps=1, eval_pairs=0, init=str(path), net=replace(TINY, relative=True)), log=lambda m: None)
+    assert load_model(tmp_path / "c" / "model.pt").config.relative is True
 
 
 def test_train_cli_missing_data(tmp_path, monkeypatch):
