@@ -590,6 +590,28 @@ def test_support_counts_the_matches_each_hypothesis_carries():
     assert np.array_equal(_support(R, t, a, b, 0.1), brute) and brute[7] > 100
 
 
+def test_refits_fit_each_hypothesis_on_its_own_inliers_in_one_batch():
+    from o3dsoft.search import FeatureMatch
+    from o3dsoft.transforms import random_rotation, rigid
+
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(300, 3)) + [50.0, 0.0, -20.0]
+    R_true = random_rotation(rng)
+    b = a @ R_true.T + [1.0, 2.0, 3.0] + rng.normal(scale=0.01, size=(300, 3))
+    b[200:] = rng.normal(size=(100, 3))  # a third of the matches are wrong
+    near = R_true @ euler_to_matrix([2.0, -1.0, 1.5])  # roughly right: carries the right matches
+    far = random_rotation(rng)  # carries none
+    R, t = np.stack([near, far]), np.stack([b[:200].mean(0) - a[:200].mean(0) @ near.T, [0.0, 0.0, 0.0]])
+    fitted = FeatureMatch._refit(R, t, a, b, distance=0.5)
+    # The first is the least-squares fit of its inliers alone (the 200 right matches), found
+    # the usual way; the second has fewer than 3 inliers and comes back as it was.
+    A, B = a[:200] - a[:200].mean(0), b[:200] - b[:200].mean(0)
+    U, _, Vt = np.linalg.svd(B.T @ A)
+    R_ls = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    assert np.allclose(fitted[0], rigid(R_ls, b[:200].mean(0) - R_ls @ a[:200].mean(0)), atol=1e-9)
+    assert np.allclose(fitted[1], rigid(far, t[1]))
+
+
 def test_poses_are_one_within_ten_degrees_and_a_tenth_of_the_scale_wherever_the_origin_lies():
     from o3dsoft.search import _near
 
