@@ -213,8 +213,8 @@ class FeatureMatch:
         batched fit with each hypothesis's inliers weighted 1 and the rest 0; a hypothesis that
         carries fewer than 3 matches is kept as it is."""
         inliers = np.sum((np.einsum("kij,nj->kni", R, a) + t[:, None] - b) ** 2, axis=2) < distance**2  # (K, C)
-        source = torch.from_numpy(a).expand(len(R), -1, -1)
-        R_fit, t_fit = weighted_procrustes(source, torch.from_numpy(b).expand(len(R), -1, -1), torch.from_numpy(inliers.astype(a.dtype)))
+        source, target = (torch.from_numpy(x).expand(len(R), -1, -1) for x in (a, b))
+        R_fit, t_fit = weighted_procrustes(source, target, torch.from_numpy(inliers.astype(a.dtype)))
         enough = inliers.sum(axis=1) >= 3
         return np.stack([rigid(R_fit[k].numpy(), t_fit[k].numpy()) if enough[k] else rigid(R[k], t[k]) for k in range(len(R))])
 

@@ -289,8 +289,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         if not ckpt_path.is_file():
             raise InputError(f"{ckpt_path}: no checkpoint to resume from")
         ckpt = _load_checkpoint(ckpt_path)
-        saved = ckpt["config"]
-        saved = dict(saved, net=NetConfig.from_dict(saved["net"]).to_dict())  # settings added since it was written
+        saved = dict(ckpt["config"], net=NetConfig.from_dict(ckpt["config"]["net"]).to_dict())  # with settings added since
         mismatched = [k for k in RESUME_MUST_MATCH if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
         if mismatched:
             raise InputError(f"{ckpt_path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")
