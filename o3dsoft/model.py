@@ -43,8 +43,8 @@ class NetConfig:
         shared_encoder: one encoder for both clouds (True) or one per cloud, as the paper's
             parameter count suggests (False).
         learn_temperature: learn tau of the softmax (initialised at sqrt(descriptor size)).
-        relative: the first layer sees each neighbour's offset q_j - p_i instead of its
-            coordinates q_j, which makes the descriptors independent of where the cloud's
+        relative: the first layer sees each neighbour's offset x_j - x_i instead of its
+            coordinates x_j, which makes the descriptors independent of where the cloud's
             centroid lies (a cropped cloud's centroid moves with the crop).
     """
 
