@@ -64,7 +64,7 @@ class RegisterConfig:
             the best-supported first, refined and scored in turn until one is confident. On the
             whole ModelNet40 test split, against Open3D's RANSAC tried up to 3 times: recall at
             (1 deg, 0.01) `rpmnet-crop` 70.5 -> 85.6 %, `so3-crop` 55.8 -> 71.4 %, median time
-            135 -> 146 ms and 312 -> 167 ms (README, Results).
+            135 -> 127 ms and 312 -> 155 ms (README, Results).
         attempt_points: every estimate (the network's, the search's) is refined by ICP and
             scored on the clouds voxel-downsampled to at most this many points each; the most
             confident is then refined again, and scored, at full resolution. Clouds this small
