@@ -77,4 +77,4 @@ def test_command_line_overrides_the_config_file(modelnet_root, tmp_path):
 def test_shipped_configs_are_valid(name):
     config = TrainConfig(**read_config(REPO / "configs" / name, TrainConfig))
     config.validate()
-    assert config.net == NetConfig()
+    assert config.net == NetConfig(relative="relative" in name)
