@@ -258,15 +258,20 @@ class MultiplicityBatchNorm(nn.Module):
             total = multiplicity.sum()
             mean = torch.matmul(m, rows).squeeze(0) / total
             var = torch.matmul(m, (rows - mean).square()).squeeze(0) / total
-            with torch.no_grad():
-                self.num_batches_tracked.add_(1)
-                unbiased = var * (total / torch.clamp(total - 1.0, min=1.0))
-                self.running_mean.mul_(1.0 - self.momentum).add_(self.momentum * mean)
-                self.running_var.mul_(1.0 - self.momentum).add_(self.momentum * unbiased)
+            self.track(mean, var, total)
         else:
             mean = self.running_mean
             var = self.running_var
         return (y - mean) * torch.rsqrt(var + self.eps) * self.weight + self.bias
+
+    def track(self, mean: torch.Tensor, var: torch.Tensor, count: torch.Tensor) -> None:
+        """Update the running statistics from a batch's (C,) mean and biased variance over
+        `count` values per channel, as ``nn.BatchNorm2d`` does."""
+        with torch.no_grad():
+            self.num_batches_tracked.add_(1)
+            unbiased = var * (count / torch.clamp(count - 1.0, min=1.0))
+            self.running_mean.mul_(1.0 - self.momentum).add_(self.momentum * mean)
+            self.running_var.mul_(1.0 - self.momentum).add_(self.momentum * unbiased)
 
 
 class EdgeLayer(nn.Module):
@@ -309,17 +314,12 @@ class RelativeEdgeLayer(nn.Module):
             b, n, c = x.shape
             rows = x.reshape(b * n, c)
             offsets = (rows[_flatten_neighbours(idx, n)] - rows.unsqueeze(1)).reshape(-1, c)  # (B*N*K, C_in)
-            count = float(offsets.shape[0])
             mu = offsets.mean(dim=0)
             centred = offsets - mu
-            sigma = torch.matmul(centred.t(), centred) / count  # (C_in, C_in), biased like BatchNorm's
+            sigma = torch.matmul(centred.t(), centred) / offsets.shape[0]  # (C_in, C_in), biased like BatchNorm's
             mean = torch.matmul(self.linear.weight, mu) + self.linear.bias
             var = (torch.matmul(self.linear.weight, sigma) * self.linear.weight).sum(dim=1)
-            with torch.no_grad():
-                bn.num_batches_tracked.add_(1)
-                unbiased = var * (count / max(count - 1.0, 1.0))
-                bn.running_mean.mul_(1.0 - bn.momentum).add_(bn.momentum * mean)
-                bn.running_var.mul_(1.0 - bn.momentum).add_(bn.momentum * unbiased)
+            bn.track(mean, var, torch.tensor(float(offsets.shape[0]), dtype=x.dtype, device=x.device))
         else:
             mean = bn.running_mean
             var = bn.running_var
