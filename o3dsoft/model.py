@@ -333,7 +333,8 @@ class LiteralEdgeLayer(nn.Module):
     """The paper's layer as written: gather to (B, C, K, N) -> Conv2d 1x1 -> BatchNorm2d -> ReLU -> max.
 
     K times more work than :class:`EdgeLayer`; the reference that the fast form is tested and
-    benchmarked against. ``load_into`` copies its parameters into an :class:`EdgeLayer`.
+    benchmarked against. ``load_into`` copies its parameters into an :class:`EdgeLayer` (or, with
+    ``relative``, a :class:`RelativeEdgeLayer`).
     """
 
     def __init__(self, c_in: int, c_out: int, relative: bool = False) -> None:

@@ -199,12 +199,13 @@ class FeatureMatch:
                 if len(kept) == count:
                     break
                 free &= ~_near(R, moved, R[h], moved[h], self.scale)
-        fitted: List[np.ndarray] = []
-        for T in self._refit(R[kept], t[kept], a, b, distance):  # refits can meet: keep the first of each pose
-            if not any(_near(F[None, :3, :3], F[None, :3, :3] @ centre + F[None, :3, 3], T[:3, :3], T[:3, :3] @ centre + T[:3, 3], self.scale)[0]
-                       for F in fitted):
-                fitted.append(T)
-        return np.stack(fitted)
+        refits = self._refit(R[kept], t[kept], a, b, distance)
+        refit_moved = refits[:, :3, :3] @ centre + refits[:, :3, 3]
+        first: List[int] = []  # refits can meet: keep the first of each pose
+        for k in range(len(refits)):
+            if not _near(refits[first, :3, :3], refit_moved[first], refits[k, :3, :3], refit_moved[k], self.scale).any():
+                first.append(k)
+        return refits[first]
 
     @staticmethod
     def _refit(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distance: float) -> np.ndarray:
