@@ -6,7 +6,9 @@ Parameters follow Open3D's global registration tutorial, expressed relative to t
 same settings serve unit-sphere objects and scans in metres: voxel 0.05, normals radius 2 voxels
 (30 neighbours), FPFH radius 5 voxels (100 neighbours), RANSAC distance 1.5 voxels with the
 edge-length (0.9) and distance checkers, 100,000 iterations at confidence 0.999, FGR distance
-0.5 voxel.
+0.5 voxel. As in the tutorial, the normals keep the sign Open3D's estimate gives them, which
+depends on the frame the cloud is given in, so the features of a rotated copy differ; the
+search's feature match orients them (:data:`o3dsoft.search.FEATURES`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ class GlobalConfig:
         ransac_distance: RANSAC inlier distance (in voxels).
         ransac_iterations, ransac_confidence, ransac_n, edge_length: RANSAC's criteria and checker.
         fgr_distance: FGR's maximum correspondence distance (in voxels).
+        orient_normals: point every normal towards the downsampled cloud's centroid. FPFH
+            depends on the normals' signs, and those Open3D's estimate gives follow the frame
+            the cloud is given in; oriented, the features of two rotated copies of a cloud agree.
     """
 
     voxel: float = 0.05
@@ -44,6 +49,7 @@ class GlobalConfig:
     ransac_n: int = 3
     edge_length: float = 0.9
     fgr_distance: float = 0.5
+    orient_normals: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -61,6 +67,8 @@ def fpfh_features(points: np.ndarray, scale: float, config: GlobalConfig = Globa
     voxel = config.voxel * scale
     cloud = to_open3d(points).voxel_down_sample(voxel)
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=config.normal_radius * voxel, max_nn=config.normal_max_nn))
+    if config.orient_normals:
+        cloud.orient_normals_towards_camera_location(np.asarray(cloud.points).mean(axis=0))
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
         cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=config.fpfh_radius * voxel, max_nn=config.fpfh_max_nn)
     )
