@@ -3,7 +3,8 @@
     python -m benchmarks.feature_match [--protocol rpmnet-crop] [--pairs 200] [--candidates 20] [--data D]
 
 For each of the first test pairs of the protocol: Open3D's RANSAC (seed 0) and
-:meth:`o3dsoft.search.FeatureMatch.candidates` (seed 0) from the same features; every estimate is
+:meth:`o3dsoft.search.FeatureMatch.candidates` (seed 0) from the same features (the search's,
+:data:`o3dsoft.search.FEATURES`); every estimate is
 refined by o3dsoft's ICP and scored by the confidence. Prints the share of pairs within
 (1 deg, 0.01) for Open3D's estimate, for the first candidate, for the most confident of the
 candidates, and for the best of them (had one known the truth), and the median time of Open3D's

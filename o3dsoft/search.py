@@ -131,12 +131,13 @@ class FeatureMatch:
     overlap that is often a wrong one. Here every hypothesis is drawn and scored as one array
     operation, and the best-supported distinct ones are returned in order, for the pipeline to
     refine and score in turn. On the first 200 test pairs of `rpmnet-crop` / `so3-crop`, after
-    ICP, within (1 deg, 0.01) (``python -m benchmarks.feature_match``): Open3D's estimate 55.5 /
-    40.0 %, the first candidate here 69.0 / 46.0 %, the most confident of 20 82.0 / 68.5 % (the
-    best of them 83.0 / 69.0 %); drawing them took 37 / 36 ms, Open3D's RANSAC 30 / 48 ms in the
-    same runs. It is also reproducible: the draws come from a seeded generator (Open3D runs its
-    hypotheses on several threads, and with its checkers the same seed can give different
-    results; Open3D issue #7475).
+    ICP, within (1 deg, 0.01) (``python -m benchmarks.feature_match``): Open3D's estimate 65.0 /
+    65.0 %, the first candidate here 77.0 / 76.5 %, the most confident of 20 87.5 / 86.0 % (the
+    best of them 88.5 / 86.5 %); drawing them took 36 / 35 ms, Open3D's RANSAC 20 / 18 ms in the
+    same runs. With the tutorial's features (unoriented normals over 2 voxels) the most confident
+    was right on 82.0 / 68.5 %. It is also reproducible: the draws come from a seeded generator
+    (Open3D runs its hypotheses on several threads, and with its checkers the same seed can give
+    different results; Open3D issue #7475).
 
     Args:
         source: (N, 3); target: (M, 3), in their original frames.
