@@ -136,7 +136,7 @@ class CoarseModel:
 
     def aligner(self, target: torch.Tensor) -> Callable[..., Tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
         """A function run(source (B, N, 3), idx=None) -> (R, t, w) aligning sources to one target
-        (1, M, 3), whose descriptors are computed once, here.
+        (1, M, 3), whose descriptors are computed once, at the first call.
 
         idx: the source's neighbours (B or 1, N, K) from :meth:`neighbours`, computed by the
         caller once for a source it moves rigidly (neighbourhoods do not change); None: computed
@@ -145,17 +145,25 @@ class CoarseModel:
         target = target.to(self.device)
         if not hasattr(self.module, "align"):
             return lambda source, idx=None: self.run(source, target.expand(source.shape[0], -1, -1))
-        with torch.no_grad():
-            g = self.module.describe_target(target, self.neighbours(target))
+        target_descriptors: List[torch.Tensor] = []
 
         def run(source: torch.Tensor, idx: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
             source = source.to(self.device)
             idx = self.neighbours(source) if idx is None else idx.to(self.device).expand(source.shape[0], -1, -1)
-            # On the CPU, a few clouds at a time keep the gather-max's working set in cache: 24
-            # rotation hypotheses ran 4.6x faster in batches of 2 than as one batch (2-core machine).
-            step = CPU_BATCH if self.device.type == "cpu" else source.shape[0]
-            parts = []
             with torch.no_grad():
+                if not target_descriptors and self.config.shared_encoder and source.shape[0] == 1 and source.shape == target.shape:
+                    # One encoder call on the pair: 18 % faster on the CPU than two calls of
+                    # one cloud each (2-core machine, N = M = 1024, interleaved runs).
+                    both = self.module.describe_target(torch.cat([target, source]), torch.cat([self.neighbours(target), idx]))
+                    target_descriptors.append(both[:1])
+                    return self.module.align(source, both[1:], target, both[:1])
+                if not target_descriptors:
+                    target_descriptors.append(self.module.describe_target(target, self.neighbours(target)))
+                g = target_descriptors[0]
+                # On the CPU, a few clouds at a time keep the gather-max's working set in cache: 24
+                # rotation hypotheses ran 4.6x faster in batches of 2 than as one batch (2-core machine).
+                step = CPU_BATCH if self.device.type == "cpu" else source.shape[0]
+                parts = []
                 for s in range(0, source.shape[0], step):
                     f = self.module.describe_source(source[s : s + step], idx[s : s + step])
                     parts.append(self.module.align(source[s : s + step], f, target, g))

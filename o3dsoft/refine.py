@@ -28,7 +28,7 @@ the limit at 200,000 points (rotation error 0.003 degrees), 6.0 s at 100,000 (0.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
@@ -72,6 +72,13 @@ class ICPConfig:
     def distance_for(self, scale: float) -> float:
         """The correspondence distance in cloud units for a pair of this scale."""
         return self.distance if self.absolute else self.distance * scale
+
+    def starting_at(self, factor: float) -> "ICPConfig":
+        """The schedule for an estimate already within distance * `factor` of its partners: the
+        first stage moved down to `factor` (when below it), and later stages not below it dropped."""
+        if factor >= self.schedule[0]:
+            return self
+        return replace(self, schedule=(factor,) + tuple(f for f in self.schedule[1:] if f < factor))
 
 
 class ICPResult(NamedTuple):

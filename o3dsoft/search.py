@@ -15,7 +15,7 @@ the one that fits best, for the pipeline to refine at full resolution.
 from __future__ import annotations
 
 import itertools
-from typing import List, NamedTuple, Optional, Tuple
+from typing import Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch
@@ -151,6 +151,12 @@ class FeatureMatch:
         self.target = baselines.fpfh_features(target, scale, config)
         self.scale = scale
         self.config = config
+        self._drawn: Dict[Tuple[int, int], Optional[Tuple[np.ndarray, ...]]] = {}
+
+    @property
+    def inlier_distance(self) -> float:
+        """RANSAC's inlier distance in cloud units: a candidate carries its matches to within it."""
+        return self.config.ransac_distance * self.config.voxel * self.scale
 
     def matches(self) -> Tuple[np.ndarray, np.ndarray]:
         """Point pairs whose features are nearest neighbours, in either direction: (C, 3) source
@@ -169,31 +175,20 @@ class FeatureMatch:
         how many matches they carry to within the RANSAC distance. The `count` best that differ
         (by DISTINCT_DEG in rotation or DISTINCT_SHIFT x scale in where they put the matches'
         centre) are refitted on all the matches they carry; refits that meet are kept once.
-        Empty when there are fewer than 3 matches or no triplet passes the check.
+        Empty when there are fewer than 3 matches or no triplet passes the check. With the same
+        seed, the candidates for a larger count begin with those for a smaller one, and the
+        triplets are drawn only once.
 
         Raises:
             ValueError: count below 1.
         """
         if count < 1:
             raise ValueError(f"count must be at least 1, got {count}")
-        a, b = self.matches()
-        if len(a) < 3:
+        drawn = self._draw(seed, hypotheses)
+        if drawn is None:
             return np.empty((0, 4, 4))
-        rng = np.random.default_rng(seed)
-        pick = rng.integers(0, len(a), size=(hypotheses, 3))
-        # Squared edge lengths against the squared ratio, one edge at a time on the triplets
-        # still in: few pass the first (under 1 in 100 pass all three on ModelNet40 crops).
-        for i, j in ((0, 1), (1, 2), (0, 2)):
-            dp = np.sum((a[pick[:, i]] - a[pick[:, j]]) ** 2, axis=1)
-            dq = np.sum((b[pick[:, i]] - b[pick[:, j]]) ** 2, axis=1)
-            pick = pick[(np.minimum(dp, dq) >= self.config.edge_length**2 * np.maximum(dp, dq)) & (dp > 0)]
-        if len(pick) == 0:
-            return np.empty((0, 4, 4))
-        R, t = weighted_procrustes(torch.from_numpy(a[pick]), torch.from_numpy(b[pick]))  # (H', 3, 3) triplets
-        R, t = R.numpy(), t.numpy()
-        scored = rng.choice(len(a), size=SCORED_MATCHES, replace=False) if len(a) > SCORED_MATCHES else np.arange(len(a))
-        distance = self.config.ransac_distance * self.config.voxel * self.scale
-        support = _support(R, t, a[scored], b[scored], distance)
+        a, b, R, t, support = drawn
+        distance = self.inlier_distance
         centre = a.mean(axis=0)
         moved = R @ centre + t  # where each hypothesis puts the matches' centre
         kept: List[int] = []
@@ -211,6 +206,32 @@ class FeatureMatch:
             if not _near(refits[first, :3, :3], refit_moved[first], refits[k, :3, :3], refit_moved[k], self.scale).any():
                 first.append(k)
         return refits[first]
+
+    def _draw(self, seed: int, hypotheses: int) -> Optional[Tuple[np.ndarray, ...]]:
+        """The matches a (C, 3), b (C, 3), the hypotheses R (H', 3, 3), t (H', 3) of the
+        triplets that pass the edge-length check, and their support (H',); None when there are
+        none. Kept per seed, so that asking again for more candidates does not draw again."""
+        key = (seed, hypotheses)
+        if key not in self._drawn:
+            self._drawn[key] = None
+            a, b = self.matches()
+            if len(a) < 3:
+                return None
+            rng = np.random.default_rng(seed)
+            pick = rng.integers(0, len(a), size=(hypotheses, 3))
+            # Squared edge lengths against the squared ratio, one edge at a time on the triplets
+            # still in: few pass the first (under 1 in 100 pass all three on ModelNet40 crops).
+            for i, j in ((0, 1), (1, 2), (0, 2)):
+                dp = np.sum((a[pick[:, i]] - a[pick[:, j]]) ** 2, axis=1)
+                dq = np.sum((b[pick[:, i]] - b[pick[:, j]]) ** 2, axis=1)
+                pick = pick[(np.minimum(dp, dq) >= self.config.edge_length**2 * np.maximum(dp, dq)) & (dp > 0)]
+            if len(pick) == 0:
+                return None
+            R, t = weighted_procrustes(torch.from_numpy(a[pick]), torch.from_numpy(b[pick]))  # (H', 3, 3) triplets
+            R, t = R.numpy(), t.numpy()
+            scored = rng.choice(len(a), size=SCORED_MATCHES, replace=False) if len(a) > SCORED_MATCHES else np.arange(len(a))
+            self._drawn[key] = (a, b, R, t, _support(R, t, a[scored], b[scored], self.inlier_distance))
+        return self._drawn[key]
 
     @staticmethod
     def _refit(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distance: float) -> np.ndarray:

@@ -376,6 +376,20 @@ def test_aligner_matches_the_plain_call_also_for_files_without_align(tiny_model_
             assert torch.allclose(a, b, atol=1e-6)
 
 
+def test_aligner_describes_a_same_size_pair_in_one_batch_with_the_same_result(tiny_model_path):
+    import torch
+
+    model = load_model(tiny_model_path)
+    assert model.config.shared_encoder
+    rng = np.random.default_rng(1)
+    tgt = torch.as_tensor(rng.normal(size=(1, 70, 3)) * 0.4, dtype=torch.float32)
+    first, later = (torch.as_tensor(rng.normal(size=(1, 70, 3)) * 0.4, dtype=torch.float32) for _ in range(2))
+    run = model.aligner(tgt)
+    for src in (first, later, first):  # the batched first call, then the cached target descriptors
+        for a, b in zip(run(src), model.run(src, tgt)):
+            assert torch.allclose(a, b, atol=1e-5)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_open3d_neighbourhoods_are_the_ball_query_sets(tiny_model_path, seed):
     import torch
@@ -568,6 +582,7 @@ def test_feature_match_candidates_are_distinct_reproducible_and_find_a_large_rot
     first = match.candidates(seed=0, count=8)
     assert 1 < len(first) <= 8 and first.shape[1:] == (4, 4)
     assert np.array_equal(first, match.candidates(seed=0, count=8))  # same seed, same estimates
+    assert np.array_equal(first[:3], match.candidates(seed=0, count=3))  # a larger count extends a smaller one
     assert pair_errors(first[0], truth).rotation_deg < 10.0  # the best-supported is near the truth, before ICP
     # The search's own features match well: the best-supported estimate is close before ICP.
     assert pair_errors(FeatureMatch(moved, tgt, scale).candidates(seed=0, count=8)[0], truth).rotation_deg < 2.0
@@ -701,6 +716,59 @@ def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolu
     sizes.clear()
     register(src[:900], tgt[:900], RegisterConfig(attempt_points=1000, search="off"), model=_NearSightedModel(T[:3, :3]))
     assert sizes == [(900, (1.0, 0.3, 0.1))]  # small clouds: refined once, as they are
+
+
+def test_more_feature_estimates_are_drawn_only_for_a_pair_the_first_ones_do_not_settle(monkeypatch):
+    from o3dsoft import search
+    from o3dsoft.pipeline import FIRST_FEATURE_CANDIDATES
+
+    rng = np.random.default_rng(6)
+    src = blob(rng, 800)
+    T = random_transform(rng, 120.0, 0.2)
+    tgt = apply(T, src)
+    wrong = T @ np.diag([1.0, -1.0, -1.0, 1.0])
+    asked = []
+
+    def right_late(self, seed, count):  # RANSAC stand-in: only its 26th estimate is right
+        asked.append(count)
+        return np.stack([wrong] * 25 + [T])[:count]
+
+    monkeypatch.setattr(search.FeatureMatch, "candidates", right_late)
+    res = register(src, tgt, RegisterConfig(search_weights=None), model=_AlwaysWrongModel(np.eye(3)))
+    assert asked == [FIRST_FEATURE_CANDIDATES, RegisterConfig().search_feature_candidates]
+    assert res.attempts == 1 + 26 and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
+    asked.clear()
+    res = register(src, tgt, RegisterConfig(search_weights=None, search_feature_candidates=10), model=_AlwaysWrongModel(np.eye(3)))
+    assert asked == [10] and res.likely_failed  # a single round of 10 wrong estimates
+
+
+def test_a_schedule_starts_where_the_estimate_is_known_to_be():
+    config = ICPConfig()  # stages at 1.0, 0.3 and 0.1 of the distance
+    assert config.starting_at(0.75).schedule == (0.75, 0.3, 0.1)
+    assert config.starting_at(0.2).schedule == (0.2, 0.1)
+    assert config.starting_at(1.5) is config  # never looser than the schedule's own start
+
+
+def test_feature_match_estimates_start_icp_at_the_ransac_distance(monkeypatch):
+    from o3dsoft import refine, search
+
+    rng = np.random.default_rng(5)
+    src = blob(rng, 800)
+    T = random_transform(rng, 120.0, 0.2)
+    tgt = apply(T, src)
+    schedules = []
+    real_icp = refine.icp
+
+    def recording_icp(source, target, init, distance, config=refine.ICPConfig()):
+        schedules.append(config.schedule)
+        return real_icp(source, target, init, distance, config)
+
+    monkeypatch.setattr(refine, "icp", recording_icp)
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: T[None])
+    res = register(src, tgt, RegisterConfig(search_weights=None), model=_AlwaysWrongModel(np.eye(3)))
+    assert res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
+    # RANSAC's inlier distance is 1.5 voxels of 0.05 x scale; ICP's distance is 0.1 x scale.
+    assert schedules == [(1.0, 0.3, 0.1), (0.75, 0.3, 0.1)]  # the network's estimate, then the match's
 
 
 def test_a_right_alignment_of_two_partial_scans_is_trusted():
