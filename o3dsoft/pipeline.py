@@ -64,7 +64,7 @@ class RegisterConfig:
             search: unused when it does not run.
         search_feature_candidates: the feature match keeps up to this many distinct estimates,
             the best-supported first, refined and scored in turn until one is confident (the
-            first 20 are drawn up front, the rest only for pairs still not confident). On the
+            first 20 are picked up front, the rest only for pairs still not confident). On the
             whole ModelNet40 test split, recall at (1 deg, 0.01) `rpmnet-crop` / `so3-crop`:
             70.5 / 55.8 % with Open3D's RANSAC tried up to 3 times on the tutorial's features,
             85.6 / 71.4 % with 20 estimates on the same features, 87.8 / 86.5 % on the search's
