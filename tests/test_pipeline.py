@@ -694,21 +694,27 @@ def test_a_rotation_prior_rejects_a_confident_answer_beyond_it(monkeypatch):
     assert res.likely_failed and res.confidence == 0.0  # nothing found within the bound
 
 
-def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolution(monkeypatch):
+def _record_icp(monkeypatch) -> list:
+    """Make every ICP run record (source size, distance schedule) in the list returned."""
     from o3dsoft import refine
 
+    calls = []
+    real_icp = refine.icp
+
+    def recording_icp(source, target, init, distance, config=refine.ICPConfig()):
+        calls.append((len(source), config.schedule))
+        return real_icp(source, target, init, distance, config)
+
+    monkeypatch.setattr(refine, "icp", recording_icp)
+    return calls
+
+
+def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolution(monkeypatch):
     rng = np.random.default_rng(8)
     src = blob(rng, 6000)
     T = random_transform(rng, 30.0, 0.2)
     tgt = apply(T, src)
-    sizes = []
-    real_icp = refine.icp
-
-    def recording_icp(source, target, init, distance, config=refine.ICPConfig()):
-        sizes.append((len(source), config.schedule))
-        return real_icp(source, target, init, distance, config)
-
-    monkeypatch.setattr(refine, "icp", recording_icp)
+    sizes = _record_icp(monkeypatch)
     res = register(src, tgt, RegisterConfig(attempt_points=1000, search="off"), model=_NearSightedModel(T[:3, :3]))
     assert sizes[0][0] <= 1000 and sizes[0][1] == (1.0, 0.3, 0.1)
     assert sizes[-1] == (6000, (0.3, 0.1))  # the tight stages at full resolution
@@ -750,25 +756,18 @@ def test_a_schedule_starts_where_the_estimate_is_known_to_be():
 
 
 def test_feature_match_estimates_start_icp_at_the_ransac_distance(monkeypatch):
-    from o3dsoft import refine, search
+    from o3dsoft import search
 
     rng = np.random.default_rng(5)
     src = blob(rng, 800)
     T = random_transform(rng, 120.0, 0.2)
     tgt = apply(T, src)
-    schedules = []
-    real_icp = refine.icp
-
-    def recording_icp(source, target, init, distance, config=refine.ICPConfig()):
-        schedules.append(config.schedule)
-        return real_icp(source, target, init, distance, config)
-
-    monkeypatch.setattr(refine, "icp", recording_icp)
+    calls = _record_icp(monkeypatch)
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: T[None])
     res = register(src, tgt, RegisterConfig(search_weights=None), model=_AlwaysWrongModel(np.eye(3)))
     assert res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
     # RANSAC's inlier distance is 1.5 voxels of 0.05 x scale; ICP's distance is 0.1 x scale.
-    assert schedules == [(1.0, 0.3, 0.1), (0.75, 0.3, 0.1)]  # the network's estimate, then the match's
+    assert [schedule for _, schedule in calls] == [(1.0, 0.3, 0.1), (0.75, 0.3, 0.1)]  # the network's estimate, then the match's
 
 
 def test_a_right_alignment_of_two_partial_scans_is_trusted():
