@@ -295,7 +295,10 @@ def register(
     T_coarse = denormalise_transform(estimate.transform, norm)
     attempts = [finish(T_coarse, T_coarse)]
 
-    searched = config.search == "always" or (config.search == "auto" and attempts[0].trust < confidence_stage.LIKELY_FAILED_BELOW)
+    def confident() -> bool:  # some attempt so far is trusted
+        return max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW
+
+    searched = config.search == "always" or (config.search == "auto" and not confident())
     if searched and config.search_features:
         # Search, first: FPFH features matched by RANSAC, which keeps its best-supported distinct
         # estimates; each is refined and scored in turn until one is confident. Cheap per
@@ -309,16 +312,16 @@ def register(
         # the rest cost only the pairs that need them.
         tried = 0
         for count in sorted({min(FIRST_FEATURE_CANDIDATES, config.search_feature_candidates), config.search_feature_candidates}):
-            if tried and max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW:
+            if tried and confident():
                 break
             feature_candidates = matcher.candidates(config.seed, count)[tried:]  # each round extends the last
             tried += len(feature_candidates)
             lap("search")
             for T_features in filter(lambda T: admissible(T, PRIOR_MARGIN_DEG), feature_candidates):
-                if len(attempts) > 1 and max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW:
+                if len(attempts) > 1 and confident():
                     break
                 attempts.append(finish(T_features, T_features, icp=feature_icp))
-    if searched and max(a.trust for a in attempts) < confidence_stage.LIKELY_FAILED_BELOW:
+    if searched and not confident():
         # Search, last: the network from the 24 cube rotations on smaller samples; the best-ranked
         # are polished by ICP on the network's samples, and the one that fits best there is
         # refined at full resolution and scored.
