@@ -80,7 +80,10 @@ class RegisterConfig:
         max_rotation: the clouds are given within this many degrees of their true relative
             rotation (a prior, e.g. from odometry or a scanner's set-up): estimates that rotate
             the source by more are not trusted (confidence 0), so the search goes on until it
-            finds a confident one within the bound. None: any rotation.
+            finds a confident one within the bound. The result lies within it: when nothing
+            confident is found there, the most trusted estimate within it, or else the pose as
+            given (refined by ICP where that stays within), flagged likely failed. None: any
+            rotation.
         refine: run ICP after the network.
         icp: settings of the fine stage.
         weights: TorchScript model file, or a shipped model's name ("default", "paper"); None for
@@ -276,9 +279,9 @@ def register(
         return config.max_rotation is None or rotation_angle_deg(T[:3, :3]) <= config.max_rotation + margin
 
     def finish(start: np.ndarray, T_coarse: np.ndarray, src_at: np.ndarray = src_work, tgt_at: np.ndarray = tgt_work,
-               icp: refine_stage.ICPConfig = config.icp) -> _Attempt:
+               icp: refine_stage.ICPConfig = config.icp, refine: bool = config.refine) -> _Attempt:
         # Refine: point-to-point ICP from `start` (or just score it).
-        if config.refine:
+        if refine:
             fine = refine_stage.icp(src_at, tgt_at, start, distance, icp)
         else:
             fine = refine_stage.evaluate(src_at, tgt_at, start, distance, config.icp.max_points)
@@ -340,7 +343,13 @@ def register(
         chosen = search_stage.select(src_net, tgt_net, candidates, distance, config.search_refine, config.icp if config.refine else None)
         lap("search")
         attempts.append(finish(chosen.polished, chosen.estimate))
-    best = max(attempts, key=lambda a: a.trust)
+    # The most trusted; under a rotation prior, one within the bound before any beyond it.
+    best = max(attempts, key=lambda a: (admissible(a.fine.transformation), a.trust))
+    if not admissible(best.fine.transformation):
+        # Nothing found within the prior: the pose as given, refined if ICP keeps it there.
+        best = finish(np.eye(4), np.eye(4))
+        if not admissible(best.fine.transformation):
+            best = finish(np.eye(4), np.eye(4), refine=False)
     if reduced:
         # At full resolution, only the tight stages: the loose first one would pull the converged
         # estimate towards the parts with no partner (partial overlap) and cost the most.
