@@ -136,6 +136,8 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
         turn = rotation_angle_deg(result.transformation[:3, :3])
         if max_rotation is not None and turn > max_rotation:
             why = f"it rotates the source by {turn:.1f} degrees, beyond --max-rotation {max_rotation:g}"
+        elif max_rotation is not None and result.confidence == 0.0:
+            why = f"ICP leaves --max-rotation {max_rotation:g} from every estimate, so the pose as given is returned unrefined"
         else:
             why = (f"of the points near the other cloud, only {100 * result.consistency:.0f} % lie within "
                    f"{result.tight_distance:.3g} units of it")

@@ -82,8 +82,8 @@ class RegisterConfig:
             the source by more are not trusted (confidence 0), so the search goes on until it
             finds a confident one within the bound. The result lies within it: when nothing
             confident is found there, the most trusted estimate within it, or else the pose as
-            given (refined by ICP where that stays within), flagged likely failed. None: any
-            rotation.
+            given (refined by ICP where that stays within; else as it is, with confidence 0),
+            flagged likely failed. None: any rotation.
         refine: run ICP after the network.
         icp: settings of the fine stage.
         weights: TorchScript model file, or a shipped model's name ("default", "paper"); None for
@@ -349,7 +349,8 @@ def register(
         # Nothing found within the prior: the pose as given, refined if ICP keeps it there.
         best = finish(np.eye(4), np.eye(4))
         if not admissible(best.fine.transformation):
-            best = finish(np.eye(4), np.eye(4), refine=False)
+            # ICP leaves the bound from there too: the clouds disagree with the prior.
+            best = finish(np.eye(4), np.eye(4), refine=False)._replace(trust=0.0)
     if reduced:
         # At full resolution, only the tight stages: the loose first one would pull the converged
         # estimate towards the parts with no partner (partial overlap) and cost the most.
