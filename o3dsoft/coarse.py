@@ -95,6 +95,18 @@ def export_torchscript(model: SoftAlignNet, config: NetConfig, path: Union[str, 
     return path
 
 
+def rescript(model: "CoarseModel", path: Union[str, Path]) -> Path:
+    """Write `model`'s weights and metadata to `path` again, scripted with the current code.
+
+    A TorchScript file carries the inference code of the release that exported it; this brings
+    a trained model's file up to date without its training checkpoint.
+    """
+    config = model.config
+    net = SoftAlignNet(config)
+    net.load_state_dict({k: v.cpu() for k, v in model.module.state_dict().items()})
+    return export_torchscript(net, config, path, model.meta.get("info"))
+
+
 @dataclass
 class CoarseModel:
     """A loaded TorchScript soft-alignment model and what its file says about it."""

@@ -198,6 +198,17 @@ def _gather_max_autograd(rows: torch.Tensor, flat: torch.Tensor) -> torch.Tensor
     return _GatherMax.apply(rows, flat)
 
 
+def _gather_max_columns(rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+    """max_k rows[cols[k]] for (M, C) rows and (K, M) contiguous index columns, into reused
+    buffers (no gradient): (M, C)."""
+    out = rows.index_select(0, cols[0])
+    cand = torch.empty_like(out)
+    for k in range(1, cols.shape[0]):
+        torch.index_select(rows, 0, cols[k], out=cand)
+        torch.maximum(out, cand, out=out)
+    return out
+
+
 def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """Max of point features over each neighbourhood.
 
@@ -217,16 +228,20 @@ def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         # and allocating each step (2-core machine, N = 1024, C = 64-512).
         # (out= variants do not record gradients: only without them.)
         cols = flat.t().contiguous()
-        out = rows.index_select(0, cols[0])
         if rows.requires_grad:
+            out = rows.index_select(0, cols[0])
             for k in range(1, cols.shape[0]):
                 out = torch.maximum(out, rows.index_select(0, cols[k]))
             return out.view(b, n, c)
-        cand = torch.empty_like(out)
-        for k in range(1, cols.shape[0]):
-            torch.index_select(rows, 0, cols[k], out=cand)
-            torch.maximum(out, cand, out=out)
-        return out.view(b, n, c)
+        # On the CPU, channel blocks: the rows gathered K times stay in cache. The 512-channel
+        # layer ran 1.9x faster in blocks of 64 than at once (2-core machine, N = 1024; exact).
+        block = 64
+        if rows.device.type != "cpu" or c <= block:
+            return _gather_max_columns(rows, cols).view(b, n, c)
+        blocks: List[torch.Tensor] = []
+        for s in range(0, c, block):
+            blocks.append(_gather_max_columns(rows[:, s : s + block].contiguous(), cols))
+        return torch.cat(blocks, dim=1).view(b, n, c)
     if not z.requires_grad:
         return _gather_max_rows(rows, flat).view(b, n, c)
     return _gather_max_autograd(rows, flat).view(b, n, c)

@@ -59,6 +59,19 @@ def test_gather_max_matches_naive_and_gradients():
     assert torch.allclose(gz, gz_naive)
 
 
+@pytest.mark.parametrize("channels", [7, 64, 150])
+def test_scripted_gather_max_matches_naive_in_channel_blocks_or_not(channels):
+    # TorchScript takes its own paths: one loop over K with gradients, channel blocks of 64
+    # (150 = two whole blocks and a part) into reused buffers without.
+    scripted = torch.jit.script(gather_max)
+    z = torch.randn(2, 90, channels)
+    idx = torch.randint(0, 90, (2, 90, 6))
+    naive = torch.stack([z[b][idx[b]].amax(dim=1) for b in range(2)])
+    with torch.no_grad():
+        assert torch.equal(scripted(z, idx), naive)
+    assert torch.equal(scripted(z.requires_grad_(), idx), naive)
+
+
 def test_gather_at_once_path_matches_chunked_loops():
     # The path GPUs take, checked on the CPU against the chunked loops: values and arg-max slots
     # (no ties in random features; the slot picks the row the gradient flows to).
@@ -228,3 +241,14 @@ def test_relative_network_scripts_and_round_trips_its_config():
     scripted = torch.jit.script(net)
     for a, b in zip(net(src, tgt), scripted(src, tgt)):
         assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_rescripting_a_model_file_keeps_its_weights_metadata_and_outputs(tiny_model_path, tmp_path):
+    from o3dsoft.coarse import load_model, rescript
+
+    old = load_model(tiny_model_path)
+    new = load_model(rescript(old, tmp_path / "again.pt"))
+    assert new.meta == old.meta
+    src, tgt = _cloud(n=64, dtype=torch.float32), _cloud(n=50, seed=1, dtype=torch.float32)
+    for a, b in zip(old.run(src, tgt), new.run(src, tgt)):
+        assert torch.equal(a, b)
