@@ -283,7 +283,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
     if {"o3dsoft", "o3dsoft-coarse"} & set(methods):
         result = register(src, tgt, config.register, model=model, search_model=search_model)
         t = result.timings_ms
-        coarse_ms = {"coarse": t["clean"] + t["sample_normalise"] + t["coarse"], **({"search": t["search"]} if "search" in t else {})}
+        coarse_ms = {"coarse": t["clean"] + t["sample_normalise"] + t.get("coarse", 0.0), **({"search": t["search"]} if "search" in t else {})}
         # The coarse estimate the kept result was refined from. After a search it is one of the
         # search's estimates, picked with ICP on samples (whose time is the search's), so on
         # searched pairs this row is not the network alone (those have a time_search_ms in the CSV).

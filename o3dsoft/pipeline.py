@@ -5,6 +5,8 @@
     -> refine (Open3D point-to-point ICP, full resolution) -> score (confidence)
     -> if flagged: search (a feature match's estimates in turn, then the nets from 39 starts),
        until one is confident; the most confident kept
+    (When the clouds' profiles say partial overlap, the feature match goes before the network,
+    which then runs only if the match finds nothing confident.)
 
 Each stage is a function of its own module (:mod:`o3dsoft.preprocess`, :mod:`o3dsoft.coarse`,
 :mod:`o3dsoft.refine`, :mod:`o3dsoft.confidence`, :mod:`o3dsoft.search`) and can be called alone.
@@ -14,7 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Dict, NamedTuple, Optional, Union
+from typing import Dict, List, NamedTuple, Optional, Union
 
 import numpy as np
 
@@ -23,7 +25,8 @@ from . import confidence as confidence_stage
 from . import refine as refine_stage
 from . import search as search_stage
 from .errors import InputError
-from .preprocess import clean_points, denormalise_transform, normalise_pair, normalisation_for, sample_points, voxel_downsample
+from .preprocess import (clean_points, denormalise_transform, normalise_pair, normalisation_for, same_profile_pvalue, sample_points,
+                         voxel_downsample)
 from .transforms import rotation_angle_deg
 
 SEARCH_MODES = ("auto", "always", "off")
@@ -32,6 +35,9 @@ SEARCH_MODES = ("auto", "always", "off")
 PRIOR_MARGIN_DEG = 10.0
 # The feature match's first round of candidates (RegisterConfig.search_feature_candidates).
 FIRST_FEATURE_CANDIDATES = 20
+# Below this p-value of :func:`o3dsoft.preprocess.same_profile_pvalue` the clouds are taken for a
+# partial overlap, and the search's feature match runs before the network.
+PARTIAL_PROFILE_PVALUE = 0.01
 CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud"]  # noqa: F821
 
 
@@ -45,8 +51,12 @@ class RegisterConfig:
         num_points: points sampled from each cloud for the network.
         coarse_iterations: network passes, each on the source moved by the estimate so far.
         search: the global search (:mod:`o3dsoft.search`), for pairs with no usable initial
-            guess: "auto" runs it when the first result is flagged likely failed, "always" on
-            every pair, "off" never. It tries the feature match's estimates first (if
+            guess: "auto" runs it when the first result is flagged likely failed, or first of
+            all when the clouds look like a partial overlap (their distances to their centroids
+            differ, :func:`o3dsoft.preprocess.same_profile_pvalue` below
+            :data:`PARTIAL_PROFILE_PVALUE`; the network, trained on complete shapes, is then
+            run only if the feature match finds nothing confident); "always" on every pair;
+            "off" never. It tries the feature match's estimates first (if
             `search_features`), then, while no result is confident, the network from 24
             starting rotations (and the search network from 15, see `search_weights`); the most
             confident result is returned. Without `refine`, the search's top-ranked
@@ -152,7 +162,8 @@ class RegistrationResult:
             `correspondence_distance` of the other cloud, the share within `tight_distance` (0-1,
             higher is better; partial overlap does not lower it).
         mean_weight: mean of the network's per-point weights w_i = max_j W_ij in its first
-            pass (0-1).
+            pass (0-1); None when the network did not run (the feature match, tried first on a
+            partial overlap, found a confident result).
         correspondence_distance: the ICP / scoring distance used (cloud units).
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
@@ -172,7 +183,7 @@ class RegistrationResult:
     fitness_tight: float
     tight_distance: float
     consistency: float
-    mean_weight: float
+    mean_weight: Optional[float]
     correspondence_distance: float
     scale: float
     timings_ms: Dict[str, float]
@@ -292,20 +303,23 @@ def register(
         lap("score")
         return _Attempt(trust, scored, fine, T_coarse)
 
-    # Coarse: the soft-alignment network, then back to the original frames.
-    estimate = coarse_stage.estimate(model, src_norm, tgt_norm, config.coarse_iterations)
-    lap("coarse")
-    T_coarse = denormalise_transform(estimate.transform, norm)
-    attempts = [finish(T_coarse, T_coarse)]
+    attempts: List[_Attempt] = []
 
     def confident() -> bool:  # some attempt so far is trusted
-        return max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW
+        return bool(attempts) and max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW
 
-    searched = config.search == "always" or (config.search == "auto" and not confident())
-    if searched and config.search_features:
-        # Search, first: FPFH features matched by RANSAC, which keeps its best-supported distinct
-        # estimates; each is refined and scored in turn until one is confident. Cheap per
-        # estimate, and on partial overlap far more often right than the network's starts.
+    def network_pass() -> coarse_stage.CoarseEstimate:
+        # Coarse: the soft-alignment network, then back to the original frames.
+        estimate = coarse_stage.estimate(model, src_norm, tgt_norm, config.coarse_iterations)
+        lap("coarse")
+        T_coarse = denormalise_transform(estimate.transform, norm)
+        attempts.append(finish(T_coarse, T_coarse))
+        return estimate
+
+    def feature_match() -> None:
+        # FPFH features matched by RANSAC, which keeps its best-supported distinct estimates;
+        # each is refined and scored in turn until one is confident. Cheap per estimate, and on
+        # partial overlap far more often right than the network's starts.
         matcher = search_stage.FeatureMatch(src_points, tgt_points, norm.scale)
         # A candidate is fitted to matches it carries to within RANSAC's inlier distance, so ICP
         # starts there rather than at its loosest stage, which pulls some right estimates of
@@ -313,7 +327,7 @@ def register(
         feature_icp = config.icp.starting_at(matcher.inlier_distance / distance)
         # In two rounds: most pairs have a confident estimate among the first few candidates, and
         # the rest cost only the pairs that need them.
-        tried = 0
+        before, tried = len(attempts), 0
         for count in sorted({min(FIRST_FEATURE_CANDIDATES, config.search_feature_candidates), config.search_feature_candidates}):
             if tried and confident():
                 break
@@ -321,9 +335,22 @@ def register(
             tried += len(feature_candidates)
             lap("search")
             for T_features in filter(lambda T: admissible(T, PRIOR_MARGIN_DEG), feature_candidates):
-                if len(attempts) > 1 and confident():
+                if len(attempts) > before and confident():
                     break
                 attempts.append(finish(T_features, T_features, icp=feature_icp))
+
+    # Partial overlap (the clouds' profiles differ): the network, trained on complete shapes, is
+    # seldom confident there, so the feature match goes first and the network runs only when
+    # it finds nothing confident.
+    features_first = (config.search != "off" and config.search_features
+                      and same_profile_pvalue(src_net, tgt_net) < PARTIAL_PROFILE_PVALUE)
+    lap("sample_normalise")
+    if features_first:
+        feature_match()
+    estimate = network_pass() if not (features_first and confident()) else None
+    searched = features_first or config.search == "always" or (config.search == "auto" and not confident())
+    if searched and config.search_features and not features_first:
+        feature_match()
     if searched and not confident():
         # Search, last: the network from the 24 cube rotations on smaller samples; the best-ranked
         # are polished by ICP on the network's samples, and the one that fits best there is
@@ -368,7 +395,7 @@ def register(
         fitness_tight=best.scored.fitness_tight,
         tight_distance=best.scored.tight_distance,
         consistency=best.scored.consistency,
-        mean_weight=float(np.mean(estimate.weights)),
+        mean_weight=None if estimate is None else float(np.mean(estimate.weights)),
         correspondence_distance=distance,
         scale=norm.scale,
         timings_ms=timings,

@@ -788,3 +788,25 @@ def test_a_right_alignment_of_two_partial_scans_is_trusted():
     off = T.copy()
     off[:3, :3] = euler_to_matrix([3.0, 0.0, 0.0]) @ T[:3, :3]
     assert confidence(features(src, tgt, off, distance)) < 0.5
+
+
+def test_on_a_partial_overlap_the_feature_match_goes_before_the_network(monkeypatch):
+    from o3dsoft import search
+
+    rng = np.random.default_rng(9)
+    shape = blob(rng, 1600)
+    T = random_transform(rng, 120.0, 0.2)
+    src = shape[shape[:, 0] < np.quantile(shape[:, 0], 0.6)]  # a part of the shape
+    tgt = apply(T, shape)
+    wrong = T @ np.diag([1.0, -1.0, -1.0, 1.0])
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: T[None])
+    res = register(src, tgt, RegisterConfig(search_weights=None), model=_AlwaysWrongModel(np.eye(3)))
+    # the match's estimate is confident: the network never runs
+    assert res.searched and res.attempts == 1 and "coarse" not in res.timings_ms and res.mean_weight is None
+    assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: wrong[None])
+    res = register(src, tgt, RegisterConfig(search_weights=None), model=_AlwaysWrongModel(np.eye(3)))
+    # nothing confident from the match: then the network's pass, then its starts
+    assert res.attempts == 3 and "coarse" in res.timings_ms and res.mean_weight is not None
+    res = register(src, tgt, RegisterConfig(search="off"), model=_AlwaysWrongModel(np.eye(3)))
+    assert not res.searched and res.attempts == 1 and res.mean_weight is not None  # without the search: the network alone

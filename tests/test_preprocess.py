@@ -10,6 +10,7 @@ from o3dsoft.preprocess import (
     normalisation_for,
     normalise_pair,
     normalise_transform,
+    same_profile_pvalue,
     sample_points,
 )
 
@@ -71,3 +72,14 @@ def test_normalisation_uses_both_clouds():
     a = blob(np.random.default_rng(0), 50)
     n = normalisation_for(a, a * 3)
     assert n.scale == pytest.approx(3 * np.linalg.norm(a - a.mean(0), axis=1).max())
+
+
+def test_profiles_tell_a_partial_overlap_from_two_samplings_of_one_shape():
+    rng = np.random.default_rng(4)
+    shape = blob(rng, 4000)
+    a, b = shape[:1000], shape[1000:2000]  # two samplings of one shape
+    moved = apply(random_transform(rng, 180.0, 5.0), b)
+    assert same_profile_pvalue(a, moved) > 0.01
+    assert same_profile_pvalue(a, moved) == pytest.approx(same_profile_pvalue(a, b), abs=1e-9)  # rigid motions change nothing
+    part = shape[2000:][shape[2000:, 0] < np.quantile(shape[2000:, 0], 0.7)]  # 70 % of another sampling, cut by a plane
+    assert same_profile_pvalue(a, part) < 0.01
