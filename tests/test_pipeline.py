@@ -810,3 +810,23 @@ def test_on_a_partial_overlap_the_feature_match_goes_before_the_network(monkeypa
     assert res.attempts == 3 and "coarse" in res.timings_ms and res.mean_weight is not None
     res = register(src, tgt, RegisterConfig(search="off"), model=_AlwaysWrongModel(np.eye(3)))
     assert not res.searched and res.attempts == 1 and res.mean_weight is not None  # without the search: the network alone
+
+
+def test_the_feature_match_gives_the_same_candidates_with_or_without_its_distance_tables(monkeypatch, modelnet_root):
+    from o3dsoft import search
+    from o3dsoft.data import get_protocol, load_pairs
+    from o3dsoft.preprocess import normalisation_for
+
+    pair = load_pairs(modelnet_root, "test", get_protocol("rpmnet-crop"), 0)[0]  # a crop: many distinct estimates
+    src, tgt = pair.source.astype(np.float64), pair.target.astype(np.float64)
+    scale = normalisation_for(src, tgt).scale
+    def indices_and_candidates():
+        match = search.FeatureMatch(src, tgt, scale)
+        return match.match_indices(), match.candidates(0, 20), max(len(p) for p in match.points())
+
+    (ms, mt), candidates, largest = indices_and_candidates()
+    assert largest <= search.TABLE_POINTS and len(candidates) > 1  # the tables are used
+    monkeypatch.setattr(search, "TABLE_POINTS", 0)  # KD-trees and coordinates instead
+    (ms_tree, mt_tree), candidates_tree, _ = indices_and_candidates()
+    assert np.array_equal(ms, ms_tree) and np.array_equal(mt, mt_tree)
+    assert np.array_equal(candidates, candidates_tree)
