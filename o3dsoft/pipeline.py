@@ -3,7 +3,8 @@
     clean (drop NaN/inf, duplicates; optional voxel grid) -> sample N points for the net
     -> normalise (centre, one scale) -> coarse net (TorchScript) -> map back
     -> refine (Open3D point-to-point ICP, full resolution) -> score (confidence)
-    -> if flagged: search (a feature match's estimates in turn, then the nets from 39 starts),
+    -> if flagged: search (a feature match's estimates in turn, then the nets from 39 starts,
+       then the translations the feature matches vote for at the best results' rotations),
        until one is confident; the most confident kept
     (When the clouds' profiles say partial overlap, the feature match goes before the network,
     which then runs only if the match finds nothing confident.)
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Dict, List, NamedTuple, Optional, Union
+from typing import Dict, List, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 
@@ -35,6 +36,11 @@ SEARCH_MODES = ("auto", "always", "off")
 PRIOR_MARGIN_DEG = 10.0
 # The feature match's first round of candidates (RegisterConfig.search_feature_candidates).
 FIRST_FEATURE_CANDIDATES = 20
+# When nothing is confident after the search: the feature matches' translation votes
+# (:meth:`o3dsoft.search.FeatureMatch.translations`) at the rotations of this many of the most
+# trusted results (distinct by search.DISTINCT_DEG), this many translations each.
+VOTED_ROTATIONS = 2
+VOTED_TRANSLATIONS = 10
 # Below this p-value of :func:`o3dsoft.preprocess.same_profile_pvalue` the clouds are taken for a
 # partial overlap, and the search's feature match runs before the network.
 PARTIAL_PROFILE_PVALUE = 0.01
@@ -58,7 +64,9 @@ class RegisterConfig:
             run only if the feature match finds nothing confident); "always" on every pair;
             "off" never. It tries the feature match's estimates first (if
             `search_features`), then, while no result is confident, the network from 24
-            starting rotations (and the search network from 15, see `search_weights`); the most
+            starting rotations (and the search network from 15, see `search_weights`), then (if
+            `search_features`) at the rotations of the :data:`VOTED_ROTATIONS` most trusted results,
+            the :data:`VOTED_TRANSLATIONS` translations most feature matches vote for; the most
             confident result is returned. Without `refine`, the search's top-ranked
             estimate is taken as it is.
         search_points: points per cloud for the search's batch of network passes.
@@ -316,15 +324,21 @@ def register(
         attempts.append(finish(T_coarse, T_coarse))
         return estimate
 
+    matchers: List[search_stage.FeatureMatch] = []  # the FPFH features, computed once
+
+    def feature_matcher() -> Tuple[search_stage.FeatureMatch, refine_stage.ICPConfig]:
+        if not matchers:
+            matchers.append(search_stage.FeatureMatch(src_points, tgt_points, norm.scale))
+        # A candidate carries its matches to within RANSAC's inlier distance, so ICP starts there
+        # rather than at its loosest stage, which pulls some right estimates of partial clouds
+        # towards the parts with no partner.
+        return matchers[0], config.icp.starting_at(matchers[0].inlier_distance / distance)
+
     def feature_match() -> None:
         # FPFH features matched by RANSAC, which keeps its best-supported distinct estimates;
         # each is refined and scored in turn until one is confident. Cheap per estimate, and on
         # partial overlap far more often right than the network's starts.
-        matcher = search_stage.FeatureMatch(src_points, tgt_points, norm.scale)
-        # A candidate is fitted to matches it carries to within RANSAC's inlier distance, so ICP
-        # starts there rather than at its loosest stage, which pulls some right estimates of
-        # partial clouds towards the parts with no partner.
-        feature_icp = config.icp.starting_at(matcher.inlier_distance / distance)
+        matcher, feature_icp = feature_matcher()
         # In two rounds: most pairs have a confident estimate among the first few candidates, and
         # the rest cost only the pairs that need them.
         before, tried = len(attempts), 0
@@ -370,6 +384,25 @@ def register(
         chosen = search_stage.select(src_net, tgt_net, candidates, distance, config.search_refine, config.icp if config.refine else None)
         lap("search")
         attempts.append(finish(chosen.polished, chosen.estimate))
+    if searched and config.search_features and not confident():
+        # Last: at the rotations of the most trusted results, the translations the feature
+        # matches vote for (one right match suffices there), for shapes whose estimates slide
+        # along a flat or repeated part at about the right rotation.
+        matcher, feature_icp = feature_matcher()
+        ranked = sorted(attempts, key=lambda a: (admissible(a.fine.transformation), a.trust), reverse=True)
+        rotations: List[np.ndarray] = []
+        for a in ranked:
+            if len(rotations) >= VOTED_ROTATIONS:
+                break
+            R = a.fine.transformation[:3, :3]
+            if admissible(a.fine.transformation) and all(rotation_angle_deg(R.T @ Q) > search_stage.DISTINCT_DEG for Q in rotations):
+                rotations.append(R)
+        voted = [T for R in rotations for T in matcher.translations(R, VOTED_TRANSLATIONS)]
+        lap("search")
+        for T_voted in voted:
+            if confident():
+                break
+            attempts.append(finish(T_voted, T_voted, icp=feature_icp))
     # The most trusted; under a rotation prior, one within the bound before any beyond it.
     best = max(attempts, key=lambda a: (admissible(a.fine.transformation), a.trust))
     if not admissible(best.fine.transformation):

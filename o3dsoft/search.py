@@ -218,6 +218,39 @@ class FeatureMatch:
                 first.append(k)
         return refits[first]
 
+    def translations(self, rotation: np.ndarray, count: int) -> np.ndarray:
+        """Estimates that keep `rotation` and take the translations most matches vote for: (H, 4, 4).
+
+        Under the right rotation R every right match (a, b) gives the same t = b - R a, so one
+        right match is enough where RANSAC needs three at once. Each match votes for its t; the
+        translation with the most votes within the RANSAC distance wins, its neighbourhood (two
+        distances) is taken out, and so on, up to `count` estimates, each at the mean of its
+        voters. For pairs whose feature estimates all slide along a flat or repeated shape at
+        about the right rotation. Empty when there are no matches.
+
+        Args:
+            rotation: (3, 3) rotation of the source.
+            count: at most this many estimates (at least 1).
+        """
+        if count < 1:
+            raise ValueError(f"count must be at least 1, got {count}")
+        (ps, pt), (ms, mt) = self.points(), self.match_indices()
+        if len(ms) == 0:
+            return np.empty((0, 4, 4))
+        votes = pt[mt] - ps[ms] @ np.asarray(rotation).T
+        tree = cKDTree(votes)
+        radius = self.inlier_distance
+        support = tree.query_ball_point(votes, radius, return_length=True)
+        free = np.ones(len(votes), dtype=bool)
+        estimates: List[np.ndarray] = []
+        for i in np.argsort(-support, kind="stable"):
+            if free[i]:
+                estimates.append(rigid(rotation, votes[tree.query_ball_point(votes[i], radius)].mean(axis=0)))
+                if len(estimates) == count:
+                    break
+                free[tree.query_ball_point(votes[i], 2.0 * radius)] = False
+        return np.stack(estimates)
+
     def _draw(self, seed: int, hypotheses: int) -> Optional[Tuple[np.ndarray, ...]]:
         """The matches a (C, 3), b (C, 3), the hypotheses R (H', 3, 3), t (H', 3) of the
         triplets that pass the edge-length check, and their support (H',); None when there are

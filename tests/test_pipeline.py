@@ -830,3 +830,49 @@ def test_the_feature_match_gives_the_same_candidates_with_or_without_its_distanc
     (ms_tree, mt_tree), candidates_tree, _ = indices_and_candidates()
     assert np.array_equal(ms, ms_tree) and np.array_equal(mt, mt_tree)
     assert np.array_equal(candidates, candidates_tree)
+
+
+def _moved_bunny(seed):
+    src = o3dsoft.read_points(EXAMPLES / "bun000.ply")[::4]
+    T = random_transform(np.random.default_rng(seed), 150.0, 0.1)
+    return src, apply(T, src), T
+
+
+def test_feature_matches_vote_for_the_translation_at_a_given_rotation():
+    from o3dsoft.preprocess import normalisation_for
+    from o3dsoft.search import FeatureMatch
+
+    src, tgt, T = _moved_bunny(3)
+    matcher = FeatureMatch(src, tgt, normalisation_for(src, tgt).scale)
+    voted = matcher.translations(T[:3, :3], 3)
+    assert 1 <= len(voted) <= 3 and np.allclose(voted[:, :3, :3], T[:3, :3])
+    assert np.linalg.norm(voted[0, :3, 3] - T[:3, 3]) < matcher.inlier_distance  # the most votes: the right one
+    with pytest.raises(ValueError, match="count"):
+        matcher.translations(T[:3, :3], 0)
+
+
+def test_an_estimate_slid_off_at_the_right_rotation_is_mended_by_the_translation_votes(monkeypatch):
+    from o3dsoft import pipeline, search
+
+    src, tgt, T = _moved_bunny(4)
+    slid = T.copy()
+    slid[:3, 3] += np.array([0.6, 0.0, 0.0]) * np.ptp(src, axis=0).max()  # right rotation, far off
+    flipped = T @ np.diag([1.0, -1.0, -1.0, 1.0])
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: slid[None])
+    monkeypatch.setattr(search, "select", lambda *args: search.Choice(flipped, flipped))  # the network's starts: wrong
+    voted = []
+    real_translations = search.FeatureMatch.translations
+
+    def recording_translations(self, rotation, count):
+        estimates = real_translations(self, rotation, count)
+        voted.extend(estimates)
+        return estimates
+
+    monkeypatch.setattr(search.FeatureMatch, "translations", recording_translations)
+    config = RegisterConfig(search_weights=None)
+    model = _AlwaysWrongModel(flipped[:3, :3])
+    res = register(src, tgt, config, model=model)
+    assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5
+    assert any(np.array_equal(res.coarse_transformation, V) for V in voted)  # kept: a voted estimate
+    monkeypatch.setattr(pipeline, "VOTED_ROTATIONS", 0)  # the same without the votes
+    assert register(src, tgt, config, model=model).likely_failed
