@@ -9,7 +9,10 @@ unreliable (the paper's experiment 10), so the search pre-rotates the source by 
 the 24 rotations of a cube, which cover SO(3) (every rotation lies within 62.8 degrees of one of
 them), runs the network on all of them as one batch, ranks the estimates by the share of sampled
 source points that land near the target, polishes the best few by ICP on the samples and keeps
-the one that fits best, for the pipeline to refine at full resolution.
+the one that fits best, for the pipeline to refine at full resolution. Last, for pairs still
+not confident, the feature matches vote for translations at the rotations of the best results
+(:meth:`FeatureMatch.translations`), which mends estimates that slid along a flat or repeated
+part of a shape.
 """
 
 from __future__ import annotations
