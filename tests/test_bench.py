@@ -206,3 +206,25 @@ def test_feature_match_benchmark_reports_each_estimate(modelnet_root, monkeypatc
     assert set(shares) == {"open3d", "first", "most confident", "best"}
     assert all(0.0 <= v <= 100.0 for v in shares.values()) and shares["best"] >= shares["first"]
     assert "3 candidates" in out
+
+
+def test_rerun_pairs_registers_again_the_failed_or_the_flagged_pairs_of_a_run(modelnet_root, tmp_path, monkeypatch, capsys):
+    import sys
+
+    from benchmarks import rerun_pairs
+
+    fields = ["protocol", "index", "method", "rotation_deg", "translation", "confidence", "time_total_ms"]
+    rows = [["rpmnet-crop", 0, "o3dsoft", 120.0, 0.3, 0.9, 100.0],  # failed, and confident
+            ["rpmnet-crop", 1, "o3dsoft", 0.5, 0.005, 0.2, 100.0],  # right but flagged
+            ["rpmnet-crop", 2, "o3dsoft", 0.5, 0.005, 0.9, 100.0],  # right and trusted
+            ["rpmnet-crop", 3, "icp", 120.0, 0.3, 0.9, 100.0]]  # another method
+    with open(tmp_path / "pairs.csv", "w", newline="") as f:
+        csv.writer(f).writerows([fields] + rows)
+    for which, picked in (("failed", "in the run                   0                  0                1"),
+                          ("flagged", "in the run                   1                  1                0")):
+        monkeypatch.setattr(sys, "argv", ["rerun_pairs", str(tmp_path), "--protocol", "rpmnet-crop", "--which", which, "--data", str(modelnet_root)])
+        rerun_pairs.main()
+        out = capsys.readouterr().out
+        assert f"rpmnet-crop, 1 {which} pairs" in out and picked in out, out
+        now = out.splitlines()[-1].split()
+        assert now[0] == "now" and all(0 <= int(v) <= 1 for v in now[1:4])
