@@ -26,6 +26,10 @@ bunny scan pairs, 23 of o3dsoft's 30 right alignments). With the edge rule, on t
 RANSAC + ICP's), the right ones score 0.94-1.0 and the wrong ones at most 0.77, but for four
 near misses 1.9-2.3 degrees off (0.93).
 
+An alignment that leaves the clouds barely touching (the counted points fewer than
+``MIN_OVERLAP`` = 5 % of the smaller cloud) gets confidence 0: a handful of close points at the
+rim of two unrelated clouds would otherwise read as a consistent fit.
+
 The coefficients were fitted by ``python -m benchmarks.fit_confidence`` (logistic regression) on
 ModelNet40 *train* pairs of the protocols dcp, so3, rpmnet-crop and so3-crop, plus pairs of
 unrelated shapes, sparse targets and small parts of a shape (60 pairs per group, the shipped
@@ -55,6 +59,9 @@ TIGHT = 0.3
 CLAIMED = 0.3
 SPACINGS = 1.5
 LIKELY_FAILED_BELOW = 0.5
+# Fewer counted points than this share of the smaller cloud are too few to measure: an alignment
+# that leaves the clouds barely touching (a few points each) is not trusted however close those are.
+MIN_OVERLAP = 0.05
 
 
 class Features(NamedTuple):
@@ -62,11 +69,14 @@ class Features(NamedTuple):
     point, or of a much sparser target's points near the source (0-1, higher is better);
     tight_distance: max(0.3 d, 1.5 x the point spacing of the cloud they are compared with);
     consistency: of the same points within d of the other cloud, the share within the tight
-    distance (0-1, higher is better; 0 when none is within d)."""
+    distance (0-1, higher is better; 0 when none is within d);
+    overlap: the points the consistency counts, as a share of the smaller cloud (capped at 1;
+    below :data:`MIN_OVERLAP` the confidence is 0)."""
 
     fitness_tight: float
     tight_distance: float
     consistency: float
+    overlap: float
 
 
 def point_spacing(points: np.ndarray) -> float:
@@ -103,9 +113,12 @@ def features(source: np.ndarray, target: np.ndarray, transformation: np.ndarray,
     claimed[within] = cKDTree(moved).query(far[j[within]])[0] <= CLAIMED * dist[within]
     counted = close | (within & ~claimed)
     consistency = float(close.sum() / counted.sum()) if counted.any() else 0.0
-    return Features(float(close.mean()), tight, consistency)
+    overlap = min(1.0, float(counted.sum()) / min(len(near), len(far)))
+    return Features(float(close.mean()), tight, consistency, overlap)
 
 
 def confidence(f: Features) -> float:
     """Estimated probability (0-1, higher is better) that the alignment is right."""
+    if f.overlap < MIN_OVERLAP:
+        return 0.0
     return 1.0 / (1.0 + math.exp(-(INTERCEPT + SLOPE * f.consistency)))

@@ -222,6 +222,24 @@ def test_sparse_target_is_not_mistaken_for_a_failure():
     assert point_spacing(grid) == pytest.approx(0.5)
 
 
+def test_clouds_left_barely_touching_are_not_trusted():
+    from o3dsoft.confidence import MIN_OVERLAP, confidence, features
+
+    rng = np.random.default_rng(3)
+    plate = rng.uniform(-1, 1, size=(2000, 3)) * np.array([1.0, 1.0, 0.02])
+    elsewhere = blob(rng, 2000) + np.array([6.0, 0.0, 0.0])  # far beyond ICP's distance of the plate
+
+    def target_sharing(strip: float) -> np.ndarray:  # the plate's points beyond x = strip, and a blob
+        return np.concatenate([plate[plate[:, 0] > strip], elsewhere])
+
+    shared = features(plate, target_sharing(0.5), np.eye(4), distance=0.2)
+    assert shared.overlap > 0.2 and confidence(shared) > 0.9
+    # Only a rim of the plate is shared: the points there lie close, yet they are too few to
+    # vouch for the alignment.
+    rim = features(plate, target_sharing(0.96), np.eye(4), distance=0.2)
+    assert rim.consistency > 0.9 and 0 < rim.overlap < MIN_OVERLAP and confidence(rim) == 0.0
+
+
 class _NearSightedModel(_StubModel):
     """Stands in for a network that finds the rotation left to do only when it is under 50 degrees
     (roughly like the trained one) and returns the identity otherwise. It knows the true rotation
@@ -536,7 +554,7 @@ def _bundled_scan_pair():
 
 
 def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(monkeypatch):
-    from o3dsoft import baselines, search
+    from o3dsoft import baselines, pipeline, search
 
     src, tgt, T = _bundled_scan_pair()
     upside_down = T @ np.diag([1.0, -1.0, -1.0, 1.0])
@@ -548,6 +566,7 @@ def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(mo
         return np.stack([upside_down, T, sideways][:count])
 
     monkeypatch.setattr(search.FeatureMatch, "candidates", right_second)
+    monkeypatch.setattr(pipeline, "VOTED_ROTATIONS", 0)  # the last resort, the translation votes, is tested on its own
     described = []
     real_features = baselines.fpfh_features
     monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale, config: described.append(len(points)) or real_features(points, scale, config))
@@ -791,7 +810,7 @@ def test_a_right_alignment_of_two_partial_scans_is_trusted():
 
 
 def test_on_a_partial_overlap_the_feature_match_goes_before_the_network(monkeypatch):
-    from o3dsoft import search
+    from o3dsoft import pipeline, search
 
     rng = np.random.default_rng(9)
     shape = blob(rng, 1600)
@@ -799,6 +818,7 @@ def test_on_a_partial_overlap_the_feature_match_goes_before_the_network(monkeypa
     src = shape[shape[:, 0] < np.quantile(shape[:, 0], 0.6)]  # a part of the shape
     tgt = apply(T, shape)
     wrong = T @ np.diag([1.0, -1.0, -1.0, 1.0])
+    monkeypatch.setattr(pipeline, "VOTED_ROTATIONS", 0)  # the last resort, the translation votes, is tested on its own
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: T[None])
     res = register(src, tgt, RegisterConfig(search_weights=None), model=_AlwaysWrongModel(np.eye(3)))
     # the match's estimate is confident: the network never runs
