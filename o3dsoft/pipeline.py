@@ -28,7 +28,7 @@ from . import search as search_stage
 from .errors import InputError
 from .preprocess import (clean_points, denormalise_transform, normalise_pair, normalisation_for, same_profile_pvalue, sample_points,
                          voxel_downsample)
-from .transforms import rotation_angle_deg
+from .transforms import rigid, rotation_angle_deg
 
 SEARCH_MODES = ("auto", "always", "off")
 # Estimates are screened against RegisterConfig.max_rotation before ICP with this margin
@@ -41,6 +41,9 @@ FIRST_FEATURE_CANDIDATES = 20
 # trusted results (distinct by search.DISTINCT_DEG), this many translations each.
 VOTED_ROTATIONS = 2
 VOTED_TRANSLATIONS = 10
+# ... and at the most trusted one turned by 180 degrees about each principal axis of the target
+# and of the moved source, this many translations each.
+FLIPPED_TRANSLATIONS = 3
 # Below this p-value of :func:`o3dsoft.preprocess.same_profile_pvalue` the clouds are taken for a
 # partial overlap, and the search's feature match runs before the network.
 PARTIAL_PROFILE_PVALUE = 0.01
@@ -66,7 +69,9 @@ class RegisterConfig:
             `search_features`), then, while no result is confident, the network from 24
             starting rotations (and the search network from 15, see `search_weights`), then (if
             `search_features`) at the rotations of the :data:`VOTED_ROTATIONS` most trusted results,
-            the :data:`VOTED_TRANSLATIONS` translations most feature matches vote for; the most
+            the :data:`VOTED_TRANSLATIONS` translations most feature matches vote for, and at the
+            most trusted rotation turned by 180 degrees about each principal axis of either cloud
+            (:func:`o3dsoft.search.half_turns`), :data:`FLIPPED_TRANSLATIONS` each; the most
             confident result is returned. Without `refine`, the search's top-ranked
             estimate is taken as it is.
         search_points: points per cloud for the search's batch of network passes.
@@ -397,7 +402,16 @@ def register(
             R = a.fine.transformation[:3, :3]
             if admissible(a.fine.transformation) and all(rotation_angle_deg(R.T @ Q) > search_stage.DISTINCT_DEG for Q in rotations):
                 rotations.append(R)
-        voted = [T for R in rotations for T in matcher.translations(R, VOTED_TRANSLATIONS)]
+        counts = [VOTED_TRANSLATIONS] * len(rotations)
+        if rotations and FLIPPED_TRANSLATIONS:
+            # A shape nearly symmetric under a half turn is often aligned the other way round.
+            R0 = rotations[0]
+            turns = np.concatenate([search_stage.half_turns(tgt_work), search_stage.half_turns(src_work @ R0.T)])
+            flipped = [F @ R0 for F in turns]
+            flipped = [R for R in flipped if admissible(rigid(R, np.zeros(3)), PRIOR_MARGIN_DEG)]
+            rotations += flipped
+            counts += [FLIPPED_TRANSLATIONS] * len(flipped)
+        voted = [T for R, count in zip(rotations, counts) for T in matcher.translations(R, count)]
         lap("search")
         for T_voted in voted:
             if confident():

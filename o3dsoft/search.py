@@ -12,7 +12,8 @@ source points that land near the target, polishes the best few by ICP on the sam
 the one that fits best, for the pipeline to refine at full resolution. Last, for pairs still
 not confident, the feature matches vote for translations at the rotations of the best results
 (:meth:`FeatureMatch.translations`), which mends estimates that slid along a flat or repeated
-part of a shape.
+part of a shape, and at the best rotation turned by 180 degrees about each principal axis of
+either cloud (:func:`half_turns`), which mends shapes aligned the other way round.
 """
 
 from __future__ import annotations
@@ -57,6 +58,16 @@ def local_rotations(angle_deg: float = 45.0) -> np.ndarray:
         a = np.radians(angle_deg)
         rotations.append(np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * K @ K)  # Rodrigues
     return np.stack(rotations)
+
+
+def half_turns(points: np.ndarray) -> np.ndarray:
+    """The turns by 180 degrees about the principal axes of an (N, 3) cloud, largest variance
+    first: (3, 3, 3) float64. A shape nearly symmetric under one of them (a guitar's face and back,
+    a table's ends) is often aligned the other way round, more so when a crop breaks the symmetry
+    only in part."""
+    centred = points - points.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)  # columns by increasing variance
+    return np.stack([2.0 * np.outer(a, a) - np.eye(3) for a in axes.T[::-1]])
 
 
 def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarray, rotations: np.ndarray) -> np.ndarray:

@@ -745,7 +745,7 @@ def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolu
 
 
 def test_more_feature_estimates_are_drawn_only_for_a_pair_the_first_ones_do_not_settle(monkeypatch):
-    from o3dsoft import search
+    from o3dsoft import pipeline, search
     from o3dsoft.pipeline import FIRST_FEATURE_CANDIDATES
 
     rng = np.random.default_rng(6)
@@ -760,6 +760,7 @@ def test_more_feature_estimates_are_drawn_only_for_a_pair_the_first_ones_do_not_
         return np.stack([wrong] * 25 + [T])[:count]
 
     monkeypatch.setattr(search.FeatureMatch, "candidates", right_late)
+    monkeypatch.setattr(pipeline, "FLIPPED_TRANSLATIONS", 0)  # no half turns: they would mend `wrong`
     res = register(src, tgt, RegisterConfig(search_weights=None), model=_AlwaysWrongModel(np.eye(3)))
     assert asked == [FIRST_FEATURE_CANDIDATES, RegisterConfig().search_feature_candidates]
     assert res.attempts == 1 + 26 and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
@@ -895,4 +896,35 @@ def test_an_estimate_slid_off_at_the_right_rotation_is_mended_by_the_translation
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5
     assert any(np.array_equal(res.coarse_transformation, V) for V in voted)  # kept: a voted estimate
     monkeypatch.setattr(pipeline, "VOTED_ROTATIONS", 0)  # the same without the votes
+    assert register(src, tgt, config, model=model).likely_failed
+
+
+def test_half_turns_about_a_clouds_axes():
+    from o3dsoft.search import half_turns
+
+    rng = np.random.default_rng(6)
+    T = random_transform(rng, 180.0, 0.0)
+    box = apply(T, rng.uniform(-1, 1, size=(4000, 3)) * np.array([3.0, 2.0, 1.0]))
+    turns = half_turns(box)
+    assert turns.shape == (3, 3, 3)
+    for F, axis in zip(turns, T[:3, :3].T):  # the box's long, middle and short axes, turned
+        assert np.allclose(F @ F.T, np.eye(3)) and np.isclose(np.linalg.det(F), 1.0)
+        assert rotation_angle_deg(F) == pytest.approx(180.0)
+        assert np.allclose(F @ axis, axis, atol=0.05)  # about that axis
+
+
+def test_an_estimate_the_other_way_round_is_mended_by_the_half_turns(monkeypatch):
+    from o3dsoft import pipeline, search
+
+    src, tgt, T = _moved_bunny(5)
+    round_ = search.half_turns(tgt)[1] @ T[:3, :3]  # turned about the target's middle axis
+    wrong = np.eye(4)
+    wrong[:3, :3], wrong[:3, 3] = round_, tgt.mean(axis=0) - round_ @ src.mean(axis=0)
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: wrong[None])
+    monkeypatch.setattr(search, "select", lambda *args: search.Choice(wrong, wrong))  # the network's starts: as wrong
+    config = RegisterConfig(search_weights=None)
+    model = _AlwaysWrongModel(round_)
+    res = register(src, tgt, config, model=model)
+    assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5
+    monkeypatch.setattr(pipeline, "FLIPPED_TRANSLATIONS", 0)  # the same without the half turns
     assert register(src, tgt, config, model=model).likely_failed
