@@ -9,7 +9,7 @@ from o3dsoft.errors import InputError
 from o3dsoft.metrics import pair_errors, rotation_error_deg
 from o3dsoft.pipeline import RegisterConfig, register
 from o3dsoft.refine import ICPConfig, downsample
-from o3dsoft.transforms import euler_to_matrix, rotation_angle_deg
+from o3dsoft.transforms import euler_to_matrix, rigid, rotation_angle_deg
 
 from .conftest import EXAMPLES, apply, blob, random_transform
 
@@ -918,8 +918,7 @@ def test_an_estimate_the_other_way_round_is_mended_by_the_half_turns(monkeypatch
 
     src, tgt, T = _moved_bunny(5)
     round_ = search.half_turns(tgt)[1] @ T[:3, :3]  # turned about the target's middle axis
-    wrong = np.eye(4)
-    wrong[:3, :3], wrong[:3, 3] = round_, tgt.mean(axis=0) - round_ @ src.mean(axis=0)
+    wrong = rigid(round_, tgt.mean(axis=0) - round_ @ src.mean(axis=0))
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: wrong[None])
     monkeypatch.setattr(search, "select", lambda *args: search.Choice(wrong, wrong))  # the network's starts: as wrong
     config = RegisterConfig(search_weights=None)
