@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import List, Tuple
+from typing import List, Optional, Tuple
 
 import torch
 from torch import nn
@@ -198,15 +198,42 @@ def _gather_max_autograd(rows: torch.Tensor, flat: torch.Tensor) -> torch.Tensor
     return _GatherMax.apply(rows, flat)
 
 
-def _gather_max_columns(rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
-    """max_k rows[cols[k]] for (M, C) rows and (K, M) contiguous index columns, into reused
+def _gather_max_columns(rows: torch.Tensor, cols: List[torch.Tensor]) -> torch.Tensor:
+    """max_k rows[cols[k]] for (M, C) rows and K contiguous (M,) index columns, into reused
     buffers (no gradient): (M, C)."""
     out = rows.index_select(0, cols[0])
     cand = torch.empty_like(out)
-    for k in range(1, cols.shape[0]):
+    for k in range(1, len(cols)):
         torch.index_select(rows, 0, cols[k], out=cand)
         torch.maximum(out, cand, out=out)
     return out
+
+
+def neighbour_columns(idx: torch.Tensor) -> List[torch.Tensor]:
+    """(B, N, K) neighbour indices -> K contiguous (B*N,) columns indexing the stacked (B*N, C)
+    rows: column k holds every point's k-th neighbour. Made once per cloud, for all layers."""
+    return _flatten_neighbours(idx, idx.shape[1]).t().contiguous().unbind(0)
+
+
+def _linear_gather_max(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, cols: List[torch.Tensor], block: int = 64) -> torch.Tensor:
+    """max_k ReLU(weight x_j + bias) over each neighbourhood, at inference on the CPU.
+
+    The linear map runs one block of output channels at a time, so each block comes out
+    contiguous and its K gathers stay in cache (the 512-channel layer ran 1.9x faster in blocks
+    of 64 than at once; 2-core machine, N = 1024); ReLU commutes with the max.
+
+    Args:
+        x: (B, N, C_in); weight: (C_out, C_in); bias: (C_out,); cols: :func:`neighbour_columns`.
+    Returns:
+        (B, N, C_out).
+    """
+    b, n, _ = x.shape
+    rows = x.reshape(b * n, x.shape[2])
+    blocks: List[torch.Tensor] = []
+    for s in range(0, weight.shape[0], block):
+        z = torch.addmm(bias[s : s + block], rows, weight[s : s + block].t())
+        blocks.append(_gather_max_columns(z, cols))
+    return torch.relu_(torch.cat(blocks, dim=1)).view(b, n, weight.shape[0])
 
 
 def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -227,10 +254,10 @@ def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         # Contiguous index columns and reused buffers: 20-25 % faster than slicing flat[:, k]
         # and allocating each step (2-core machine, N = 1024, C = 64-512).
         # (out= variants do not record gradients: only without them.)
-        cols = flat.t().contiguous()
+        cols = flat.t().contiguous().unbind(0)
         if rows.requires_grad:
             out = rows.index_select(0, cols[0])
-            for k in range(1, cols.shape[0]):
+            for k in range(1, len(cols)):
                 out = torch.maximum(out, rows.index_select(0, cols[k]))
             return out.view(b, n, c)
         # On the CPU, channel blocks: the rows gathered K times stay in cache. The 512-channel
@@ -279,6 +306,12 @@ class MultiplicityBatchNorm(nn.Module):
             var = self.running_var
         return (y - mean) * torch.rsqrt(var + self.eps) * self.weight + self.bias
 
+    def fold(self, weight: torch.Tensor, bias: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """The eval-mode BatchNorm of a linear map's output as one linear map:
+        BN(W x + b) = W' x + b' for W (C, C_in), b (C,); returns (W', b')."""
+        s = self.weight * torch.rsqrt(self.running_var + self.eps)
+        return weight * s.unsqueeze(1), (bias - self.running_mean) * s + self.bias
+
     def track(self, mean: torch.Tensor, var: torch.Tensor, count: torch.Tensor) -> None:
         """Update the running statistics from a batch's (C,) mean and biased variance over
         `count` values per channel, as ``nn.BatchNorm2d`` does."""
@@ -297,8 +330,13 @@ class EdgeLayer(nn.Module):
         self.linear = nn.Linear(c_in, c_out)
         self.bn = MultiplicityBatchNorm(c_out)
 
-    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor) -> torch.Tensor:
-        """x: (B, N, C_in); idx: (B, N, K); multiplicity: (B, N). Returns (B, N, C_out)."""
+    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor,
+                cols: Optional[List[torch.Tensor]] = None) -> torch.Tensor:
+        """x: (B, N, C_in); idx: (B, N, K); multiplicity: (B, N); cols: :func:`neighbour_columns`
+        of idx on the inference path (see :class:`Encoder`), else None. Returns (B, N, C_out)."""
+        if cols is not None:
+            weight, bias = self.bn.fold(self.linear.weight, self.linear.bias)
+            return _linear_gather_max(x, weight, bias, cols)
         z = F.relu(self.bn(self.linear(x), multiplicity))
         return gather_max(z, idx)
 
@@ -320,9 +358,10 @@ class RelativeEdgeLayer(nn.Module):
         self.linear = nn.Linear(c_in, c_out)
         self.bn = MultiplicityBatchNorm(c_out)
 
-    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor) -> torch.Tensor:
-        """x: (B, N, C_in); idx: (B, N, K); multiplicity: unused (every offset counts once).
-        Returns (B, N, C_out)."""
+    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor,
+                cols: Optional[List[torch.Tensor]] = None) -> torch.Tensor:
+        """x: (B, N, C_in); idx: (B, N, K); multiplicity: unused (every offset counts once); cols:
+        as for :class:`EdgeLayer`. Returns (B, N, C_out)."""
         a = torch.matmul(x, self.linear.weight.t())  # (B, N, C_out), without the bias
         bn = self.bn
         if self.training:
@@ -341,6 +380,9 @@ class RelativeEdgeLayer(nn.Module):
         scale = bn.weight * torch.rsqrt(var + bn.eps)  # (C_out,)
         shift = bn.bias + scale * (self.linear.bias - mean)
         sa = a * scale
+        if cols is not None:
+            b, n, c = sa.shape
+            return F.relu(_gather_max_columns(sa.reshape(b * n, c), cols).view(b, n, c) - sa + shift)
         return F.relu(gather_max(sa, idx) - sa + shift)
 
 
@@ -391,9 +433,14 @@ class Encoder(nn.Module):
     def forward(self, points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """points: (B, N, 3); idx: (B, N, K). Returns (B, N, channels[-1]) descriptors."""
         multiplicity = neighbour_multiplicity(idx, points.shape[1], points.dtype)
+        # Inference on the CPU (scripted, no gradient): the index columns are made once for all
+        # five layers, and each layer's BatchNorm is folded into its linear map.
+        cols: Optional[List[torch.Tensor]] = None
+        if torch.jit.is_scripting() and not self.training and not torch.is_grad_enabled() and points.device.type == "cpu":
+            cols = neighbour_columns(idx)
         x = points
         for layer in self.layers:
-            x = layer(x, idx, multiplicity)
+            x = layer(x, idx, multiplicity, cols)
         return x
 
 
