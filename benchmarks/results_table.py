@@ -1,10 +1,13 @@
-"""Write the README's "Results" section from a bench run folder (never typed by hand).
+"""Write the README's "Results" section from bench run folders (never typed by hand).
 
-    python -m benchmarks.results_table RUN_DIR [--readme README.md] [--marker results]
+    python -m benchmarks.results_table RUN_DIR [RUN_DIR ...] [--readme README.md] [--marker results]
 
 Replaces the text between the markers ``<!-- MARKER:start -->`` and ``<!-- MARKER:end -->``
-(MARKER: ``results`` unless told) with the run's command, machine, versions, a short table of
-o3dsoft against FPFH + RANSAC + ICP, and one table per protocol (from summary.json).
+(MARKER: ``results`` unless told) with each run's command, machine and versions, a short table
+of o3dsoft against FPFH + RANSAC + ICP, and one table per protocol (from summary.json). Several
+runs (e.g. the protocols of the whole split run in parts, each within a session) give one table,
+protocols in the order of :data:`o3dsoft.data.PROTOCOLS`; each protocol must come from one run,
+so that its time ratio compares methods measured in the same run.
 """
 
 from __future__ import annotations
@@ -12,8 +15,10 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import List, Sequence, Union
 
 from o3dsoft.bench import recall_keys
+from o3dsoft.data import PROTOCOLS
 
 
 def compared(doc: dict, ours: str, theirs: str) -> list:
@@ -40,19 +45,47 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
     return lines
 
 
-def markdown(run: Path) -> str:
-    doc = json.loads((run / "summary.json").read_text())
+def run_lines(doc: dict) -> List[str]:
+    """A run's command, size, duration, machine, versions and weights."""
     desc, v = doc["description"], doc["versions"]
-    recall = doc["recall_thresholds"]
-    r1, r5 = recall[0], recall[-1]
     limit = desc.get("limit")
-    lines = [
+    commit = ""
+    if "commit" in v:  # runs from a git checkout: the short hash, marked when files had changed
+        commit = f" (commit {v['commit'][:7]}{'+changes' if v['commit'].endswith('+changes') else ''})"
+    return [
         f"Command: `{desc.get('command', 'o3dsoft bench modelnet40')}`"
         + (f" (first {limit} test pairs per protocol)" if limit else " (the whole ModelNet40 test split)")
         + f"; {doc['pairs_completed']} pairs in {doc['seconds'] / 60:.1f} min"
         + (" (interrupted)" if doc["interrupted"] else "") + ".",
-        f"Machine: {v['machine']}; o3dsoft {v['o3dsoft']}, torch {v['torch']}, Open3D {v['open3d']}. "
+        f"Machine: {v['machine']}; o3dsoft {v['o3dsoft']}{commit}, torch {v['torch']}, Open3D {v['open3d']}. "
         f"Weights sha256 `{(doc['weights']['sha256'] or '-')[:12]}`.",
+    ]
+
+
+def merged(docs: Sequence[dict]) -> dict:
+    """The runs' summaries as one document (the first run's method names and thresholds),
+    protocols in the order of PROTOCOLS. Raises SystemExit when two runs hold one protocol."""
+    owner = {}
+    for i, doc in enumerate(docs):
+        for p in dict.fromkeys(s["protocol"] for s in doc["summaries"]):
+            if p in owner:
+                raise SystemExit(f"protocol {p} is in two of the runs; give each protocol from one run")
+            owner[p] = i
+    order = {name: i for i, name in enumerate(PROTOCOLS)}
+    summaries = [s for doc in docs for s in doc["summaries"]]
+    summaries.sort(key=lambda s: order.get(s["protocol"], len(order)))  # stable: methods keep their order
+    return {"methods": docs[0]["methods"], "recall_thresholds": docs[0]["recall_thresholds"], "summaries": summaries}
+
+
+def markdown(runs: Union[Path, Sequence[Path]]) -> str:
+    docs = [json.loads((run / "summary.json").read_text()) for run in ([runs] if isinstance(runs, Path) else runs)]
+    doc = merged(docs)
+    recall = doc["recall_thresholds"]
+    r1, r5 = recall[0], recall[-1]
+    lines: List[str] = []
+    for d in docs:
+        lines += run_lines(d)
+    lines += [
         "",
         "Rotation errors in degrees, translation in shape units (radius-1 shapes): lower is better. "
         f"Recall: share of pairs with rotation error < {r1['rotation_deg']:g} deg and translation error < {r1['translation']:g} "
@@ -79,7 +112,7 @@ def markdown(run: Path) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path)
+    ap.add_argument("runs", type=Path, nargs="+", help="bench run folders (each protocol from one of them)")
     ap.add_argument("--readme", type=Path, default=Path(__file__).resolve().parents[1] / "README.md")
     ap.add_argument("--marker", default="results", help="the README section's marker name")
     args = ap.parse_args()
@@ -89,8 +122,8 @@ def main() -> None:
         raise SystemExit(f"{args.readme}: no {START} ... {END} markers")
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
-    args.readme.write_text(head + START + "\n" + markdown(args.run) + "\n" + END + tail)
-    print(f"updated {args.readme} from {args.run}")
+    args.readme.write_text(head + START + "\n" + markdown(args.runs) + "\n" + END + tail)
+    print(f"updated {args.readme} from {', '.join(map(str, args.runs))}")
 
 
 if __name__ == "__main__":

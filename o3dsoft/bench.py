@@ -13,6 +13,7 @@ import csv
 import json
 import os
 import platform
+import subprocess
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -416,15 +417,33 @@ def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]
     return "\n".join(lines)
 
 
+def source_commit() -> Optional[str]:
+    """The git commit o3dsoft runs from, with "+changes" when tracked files differ from it;
+    None when it is not run from a git checkout (an installed wheel) or git is missing."""
+    here = Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        if head.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
+
+
 def versions() -> Dict[str, str]:
-    """Versions of o3dsoft and what it runs on."""
+    """Versions of o3dsoft and what it runs on (and the git commit, from a checkout)."""
     import open3d
     import torch
 
     from . import __version__
 
-    return {"o3dsoft": __version__, "torch": torch.__version__, "open3d": open3d.__version__, "numpy": np.__version__,
-            "python": platform.python_version(), "machine": f"{platform.machine()}, {platform.system()}, {os.cpu_count()} logical CPUs"}
+    out = {"o3dsoft": __version__, "torch": torch.__version__, "open3d": open3d.__version__, "numpy": np.__version__,
+           "python": platform.python_version(), "machine": f"{platform.machine()}, {platform.system()}, {os.cpu_count()} logical CPUs"}
+    commit = source_commit()
+    if commit:
+        out["commit"] = commit
+    return out
 
 
 def write_csv(path: Path, rows: Sequence[dict]) -> None:

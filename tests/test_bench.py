@@ -228,3 +228,54 @@ def test_rerun_pairs_registers_again_the_failed_or_the_flagged_pairs_of_a_run(mo
         assert f"rpmnet-crop, 1 {which} pairs" in out and picked in out, out
         now = out.splitlines()[-1].split()
         assert now[0] == "now" and all(0 <= int(v) <= 1 for v in now[1:4])
+
+
+def _summary_doc(command, protocols, ours_ms, theirs_ms):
+    """A bench run's summary.json with just the fields the results table reads."""
+    rows = []
+    for p in protocols:
+        for method, ms in (("o3dsoft", ours_ms), ("fpfh-ransac+icp", theirs_ms)):
+            rows.append({"protocol": p, "subset": "all", "method": method, "pairs": 10, "rotation_deg_mean": 1.0, "rotation_deg_median": 0.5,
+                         "translation_mean": 0.01, "euler_rmse_deg": 1.0, "recall_1deg": 0.9, "recall_5deg": 0.95, "time_ms_median": ms,
+                         "time_ms_p90": 2 * ms, "confidence_auc": 0.97 if method == "o3dsoft" else None})
+    return {"description": {"command": command, "limit": None},
+            "versions": {"machine": "x86_64", "o3dsoft": "0", "torch": "2", "open3d": "0.20", "commit": "1234567890" * 4 + "+changes"},
+            "weights": {"sha256": "ab" * 32}, "pairs_completed": 10 * len(protocols), "seconds": 60.0, "interrupted": False,
+            "recall_thresholds": [{"rotation_deg": 1.0, "translation": 0.01}, {"rotation_deg": 5.0, "translation": 0.05}],
+            "methods": {"o3dsoft": "o3dsoft network + ICP", "fpfh-ransac+icp": "Open3D FPFH + RANSAC + ICP"}, "summaries": rows}
+
+
+def test_versions_name_the_commit_of_a_checkout():
+    import subprocess
+    from pathlib import Path
+
+    import o3dsoft
+
+    package = Path(o3dsoft.__file__).resolve().parent
+    head = subprocess.run(["git", "-C", str(package), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode != 0:
+        pytest.skip("o3dsoft is not run from a git checkout here")
+    commit = bench.versions()["commit"]
+    assert commit.split("+")[0] == head.stdout.strip() and commit in (head.stdout.strip(), head.stdout.strip() + "+changes")
+
+
+def test_results_table_joins_runs_of_different_protocols(tmp_path):
+    from benchmarks.results_table import markdown
+
+    for name, protocols, ours in (("crops", ["so3-crop", "rpmnet-crop"], 30.0), ("complete", ["dcp", "paper"], 20.0)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps(_summary_doc(f"bench {name}", protocols, ours, 40.0)))
+    md = markdown([tmp_path / "crops", tmp_path / "complete"])
+    assert "Command: `bench crops`" in md and "Command: `bench complete`" in md
+    assert "o3dsoft 0 (commit 1234567+changes)," in md
+    short = [line.split(" |")[0] for line in md.splitlines() if line.startswith("| `")]
+    assert short == ["| `paper`", "| `dcp`", "| `rpmnet-crop`", "| `so3-crop`"]  # the protocols' own order
+    assert "| `rpmnet-crop` | 90.0 % | 90.0 % | 30 | 40 | 0.75 | 0.970 |" in md  # each ratio from its own run
+    assert "| `paper` | 90.0 % | 90.0 % | 20 | 40 | 0.50 | 0.970 |" in md
+    blocks = [line for line in md.splitlines() if line.startswith("**")]
+    assert blocks == ["**paper**", "**dcp**", "**rpmnet-crop**", "**so3-crop**"]
+    # A protocol in two runs has no single time ratio: refused.
+    (tmp_path / "again").mkdir()
+    (tmp_path / "again" / "summary.json").write_text(json.dumps(_summary_doc("bench again", ["dcp"], 25.0, 40.0)))
+    with pytest.raises(SystemExit, match="dcp is in two of the runs"):
+        markdown([tmp_path / "complete", tmp_path / "again"])
