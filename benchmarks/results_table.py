@@ -65,12 +65,12 @@ def run_lines(doc: dict) -> List[str]:
 def merged(docs: Sequence[dict]) -> dict:
     """The runs' summaries as one document (the first run's method names and thresholds),
     protocols in the order of PROTOCOLS. Raises SystemExit when two runs hold one protocol."""
-    owner = {}
-    for i, doc in enumerate(docs):
-        for p in dict.fromkeys(s["protocol"] for s in doc["summaries"]):
-            if p in owner:
+    seen = set()
+    for doc in docs:
+        for p in {s["protocol"] for s in doc["summaries"]}:
+            if p in seen:
                 raise SystemExit(f"protocol {p} is in two of the runs; give each protocol from one run")
-            owner[p] = i
+            seen.add(p)
     order = {name: i for i, name in enumerate(PROTOCOLS)}
     summaries = [s for doc in docs for s in doc["summaries"]]
     summaries.sort(key=lambda s: order.get(s["protocol"], len(order)))  # stable: methods keep their order
