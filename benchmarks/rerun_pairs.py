@@ -1,7 +1,7 @@
 """Re-register, with the current code, the pairs of a bench run that failed or were flagged.
 
     python -m benchmarks.rerun_pairs RUN_DIR --protocol rpmnet-crop [--which failed|flagged]
-        [--max-rotation DEG] [--data D]
+        [--max-rotation DEG] [--search-restart] [--data D]
 
 From RUN_DIR/pairs.csv (method ``o3dsoft``), `failed` takes the pairs beyond (5 deg, 0.05),
 `flagged` the pairs within it whose confidence was below 0.5. Each is registered again (the
@@ -40,6 +40,7 @@ def main() -> None:
     parser.add_argument("--protocol", required=True)
     parser.add_argument("--which", choices=("failed", "flagged"), default="failed")
     parser.add_argument("--max-rotation", type=float, default=None)
+    parser.add_argument("--search-restart", action="store_true", help="RegisterConfig(search_restart=True)")
     parser.add_argument("--data", default=str(DEFAULT_DATA))
     args = parser.parse_args()
 
@@ -54,7 +55,7 @@ def main() -> None:
         chosen = [i for i, (o, _) in sorted(before.items()) if o[1] and confidence[i] < 0.5]
     pairs = load_pairs(args.data, "test", get_protocol(args.protocol), 0)
     model, search_model = load_model(None, "cpu"), load_model("partial", "cpu")
-    config = RegisterConfig(max_rotation=args.max_rotation)
+    config = RegisterConfig(max_rotation=args.max_rotation, search_restart=args.search_restart)
     now, times = np.zeros(3, dtype=int), []
     for i in chosen:
         pair = pairs[i]

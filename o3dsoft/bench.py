@@ -545,6 +545,7 @@ def run(
     rows: List[dict] = []
     errors: List[PairErrors] = []
     interrupted = False
+    ran_with = versions()  # before the run: the checkout may change while it runs, the loaded code not
     t_start = time.monotonic()
     bar = tqdm(total=count, unit="pair", disable=None if progress else True, dynamic_ncols=True)  # None: only on a terminal
     failed: List[dict] = []
@@ -576,7 +577,7 @@ def run(
         "seconds": round(time.monotonic() - t_start, 1),
         "weights": {"path": str(model.path), "sha256": sha256_of(model.path)} if model is not None else None,
         "search_weights": {"path": str(search_model.path), "sha256": sha256_of(search_model.path)} if search_model is not None else None,
-        "versions": versions(),
+        "versions": ran_with,
         "recall_thresholds": [{"rotation_deg": d, "translation": t} for d, t in config.recall],
         "methods": {m: METHODS[m] for m in config.methods},
         "summaries": summaries,

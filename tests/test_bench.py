@@ -259,6 +259,15 @@ def test_versions_name_the_commit_of_a_checkout():
     assert commit.split("+")[0] == head.stdout.strip() and commit in (head.stdout.strip(), head.stdout.strip() + "+changes")
 
 
+def test_a_run_records_the_versions_it_started_with(modelnet_root, tmp_path, monkeypatch):
+    # The checkout may change while a long run goes on; the code it runs was loaded at the start.
+    count, pairs = bench.modelnet_pairs(str(modelnet_root), ["paper"], 2, seed=0)
+    checkouts = iter(["at the start", "edited since"])
+    monkeypatch.setattr(bench, "versions", lambda: {"commit": next(checkouts)})
+    bench.run(pairs, count, bench.BenchConfig(methods=("icp",)), None, tmp_path, {"benchmark": "test"}, progress=False)
+    assert json.loads((tmp_path / "summary.json").read_text())["versions"] == {"commit": "at the start"}
+
+
 def test_results_table_joins_runs_of_different_protocols(tmp_path):
     from benchmarks.results_table import markdown
 

@@ -927,3 +927,42 @@ def test_an_estimate_the_other_way_round_is_mended_by_the_half_turns(monkeypatch
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5
     monkeypatch.setattr(pipeline, "FLIPPED_TRANSLATIONS", 0)  # the same without the half turns
     assert register(src, tgt, config, model=model).likely_failed
+
+
+def test_a_start_the_loose_icp_stage_pulls_away_is_mended_by_the_tight_restart(monkeypatch, modelnet_root):
+    from o3dsoft import pipeline, search
+    from o3dsoft.data import get_protocol, load_pairs
+
+    # rpmnet-crop test pair 1519 (a table, cropped on both sides): from a start 1.7 degrees off,
+    # ICP's loose stage slides the crops 17 degrees apart; its tight stages alone end within 0.3.
+    pair = load_pairs(modelnet_root, "test", get_protocol("rpmnet-crop"), 0)[1519]
+    src, tgt, T = pair.source.astype(np.float64), pair.target.astype(np.float64), pair.transform
+    start = T @ rigid(euler_to_matrix([1.0, -1.5, 0.5]), np.array([-0.014, 0.028, -0.006]))
+    wrong = T @ rigid(euler_to_matrix([180.0, 0.0, 0.0]), np.zeros(3))
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: start[None])
+    monkeypatch.setattr(search, "select", lambda *args: search.Choice(wrong, wrong))  # the network's starts: wrong
+    monkeypatch.setattr(pipeline, "VOTED_ROTATIONS", 0)
+    monkeypatch.setattr(pipeline, "FLIPPED_TRANSLATIONS", 0)
+    config = RegisterConfig(search_weights=None, search_restart=True)
+    model = _AlwaysWrongModel(wrong[:3, :3])
+    res = register(src, tgt, config, model=model)
+    assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1.0
+    assert np.array_equal(res.coarse_transformation, start)
+    res = register(src, tgt, replace(config, search_restart=False), model=model)  # the same without the restart
+    assert res.likely_failed and pair_errors(res.transformation, T).rotation_deg > 5.0
+
+
+def test_distinct_starts_keep_the_first_of_each_pose():
+    from o3dsoft.pipeline import RESTART_DISTINCT_DEG, RESTART_DISTINCT_SHIFT, _Attempt, distinct_starts
+
+    rng = np.random.default_rng(7)
+    centre, scale = np.array([5.0, -2.0, 1.0]), 2.0
+    base = random_transform(rng, 180.0, 1.0)
+    turn = rigid(euler_to_matrix([0.5 * RESTART_DISTINCT_DEG, 0.0, 0.0]), np.zeros(3))
+    about_centre = rigid(np.eye(3), centre) @ turn @ rigid(np.eye(3), -centre)  # the centre stays put
+    shifted = rigid(np.eye(3), np.array([0.0, 0.0, 2.0 * RESTART_DISTINCT_SHIFT * scale])) @ base
+    turned_far = base @ rigid(euler_to_matrix([2.0 * RESTART_DISTINCT_DEG, 0.0, 0.0]), np.zeros(3))
+    starts = [base, base @ about_centre, shifted, turned_far, shifted]
+    attempts = [_Attempt(0.0, None, None, S, S) for S in starts]
+    kept = distinct_starts(attempts, centre, scale)
+    assert [id(a.start) for a in kept] == [id(base), id(shifted), id(turned_far)]
