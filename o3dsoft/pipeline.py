@@ -261,10 +261,10 @@ def distinct_starts(attempts: List[_Attempt], centre: np.ndarray, scale: float) 
     :data:`RESTART_DISTINCT_SHIFT` x `scale` of where that one does."""
     kept: List[_Attempt] = []
     for a in attempts:
-        moved = a.start[:3, :3] @ centre + a.start[:3, 3]
-        if not any(rotation_angle_deg(k.start[:3, :3].T @ a.start[:3, :3]) < RESTART_DISTINCT_DEG
-                   and np.linalg.norm(k.start[:3, :3] @ centre + k.start[:3, 3] - moved) < RESTART_DISTINCT_SHIFT * scale
-                   for k in kept):
+        R = np.array([k.start[:3, :3] for k in kept]).reshape(-1, 3, 3)
+        moved = np.array([k.start[:3, :3] @ centre + k.start[:3, 3] for k in kept]).reshape(-1, 3)
+        if not search_stage.near_poses(R, moved, a.start[:3, :3], a.start[:3, :3] @ centre + a.start[:3, 3], scale,
+                                  RESTART_DISTINCT_DEG, RESTART_DISTINCT_SHIFT).any():
             kept.append(a)
     return kept
 

@@ -223,12 +223,12 @@ class FeatureMatch:
                 kept.append(int(h))
                 if len(kept) == count:
                     break
-                free &= ~_near(R, moved, R[h], moved[h], self.scale)
+                free &= ~near_poses(R, moved, R[h], moved[h], self.scale)
         refits = self._refit(R[kept], t[kept], a, b, distance)
         refit_moved = refits[:, :3, :3] @ centre + refits[:, :3, 3]
         first: List[int] = []  # refits can meet: keep the first of each pose
         for k in range(len(refits)):
-            if not _near(refits[first, :3, :3], refit_moved[first], refits[k, :3, :3], refit_moved[k], self.scale).any():
+            if not near_poses(refits[first, :3, :3], refit_moved[first], refits[k, :3, :3], refit_moved[k], self.scale).any():
                 first.append(k)
         return refits[first]
 
@@ -333,10 +333,11 @@ def _support(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distanc
     return counts
 
 
-def _near(R: np.ndarray, moved: np.ndarray, R0: np.ndarray, moved0: np.ndarray, scale: float) -> np.ndarray:
-    """Which poses are one with a pose (R0 (3, 3), moved0 (3,)): within DISTINCT_DEG in rotation
+def near_poses(R: np.ndarray, moved: np.ndarray, R0: np.ndarray, moved0: np.ndarray, scale: float,
+          degrees: float = DISTINCT_DEG, shift: float = DISTINCT_SHIFT) -> np.ndarray:
+    """Which poses are one with a pose (R0 (3, 3), moved0 (3,)): within `degrees` in rotation
     (R (H, 3, 3)), and putting the source's centre (`moved` (H, 3), where each pose puts it)
-    within DISTINCT_SHIFT x scale of `moved0`. Not compared by t, which depends on where the
-    frame's origin lies. (H,) bool."""
+    within `shift` x scale of `moved0`. Not compared by t, which depends on where the frame's
+    origin lies. (H,) bool."""
     cos = (np.einsum("ij,hij->h", R0, R) - 1.0) / 2.0  # cos of the angle of R0^T R, from its trace
-    return (cos > np.cos(np.radians(DISTINCT_DEG))) & (np.linalg.norm(moved - moved0, axis=1) < DISTINCT_SHIFT * scale)
+    return (cos > np.cos(np.radians(degrees))) & (np.linalg.norm(moved - moved0, axis=1) < shift * scale)

@@ -680,16 +680,16 @@ def test_refits_fit_each_hypothesis_on_its_own_inliers_in_one_batch():
 
 
 def test_poses_are_one_within_ten_degrees_and_a_tenth_of_the_scale_wherever_the_origin_lies():
-    from o3dsoft.search import _near
+    from o3dsoft.search import near_poses
 
     centre = np.array([1000.0, 2000.0, 0.0])  # e.g. map coordinates
     turns = np.stack([euler_to_matrix([0.0, 0.0, a]) for a in (0.0, 9.0, 11.0)])
     t = centre - turns @ centre  # each turns about the centre, which stays put
     moved = turns @ centre + t  # where each pose puts the centre: the centre itself
     assert np.allclose(moved, centre) and np.linalg.norm(t[2]) > 100.0  # though t is far from 0
-    assert _near(turns, moved, np.eye(3), centre, scale=1.0).tolist() == [True, True, False]
-    assert _near(turns[:1], moved[:1] + [0.0, 0.09, 0.0], np.eye(3), centre, 1.0)[0]
-    assert not _near(turns[:1], moved[:1] + [0.0, 0.11, 0.0], np.eye(3), centre, 1.0)[0]
+    assert near_poses(turns, moved, np.eye(3), centre, scale=1.0).tolist() == [True, True, False]
+    assert near_poses(turns[:1], moved[:1] + [0.0, 0.09, 0.0], np.eye(3), centre, 1.0)[0]
+    assert not near_poses(turns[:1], moved[:1] + [0.0, 0.11, 0.0], np.eye(3), centre, 1.0)[0]
 
 
 def test_a_rotation_prior_rejects_a_confident_answer_beyond_it(monkeypatch):
