@@ -81,8 +81,7 @@ class RegisterConfig:
             (:func:`o3dsoft.search.half_turns`), :data:`FLIPPED_TRANSLATIONS` each, then (with
             `refine` and `search_restart`) every distinct start so far, the most trusted first,
             by ICP from :data:`TIGHT_RESTART` x its distance on; the most confident result is
-            returned.
-            Without `refine`, the search's top-ranked estimate is taken as it is.
+            returned. Without `refine`, the search's top-ranked estimate is taken as it is.
         search_restart: end the search, while nothing is confident, by refining every distinct
             start again with ICP's tight stages only (the loose one pulls a nearly right start
             of a crop towards the parts with no partner). Off by default: on the whole ModelNet40
@@ -259,14 +258,11 @@ def distinct_starts(attempts: List[_Attempt], centre: np.ndarray, scale: float) 
     """`attempts` in order, less those whose start (4, 4) lies within :data:`RESTART_DISTINCT_DEG`
     in rotation of an earlier one's and puts the source's `centre` (3,) within
     :data:`RESTART_DISTINCT_SHIFT` x `scale` of where that one does."""
-    kept: List[_Attempt] = []
-    for a in attempts:
-        R = np.array([k.start[:3, :3] for k in kept]).reshape(-1, 3, 3)
-        moved = np.array([k.start[:3, :3] @ centre + k.start[:3, 3] for k in kept]).reshape(-1, 3)
-        if not search_stage.near_poses(R, moved, a.start[:3, :3], a.start[:3, :3] @ centre + a.start[:3, 3], scale,
-                                  RESTART_DISTINCT_DEG, RESTART_DISTINCT_SHIFT).any():
-            kept.append(a)
-    return kept
+    if not attempts:
+        return []
+    starts = np.stack([a.start for a in attempts])
+    first = search_stage.first_of_each_pose(starts, centre, scale, RESTART_DISTINCT_DEG, RESTART_DISTINCT_SHIFT)
+    return [attempts[k] for k in first]
 
 
 def register(

@@ -225,12 +225,7 @@ class FeatureMatch:
                     break
                 free &= ~near_poses(R, moved, R[h], moved[h], self.scale)
         refits = self._refit(R[kept], t[kept], a, b, distance)
-        refit_moved = refits[:, :3, :3] @ centre + refits[:, :3, 3]
-        first: List[int] = []  # refits can meet: keep the first of each pose
-        for k in range(len(refits)):
-            if not near_poses(refits[first, :3, :3], refit_moved[first], refits[k, :3, :3], refit_moved[k], self.scale).any():
-                first.append(k)
-        return refits[first]
+        return refits[first_of_each_pose(refits, centre, self.scale)]  # refits can meet: each pose once
 
     def translations(self, rotation: np.ndarray, count: int) -> np.ndarray:
         """Estimates that keep `rotation` and take the translations most matches vote for: (H, 4, 4).
@@ -334,10 +329,22 @@ def _support(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distanc
 
 
 def near_poses(R: np.ndarray, moved: np.ndarray, R0: np.ndarray, moved0: np.ndarray, scale: float,
-          degrees: float = DISTINCT_DEG, shift: float = DISTINCT_SHIFT) -> np.ndarray:
+               degrees: float = DISTINCT_DEG, shift: float = DISTINCT_SHIFT) -> np.ndarray:
     """Which poses are one with a pose (R0 (3, 3), moved0 (3,)): within `degrees` in rotation
     (R (H, 3, 3)), and putting the source's centre (`moved` (H, 3), where each pose puts it)
     within `shift` x scale of `moved0`. Not compared by t, which depends on where the frame's
     origin lies. (H,) bool."""
     cos = (np.einsum("ij,hij->h", R0, R) - 1.0) / 2.0  # cos of the angle of R0^T R, from its trace
     return (cos > np.cos(np.radians(degrees))) & (np.linalg.norm(moved - moved0, axis=1) < shift * scale)
+
+
+def first_of_each_pose(T: np.ndarray, centre: np.ndarray, scale: float,
+                       degrees: float = DISTINCT_DEG, shift: float = DISTINCT_SHIFT) -> List[int]:
+    """Indices of the poses T (H, 4, 4), in order, less those one (:func:`near_poses`, the
+    source's `centre` (3,) moved by each) with an earlier kept one."""
+    moved = T[:, :3, :3] @ centre + T[:, :3, 3]
+    first: List[int] = []
+    for k in range(len(T)):
+        if not near_poses(T[first, :3, :3], moved[first], T[k, :3, :3], moved[k], scale, degrees, shift).any():
+            first.append(k)
+    return first
