@@ -5,8 +5,8 @@
     -> refine (Open3D point-to-point ICP, full resolution) -> score (confidence)
     -> if flagged: search (a feature match's estimates in turn, then the nets from 39 starts,
        then the translations the feature matches vote for at the best results' rotations,
-       then every distinct start again with ICP's tight stages only), until one is confident;
-       the most confident kept
+       then, optionally, every distinct start again with ICP's tight stages only), until one
+       is confident; the most confident kept
     (When the clouds' profiles say partial overlap, the feature match goes before the network,
     which then runs only if the match finds nothing confident.)
 
@@ -51,6 +51,10 @@ TIGHT_RESTART = 0.3
 # ... less the starts within this many degrees and this share of the scale of an earlier one.
 RESTART_DISTINCT_DEG = 2.0
 RESTART_DISTINCT_SHIFT = 0.02
+# ... each screened by those stages on this many points of each cloud, the most trusted this many
+# then refined and scored on the work clouds.
+RESTART_SCREEN_POINTS = 1024
+RESTART_REFINED = 3
 # Below this p-value of :func:`o3dsoft.preprocess.same_profile_pvalue` the clouds are taken for a
 # partial overlap, and the search's feature match runs before the network.
 PARTIAL_PROFILE_PVALUE = 0.01
@@ -84,12 +88,12 @@ class RegisterConfig:
             returned. Without `refine`, the search's top-ranked estimate is taken as it is.
         search_restart: end the search, while nothing is confident, by refining every distinct
             start again with ICP's tight stages only (the loose one pulls a nearly right start
-            of a crop towards the parts with no partner). Off by default: on the whole ModelNet40
-            test split, within (5 deg, 0.05) `rpmnet-crop` / `so3-crop`, 95.8 / 94.9 % without
-            and 96.5 / 95.8 % with it, but 39 / 49 confident wrong instead of 33 / 45 and a mean
-            time per pair of 0.93 s instead of 0.58 s; on the 45 bunny scan pairs one right
-            result of three flagged ones turned wrong, and the flagged pairs took up to 130 s
-            (README, The pipeline).
+            of a crop towards the parts with no partner), screened on
+            :data:`RESTART_SCREEN_POINTS` points per cloud, the :data:`RESTART_REFINED` most
+            trusted there then on the work clouds. Off by default: on the whole ModelNet40 test
+            split, within (5 deg, 0.05) `rpmnet-crop` / `so3-crop`, 95.8 / 94.9 % without and
+            96.6 / 96.0 % with it, but 38 / 45 confident wrong instead of 33 / 45 and a mean time
+            per pair of 1.0 s instead of 0.58 s (README, The pipeline).
         search_points: points per cloud for the search's batch of network passes.
         search_refine: how many of the search's best-ranked estimates are polished by ICP on the
             network's samples before the best of them is refined at full resolution.
@@ -448,16 +452,25 @@ def register(
                 break
             attempts.append(finish(T_voted, T_voted, icp=feature_icp))
     if searched and config.refine and config.search_restart and not confident():
-        # Last: every distinct start again, with only ICP's tight stages, the most trusted first.
-        # On partial overlap the loose stage pulls a start a few degrees off towards the parts
-        # with no partner, and a wrong pose ends up fitting better than the drifted right one.
+        # Last: every distinct start again, with only ICP's tight stages. On partial overlap the
+        # loose stage pulls a start a few degrees off towards the parts with no partner, and a
+        # wrong pose ends up fitting better than the drifted right one. Each start is screened on
+        # samples of the work clouds (all of a small cloud); only the most trusted there are
+        # refined and scored on the work clouds, which bounds the cost on scans.
         tight_icp = config.icp.starting_at(TIGHT_RESTART)
-        ranked = sorted(attempts, key=lambda a: a.trust, reverse=True)
-        for a in distinct_starts(ranked, src_work.mean(axis=0), norm.scale):
+        src_screen = sample_points(src_work, RESTART_SCREEN_POINTS, seed=config.seed + 4)
+        tgt_screen = sample_points(tgt_work, RESTART_SCREEN_POINTS, seed=config.seed + 5)
+        screened: List[Tuple[float, np.ndarray, np.ndarray]] = []
+        for a in distinct_starts(sorted(attempts, key=lambda a: a.trust, reverse=True), src_work.mean(axis=0), norm.scale):
+            if admissible(a.start, PRIOR_MARGIN_DEG):
+                moved = refine_stage.icp(src_screen, tgt_screen, a.start, distance, tight_icp).transformation
+                scored = confidence_stage.features(src_screen, tgt_screen, moved, distance, config.icp.max_points)
+                screened.append((confidence_stage.confidence(scored) if admissible(moved) else 0.0, moved, a.coarse))
+        lap("search")
+        for _, moved, T_coarse in sorted(screened, key=lambda s: s[0], reverse=True)[:RESTART_REFINED]:
             if confident():
                 break
-            if admissible(a.start, PRIOR_MARGIN_DEG):
-                attempts.append(finish(a.start, a.coarse, icp=tight_icp))
+            attempts.append(finish(moved, T_coarse, icp=tight_icp))
     # The most trusted; under a rotation prior, one within the bound before any beyond it.
     best = max(attempts, key=lambda a: (admissible(a.fine.transformation), a.trust))
     if not admissible(best.fine.transformation):

@@ -170,9 +170,11 @@ def test_scan_pairs_from_a_conf(two_scans):
 
 
 def test_bench_bunny_command(two_scans, tmp_path):
-    r = _bench(["bunny", "--data", str(two_scans), "--method", "o3dsoft", "--method", "icp", "--voxel", "0.002", "--out", str(tmp_path / "b")])
+    r = _bench(["bunny", "--data", str(two_scans), "--method", "o3dsoft", "--method", "icp", "--voxel", "0.002", "--search-restart",
+                "--out", str(tmp_path / "b")])
     assert r.exit_code == 0, r.output
-    assert json.loads((tmp_path / "b" / "config.json").read_text())["bench"]["register"]["voxel"] == 0.002
+    register_config = json.loads((tmp_path / "b" / "config.json").read_text())["bench"]["register"]
+    assert register_config["voxel"] == 0.002 and register_config["search_restart"] is True
     assert "2 of 2 ordered scan pairs" in r.output and "recall 1d/0.002" in r.output
     summary = json.loads((tmp_path / "b" / "summary.json").read_text())
     o3d_row = [s for s in summary["summaries"] if s["method"] == "o3dsoft"][0]

@@ -69,6 +69,19 @@ def test_likely_failure_warns_and_strict_exits_3(tmp_path, tiny_model_path):
     assert r.exit_code == 3 and "LIKELY FAILED" in r.stdout
 
 
+def test_search_options_reach_the_pipeline(pair_files, tiny_model_path, monkeypatch):
+    from o3dsoft import pipeline
+
+    d, _, _ = pair_files
+    seen = []
+    real = pipeline.register
+    monkeypatch.setattr(pipeline, "register", lambda *args, **kwargs: seen.append(args[2]) or real(*args, **kwargs))
+    for flags in ([], ["--search-restart", "--no-search-features"]):
+        r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--json", *flags)
+        assert r.exit_code == 0, r.output
+    assert [(c.search_restart, c.search_features) for c in seen] == [(False, True), (True, False)]
+
+
 def test_no_refine(pair_files, tiny_model_path):
     d, _, _ = pair_files
     r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--no-refine", "--json")
