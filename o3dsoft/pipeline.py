@@ -83,8 +83,8 @@ class RegisterConfig:
             the :data:`VOTED_TRANSLATIONS` translations most feature matches vote for, and at the
             most trusted rotation turned by 180 degrees about each principal axis of either cloud
             (:func:`o3dsoft.search.half_turns`), :data:`FLIPPED_TRANSLATIONS` each, then (with
-            `refine` and `search_restart`) every distinct start so far, the most trusted first,
-            by ICP from :data:`TIGHT_RESTART` x its distance on; the most confident result is
+            `refine` and `search_restart`) every distinct start so far again, by ICP from
+            :data:`TIGHT_RESTART` x its distance on; the most confident result is
             returned. Without `refine`, the search's top-ranked estimate is taken as it is.
         search_restart: end the search, while nothing is confident, by refining every distinct
             start again with ICP's tight stages only (the loose one pulls a nearly right start
@@ -92,8 +92,8 @@ class RegisterConfig:
             :data:`RESTART_SCREEN_POINTS` points per cloud, the :data:`RESTART_REFINED` most
             trusted there then on the work clouds. Off by default: on the whole ModelNet40 test
             split, within (5 deg, 0.05) `rpmnet-crop` / `so3-crop`, 95.8 / 94.9 % without and
-            96.6 / 96.0 % with it, but 38 / 45 confident wrong instead of 33 / 45 and a mean time
-            per pair of 1.0 s instead of 0.58 s (README, The pipeline).
+            96.6 / 96.0 % with it, but 38 / 45 confident wrong instead of 33 / 44 and a mean time
+            per pair of 1.0 s instead of 0.7 s (README, The pipeline).
         search_points: points per cloud for the search's batch of network passes.
         search_refine: how many of the search's best-ranked estimates are polished by ICP on the
             network's samples before the best of them is refined at full resolution.
