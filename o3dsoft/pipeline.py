@@ -460,17 +460,13 @@ def register(
         tight_icp = config.icp.starting_at(TIGHT_RESTART)
         src_screen = sample_points(src_work, RESTART_SCREEN_POINTS, seed=config.seed + 4)
         tgt_screen = sample_points(tgt_work, RESTART_SCREEN_POINTS, seed=config.seed + 5)
-        screened: List[Tuple[float, np.ndarray, np.ndarray]] = []
-        for a in distinct_starts(sorted(attempts, key=lambda a: a.trust, reverse=True), src_work.mean(axis=0), norm.scale):
-            if admissible(a.start, PRIOR_MARGIN_DEG):
-                moved = refine_stage.icp(src_screen, tgt_screen, a.start, distance, tight_icp).transformation
-                scored = confidence_stage.features(src_screen, tgt_screen, moved, distance, config.icp.max_points)
-                screened.append((confidence_stage.confidence(scored) if admissible(moved) else 0.0, moved, a.coarse))
-        lap("search")
-        for _, moved, T_coarse in sorted(screened, key=lambda s: s[0], reverse=True)[:RESTART_REFINED]:
+        screened = [finish(a.start, a.coarse, src_screen, tgt_screen, tight_icp)
+                    for a in distinct_starts(sorted(attempts, key=lambda a: a.trust, reverse=True), src_work.mean(axis=0), norm.scale)
+                    if admissible(a.start, PRIOR_MARGIN_DEG)]
+        for s in sorted(screened, key=lambda s: s.trust, reverse=True)[:RESTART_REFINED]:
             if confident():
                 break
-            attempts.append(finish(moved, T_coarse, icp=tight_icp))
+            attempts.append(finish(s.fine.transformation, s.coarse, icp=tight_icp))
     # The most trusted; under a rotation prior, one within the bound before any beyond it.
     best = max(attempts, key=lambda a: (admissible(a.fine.transformation), a.trust))
     if not admissible(best.fine.transformation):
