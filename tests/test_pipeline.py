@@ -967,8 +967,8 @@ def test_a_start_the_loose_icp_stage_pulls_away_is_mended_by_the_tight_restart(m
     assert np.array_equal(res.coarse_transformation, start)
     res = register(src, tgt, replace(config, search_restart=False), model=model)  # the same without the restart
     assert res.likely_failed and pair_errors(res.transformation, T).rotation_deg > 5.0
-    # Among wrong starts, the screen on small samples ranks the right one first: one refinement
-    # on the work clouds suffices.
+    # Among wrong starts, the screen (on RESTART_SCREEN_POINTS points per cloud, here all of
+    # them) ranks the right one first: one refinement on the work clouds suffices.
     turns = [rigid(euler_to_matrix(angles), np.zeros(3)) for angles in ([90.0, 0.0, 0.0], [0.0, 180.0, 0.0], [0.0, 0.0, -90.0])]
     starts = np.stack([T @ turn for turn in turns] + [start])
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: starts)
