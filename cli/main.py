@@ -161,6 +161,8 @@ def _errors_dict(e) -> dict:
 
 
 def _format_result(source, target, result, errors, model_info, config) -> str:
+    from ..pipeline import SCREEN_POINTS
+
     refined, search_mode = config.refine, config.search
     grid = f" and the {config.voxel:g} voxel grid" if config.voxel is not None else ""
     T = result.transformation
@@ -179,7 +181,8 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     ]
     if result.searched:
         why = "the first result looked wrong" if search_mode == "auto" else "--search always"
-        lines.append(f"  search       ran ({why}); {result.attempts} estimates refined, the most confident kept")
+        screened = f" ({result.screened} screened on at most {SCREEN_POINTS:,} points per cloud first)" if result.screened else ""
+        lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}, the most confident kept")
     if errors is not None:
         f, c = errors["final"], errors["coarse"]
         stage = "network + ICP" if refined else "network"
@@ -289,13 +292,15 @@ def _bench_options(fn):
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
+        click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+                     help="Pairs run at once, in as many processes sharing the CPU's threads (on 2 cores, 2 fill both; every method's time is then measured on its process's share)."),
     ]
     for option in reversed(options):
         fn = option(fn)
     return fn
 
 
-def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, search_restart, voxel, max_rotation, out, overwrite, no_progress):
+def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, search_restart, voxel, max_rotation, out, overwrite, no_progress, jobs):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -312,10 +317,10 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, weights
     model = load_model(config.register.weights, device) if needs_model else None
     searches = needs_model and config.register.search != "off" and config.register.search_weights is not None
     search_model = load_model(config.register.search_weights, device) if searches else None
-    description = {"command": shlex.join(["o3dsoft", *sys.argv[1:]]), **description}
+    description = {"command": shlex.join(["o3dsoft", *sys.argv[1:]]), **description, "jobs": jobs}
     folder = prepare_folder(out or Path("runs") / f"bench-{name}-{time.strftime('%Y%m%d-%H%M%S')}", overwrite)
     result = run(pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True),
-                 search_model=search_model)
+                 search_model=search_model, jobs=jobs)
     click.echo(result.table)
     click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
     if result.interrupted:

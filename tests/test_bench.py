@@ -91,7 +91,24 @@ def test_bad_pairs_files(tmp_path):
         bench.import_pairs(tmp_path / "cat.npz")
 
 
-def test_an_unusable_pair_is_reported_and_skipped(tmp_path):
+def test_parallel_jobs_give_the_rows_of_a_serial_run(modelnet_root, tiny_model_path, tmp_path):
+    args = ["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--protocol", "so3-crop", "--limit", "3",
+            "--weights", str(tiny_model_path), "--method", "o3dsoft", "--method", "icp", "--no-progress"]
+    runs = {}
+    for jobs in (1, 2):
+        r = _bench([*args, "--jobs", str(jobs), "--out", str(tmp_path / str(jobs))])
+        assert r.exit_code == 0, r.output
+        runs[jobs] = list(csv.DictReader(open(tmp_path / str(jobs) / "pairs.csv")))
+        assert json.loads((tmp_path / str(jobs) / "summary.json").read_text())["jobs"] == jobs
+        assert json.loads((tmp_path / str(jobs) / "config.json").read_text())["jobs"] == jobs
+    key = lambda row: (row["protocol"], row["index"], row["method"])  # noqa: E731
+    assert [key(row) for row in runs[2]] == [key(row) for row in runs[1]] and len(runs[1]) == 2 * 3 * 2  # in order
+    # The same results (the network's threads differ: equal to rounding, which ICP removes).
+    assert [float(row["rotation_deg"]) for row in runs[2]] == pytest.approx([float(row["rotation_deg"]) for row in runs[1]], abs=1e-4)
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_an_unusable_pair_is_reported_and_skipped(tmp_path, jobs):
     rng = np.random.default_rng(0)
     good = rng.normal(size=(300, 3))
     pairs = [bench.BenchPair("x", 0, good, good, np.eye(4), "blob"),
@@ -99,7 +116,8 @@ def test_an_unusable_pair_is_reported_and_skipped(tmp_path):
              bench.BenchPair("x", 2, good, good, np.eye(4), "blob")]
     from o3dsoft.coarse import load_model
 
-    result = bench.run(iter(pairs), 3, bench.BenchConfig(methods=("o3dsoft",)), load_model(), tmp_path, {}, progress=False, log=lambda m: None)
+    result = bench.run(iter(pairs), 3, bench.BenchConfig(methods=("o3dsoft",)), load_model(), tmp_path, {}, progress=False, log=lambda m: None,
+                       jobs=jobs)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["pairs_completed"] == 2 and [f["index"] for f in summary["pairs_failed"]] == [1]
     assert "fewer" in summary["pairs_failed"][0]["error"] or "points" in summary["pairs_failed"][0]["error"]

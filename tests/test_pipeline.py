@@ -584,6 +584,7 @@ def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(mo
 
     monkeypatch.setattr(search.FeatureMatch, "candidates", right_second)
     monkeypatch.setattr(pipeline, "VOTED_ROTATIONS", 0)  # the last resort, the translation votes, is tested on its own
+    monkeypatch.setattr(pipeline, "SCREEN_POINTS", 10**6)  # no screen: every estimate on the work clouds (tested on its own)
     described = []
     real_features = baselines.fpfh_features
     monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale, config: described.append(len(points)) or real_features(points, scale, config))
@@ -600,6 +601,35 @@ def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(mo
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.empty((0, 4, 4)))
     res = register(src, tgt, config, model=model)  # no feature estimate at all: on to the network's starts
     assert res.attempts == 2 and res.likely_failed
+
+
+def test_on_large_clouds_the_search_screens_its_estimates_and_refines_only_the_promising(monkeypatch):
+    from o3dsoft import pipeline, search
+
+    src, tgt, T = _bundled_scan_pair()  # about 7,000 points each: work clouds of 5,000, screens of 1,024
+    wrong = [T @ rigid(euler_to_matrix(angles), np.zeros(3)) for angles in ([180.0, 0.0, 0.0], [0.0, 180.0, 0.0], [0.0, 0.0, 180.0])]
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.stack(wrong + [T] + wrong))
+    monkeypatch.setattr(pipeline, "VOTED_ROTATIONS", 0)  # the last resort, the translation votes, is tested on its own
+    calls = _record_icp(monkeypatch)
+    config = RegisterConfig(search="always", search_weights=None)
+    res = register(src, tgt, config, model=_AlwaysWrongModel(wrong[0][:3, :3]))
+    assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5
+    # The network's estimate on the work clouds; the feature match's screened until the right
+    # one, the only one refined on the work clouds (by the tight stages, from the screen's result).
+    assert res.screened == 4 and res.attempts == 2
+    screen, work = pipeline.SCREEN_POINTS, config.attempt_points
+    sizes = [n for n, _ in calls]
+    assert all(n <= screen for n in sizes[1:5]) and screen < sizes[0] <= work and screen < sizes[5] <= work
+    assert calls[5][1] == (pipeline.TIGHT_RESTART, 0.1) and sizes[6] == len(src)  # then the kept one at full resolution
+    # Nothing right: the screen's record holders alone reach the work clouds.
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.stack(wrong))
+    res = register(src, tgt, config, model=_AlwaysWrongModel(wrong[0][:3, :3]))
+    assert res.likely_failed and res.screened == 3 and 1 <= res.attempts <= 1 + 3
+    # Small clouds are not screened: every estimate is refined where it is scored.
+    monkeypatch.setattr(pipeline, "SCREEN_POINTS", 10**6)
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.stack(wrong + [T] + wrong))
+    res = register(src, tgt, config, model=_AlwaysWrongModel(wrong[0][:3, :3]))
+    assert not res.likely_failed and res.screened == 0 and res.attempts == 1 + 4
 
 
 def test_feature_match_candidates_are_distinct_reproducible_and_find_a_large_rotation():
@@ -967,7 +997,7 @@ def test_a_start_the_loose_icp_stage_pulls_away_is_mended_by_the_tight_restart(m
     assert np.array_equal(res.coarse_transformation, start)
     res = register(src, tgt, replace(config, search_restart=False), model=model)  # the same without the restart
     assert res.likely_failed and pair_errors(res.transformation, T).rotation_deg > 5.0
-    # Among wrong starts, the screen (on RESTART_SCREEN_POINTS points per cloud, here all of
+    # Among wrong starts, the screen (on at most SCREEN_POINTS points per cloud, here all of
     # them) ranks the right one first: one refinement on the work clouds suffices.
     turns = [rigid(euler_to_matrix(angles), np.zeros(3)) for angles in ([90.0, 0.0, 0.0], [0.0, 180.0, 0.0], [0.0, 0.0, -90.0])]
     starts = np.stack([T @ turn for turn in turns] + [start])
