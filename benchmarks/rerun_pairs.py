@@ -1,10 +1,11 @@
 """Re-register, with the current code, the pairs of a bench run that failed or were flagged.
 
-    python -m benchmarks.rerun_pairs RUN_DIR --protocol rpmnet-crop [--which failed|flagged]
-        [--max-rotation DEG] [--search-restart] [--data D]
+    python -m benchmarks.rerun_pairs RUN_DIR --protocol rpmnet-crop [--which failed|flagged|doubtful]
+        [--max-rotation DEG] [--search-restart] [--search-feature-stop S] [--data D]
 
 From RUN_DIR/pairs.csv (method ``o3dsoft``), `failed` takes the pairs beyond (5 deg, 0.05),
-`flagged` the pairs within it whose confidence was below 0.5. Each is registered again (the
+`flagged` the pairs within it whose confidence was below 0.5, `doubtful` every pair whose
+confidence was at least 0.5 and below 0.9 (right or wrong). Each is registered again (the
 shipped models, seed 0, as the bench does; give the run's --max-rotation if it had one), and
 the counts within (1 deg, 0.01) and (5 deg, 0.05) (higher is better), of confident wrong
 results (confidence >= 0.5 beyond (5 deg, 0.05); lower is better) and the median time per pair
@@ -38,9 +39,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("run", type=Path)
     parser.add_argument("--protocol", required=True)
-    parser.add_argument("--which", choices=("failed", "flagged"), default="failed")
+    parser.add_argument("--which", choices=("failed", "flagged", "doubtful"), default="failed")
     parser.add_argument("--max-rotation", type=float, default=None)
     parser.add_argument("--search-restart", action="store_true", help="RegisterConfig(search_restart=True)")
+    parser.add_argument("--search-feature-stop", type=float, default=0.5, help="RegisterConfig(search_feature_stop=...)")
     parser.add_argument("--data", default=str(DEFAULT_DATA))
     args = parser.parse_args()
 
@@ -51,11 +53,13 @@ def main() -> None:
     confidence = {int(r["index"]): float(r["confidence"]) for r in rows}
     if args.which == "failed":
         chosen = [i for i, (o, _) in sorted(before.items()) if not o[1]]
-    else:
+    elif args.which == "flagged":
         chosen = [i for i, (o, _) in sorted(before.items()) if o[1] and confidence[i] < 0.5]
+    else:
+        chosen = [i for i in sorted(before) if 0.5 <= confidence[i] < 0.9]
     pairs = load_pairs(args.data, "test", get_protocol(args.protocol), 0)
     model, search_model = load_model(None, "cpu"), load_model("partial", "cpu")
-    config = RegisterConfig(max_rotation=args.max_rotation, search_restart=args.search_restart)
+    config = RegisterConfig(max_rotation=args.max_rotation, search_restart=args.search_restart, search_feature_stop=args.search_feature_stop)
     now, times = np.zeros(3, dtype=int), []
     for i in chosen:
         pair = pairs[i]

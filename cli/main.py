@@ -65,10 +65,12 @@ def main() -> None:
 @click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the networks from 39 starting rotations): auto = when the first result looks wrong.")
 @click.option("--search-features/--no-search-features", default=True, show_default=True, help="The search starts with FPFH features matched by RANSAC (for partial scans, any rotation).")
 @click.option("--search-restart", is_flag=True, help="End a search that found nothing confident by refining every distinct start again with ICP's tight stages (partial overlap; see the README's pipeline).")
+@click.option("--search-feature-stop", type=click.FloatRange(0.5, 1.0), default=0.5, show_default=True,
+              help="The search's feature match goes on until an estimate reaches this confidence (0.9: doubtful results, 0.5-0.9, are searched further; see the README's pipeline).")
 @click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP)
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, voxel, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, search_restart, max_rotation, strict):
+def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, voxel, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, search_restart, search_feature_stop, max_rotation, strict):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -98,6 +100,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
         search=search,
         search_features=search_features,
         search_restart=search_restart,
+        search_feature_stop=search_feature_stop,
         max_rotation=max_rotation,
         refine=not no_refine,
         icp=ICPConfig(distance=icp_distance, absolute=icp_absolute),
@@ -287,6 +290,8 @@ def _bench_options(fn):
         click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
         click.option("--search-features/--no-search-features", default=True, show_default=True, help="o3dsoft's search starts with FPFH + RANSAC (see register --help)."),
         click.option("--search-restart", is_flag=True, help="o3dsoft's search ends with a tight restart of every distinct start (see register --help)."),
+        click.option("--search-feature-stop", type=click.FloatRange(0.5, 1.0), default=0.5, show_default=True,
+                     help="o3dsoft's feature match goes on until this confidence (see register --help)."),
         click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="o3dsoft's voxel grid, in the clouds' units (see register --help)."),
         click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help="o3dsoft's rotation prior, in degrees (see register --help)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
@@ -300,7 +305,7 @@ def _bench_options(fn):
     return fn
 
 
-def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, search_restart, voxel, max_rotation, out, overwrite, no_progress, jobs):
+def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, search_restart, search_feature_stop, voxel, max_rotation, out, overwrite, no_progress, jobs):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -309,7 +314,8 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, weights
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed,
                          register=RegisterConfig(weights=str(weights) if weights else None, device=device, coarse_iterations=coarse_iterations,
-                                                  search=search, search_features=search_features, search_restart=search_restart, voxel=voxel,
+                                                  search=search, search_features=search_features, search_restart=search_restart,
+                                                  search_feature_stop=search_feature_stop, voxel=voxel,
                                                   max_rotation=max_rotation))
     if recall is not None:
         config = replace(config, recall=recall)

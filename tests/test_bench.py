@@ -189,10 +189,10 @@ def test_scan_pairs_from_a_conf(two_scans):
 
 def test_bench_bunny_command(two_scans, tmp_path):
     r = _bench(["bunny", "--data", str(two_scans), "--method", "o3dsoft", "--method", "icp", "--voxel", "0.002", "--search-restart",
-                "--out", str(tmp_path / "b")])
+                "--search-feature-stop", "0.9", "--out", str(tmp_path / "b")])
     assert r.exit_code == 0, r.output
     register_config = json.loads((tmp_path / "b" / "config.json").read_text())["bench"]["register"]
-    assert register_config["voxel"] == 0.002 and register_config["search_restart"] is True
+    assert register_config["voxel"] == 0.002 and register_config["search_restart"] is True and register_config["search_feature_stop"] == 0.9
     assert "2 of 2 ordered scan pairs" in r.output and "recall 1d/0.002" in r.output
     summary = json.loads((tmp_path / "b" / "summary.json").read_text())
     o3d_row = [s for s in summary["summaries"] if s["method"] == "o3dsoft"][0]
@@ -228,7 +228,7 @@ def test_feature_match_benchmark_reports_each_estimate(modelnet_root, monkeypatc
     assert "3 candidates" in out
 
 
-def test_rerun_pairs_registers_again_the_failed_or_the_flagged_pairs_of_a_run(modelnet_root, tmp_path, monkeypatch, capsys):
+def test_rerun_pairs_registers_again_the_failed_flagged_or_doubtful_pairs_of_a_run(modelnet_root, tmp_path, monkeypatch, capsys):
     import sys
 
     from benchmarks import rerun_pairs
@@ -237,11 +237,13 @@ def test_rerun_pairs_registers_again_the_failed_or_the_flagged_pairs_of_a_run(mo
     rows = [["rpmnet-crop", 0, "o3dsoft", 120.0, 0.3, 0.9, 100.0],  # failed, and confident
             ["rpmnet-crop", 1, "o3dsoft", 0.5, 0.005, 0.2, 100.0],  # right but flagged
             ["rpmnet-crop", 2, "o3dsoft", 0.5, 0.005, 0.9, 100.0],  # right and trusted
-            ["rpmnet-crop", 3, "icp", 120.0, 0.3, 0.9, 100.0]]  # another method
+            ["rpmnet-crop", 3, "icp", 120.0, 0.3, 0.9, 100.0],  # another method
+            ["rpmnet-crop", 4, "o3dsoft", 0.5, 0.005, 0.6, 100.0]]  # right, in doubt
     with open(tmp_path / "pairs.csv", "w", newline="") as f:
         csv.writer(f).writerows([fields] + rows)
     for which, picked in (("failed", "in the run                   0                  0                1"),
-                          ("flagged", "in the run                   1                  1                0")):
+                          ("flagged", "in the run                   1                  1                0"),
+                          ("doubtful", "in the run                   1                  1                0")):
         monkeypatch.setattr(sys, "argv", ["rerun_pairs", str(tmp_path), "--protocol", "rpmnet-crop", "--which", which, "--data", str(modelnet_root)])
         rerun_pairs.main()
         out = capsys.readouterr().out

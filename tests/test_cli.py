@@ -76,10 +76,12 @@ def test_search_options_reach_the_pipeline(pair_files, tiny_model_path, monkeypa
     seen = []
     real = pipeline.register
     monkeypatch.setattr(pipeline, "register", lambda *args, **kwargs: seen.append(args[2]) or real(*args, **kwargs))
-    for flags in ([], ["--search-restart", "--no-search-features"]):
+    for flags in ([], ["--search-restart", "--no-search-features", "--search-feature-stop", "0.9"]):
         r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--json", *flags)
         assert r.exit_code == 0, r.output
-    assert [(c.search_restart, c.search_features) for c in seen] == [(False, True), (True, False)]
+    assert [(c.search_restart, c.search_features, c.search_feature_stop) for c in seen] == [(False, True, 0.5), (True, False, 0.9)]
+    r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--search-feature-stop", "0.3")
+    assert r.exit_code == 2 and "0.3 is not in the range 0.5<=x<=1.0" in r.output
 
 
 def test_no_refine(pair_files, tiny_model_path):

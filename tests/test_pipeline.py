@@ -1009,6 +1009,23 @@ def test_a_start_the_loose_icp_stage_pulls_away_is_mended_by_the_tight_restart(m
     assert res.attempts == without.attempts + 1
 
 
+def test_a_doubtful_result_is_searched_further_when_asked(modelnet_root):
+    from o3dsoft.data import get_protocol, load_pairs
+
+    # rpmnet-crop test pair 369 (stairs): the feature match's second estimate, half a turn off,
+    # is trusted at 0.50 and ends the search; going on to 0.9 finds the right pose a few later.
+    pair = load_pairs(modelnet_root, "test", get_protocol("rpmnet-crop"), 0)[369]
+    src, tgt, T = pair.source.astype(np.float64), pair.target.astype(np.float64), pair.transform
+    model, search_model = load_model(), load_model("partial")
+    first = register(src, tgt, RegisterConfig(), model=model, search_model=search_model)
+    assert 0.5 <= first.confidence < 0.9 and pair_errors(first.transformation, T).rotation_deg > 170
+    further = register(src, tgt, RegisterConfig(search_feature_stop=0.9), model=model, search_model=search_model)
+    assert further.confidence >= 0.9 and further.attempts > first.attempts
+    assert pair_errors(further.transformation, T).rotation_deg < 1.0
+    with pytest.raises(InputError, match="search_feature_stop must be in"):
+        register(src, tgt, RegisterConfig(search_feature_stop=0.3), model=model)
+
+
 def test_distinct_starts_keep_the_first_of_each_pose():
     from o3dsoft.pipeline import RESTART_DISTINCT_DEG, RESTART_DISTINCT_SHIFT, _Attempt, distinct_starts
 
