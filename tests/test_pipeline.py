@@ -1024,6 +1024,16 @@ def test_a_doubtful_result_is_searched_further_when_asked(modelnet_root):
     assert pair_errors(further.transformation, T).rotation_deg < 1.0
     with pytest.raises(InputError, match="search_feature_stop must be in"):
         register(src, tgt, RegisterConfig(search_feature_stop=0.3), model=model)
+    # With the tight restart as well, a result still below the stop gets the restart too
+    # (rpmnet-crop pair 1292, a person: the feature match ends at 0.89).
+    pair = load_pairs(modelnet_root, "test", get_protocol("rpmnet-crop"), 0)[1292]
+    src, tgt = pair.source.astype(np.float64), pair.target.astype(np.float64)
+    runs = {(restart, stop): register(src, tgt, RegisterConfig(search_restart=restart, search_feature_stop=stop), model=model,
+                                      search_model=search_model) for restart, stop in ((True, 0.5), (False, 0.9), (True, 0.9))}
+    assert runs[True, 0.5].screened == 0 and runs[True, 0.5].confidence >= 0.5  # confident: no restart at the default stop
+    assert runs[False, 0.9].screened == 0 and 0.5 <= runs[False, 0.9].confidence < 0.9
+    assert runs[True, 0.9].screened > 0 and runs[True, 0.9].attempts >= runs[False, 0.9].attempts
+    assert runs[True, 0.9].confidence >= runs[False, 0.9].confidence  # the most trusted of more estimates
 
 
 def test_distinct_starts_keep_the_first_of_each_pose():
