@@ -298,7 +298,7 @@ def _bench_options(fn):
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
         click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
-                     help="Pairs run at once, in as many processes sharing the CPU's threads (on 2 cores, 2 fill both; every method's time is then measured on its process's share)."),
+                     help="Pairs run at once, in as many processes sharing the CPU's threads (for many cores; every method's time is then measured on its process's share)."),
     ]
     for option in reversed(options):
         fn = option(fn)

@@ -571,8 +571,8 @@ def run_pairs(pairs: Iterator[BenchPair], config: BenchConfig, model: Optional[C
     """:func:`run_pair` on each pair, in order; with `jobs` > 1 in as many worker processes, each
     with its share of the CPU's threads (the models are loaded again in each, from their files).
 
-    On a 2-core machine the network's and Open3D's threads leave part of both cores idle (a
-    `paper` run kept them 74 % busy), which two single-threaded workers fill.
+    For machines with many cores; on the 2-core development machine a single process already
+    kept both cores 74 % busy on `paper`, and 2 jobs gained little (README, Benchmarks).
     """
     if jobs == 1:
         for pair in pairs:
