@@ -395,6 +395,11 @@ def register(
     screened: List[_Attempt] = []  # the search's estimates as the screen scored them
     tight_icp = config.icp.starting_at(TIGHT_RESTART)
 
+    def promote(s: _Attempt) -> _Attempt:
+        # An estimate converged on the screen clouds, refined and scored on the work clouds: from
+        # where the screen left it, by the tight stages only.
+        return finish(s.fine.transformation, s.coarse, icp=tight_icp)._replace(start=s.start)
+
     def search_attempt(start: np.ndarray, icp: refine_stage.ICPConfig) -> None:
         # One of the search's estimates, refined and scored into `attempts`. On clouds larger than
         # the screen, first there: ICP on 5,000 points per cloud took about 0.7 s per estimate on
@@ -406,8 +411,7 @@ def register(
         record = max((a.trust for a in screened), default=0.0)
         screened.append(s)
         if (s.trust > record and s.trust >= SCREEN_MIN_TRUST) or s.trust >= confidence_stage.LIKELY_FAILED_BELOW:
-            # Converged on the screen: the work clouds need only the tight stages.
-            attempts.append(finish(s.fine.transformation, start, icp=tight_icp)._replace(start=start))
+            attempts.append(promote(s))
 
     def confident() -> bool:  # some attempt so far is trusted
         return bool(attempts) and max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW
@@ -523,7 +527,7 @@ def register(
         for s in sorted(restarted, key=lambda s: s.trust, reverse=True)[:RESTART_REFINED]:
             if settled():
                 break
-            attempts.append(finish(s.fine.transformation, s.coarse, icp=tight_icp))
+            attempts.append(promote(s))
     # The most trusted; under a rotation prior, one within the bound before any beyond it.
     best = max(attempts, key=lambda a: (admissible(a.fine.transformation), a.trust))
     if not admissible(best.fine.transformation):
