@@ -413,11 +413,14 @@ def register(
         if (s.trust > record and s.trust >= SCREEN_MIN_TRUST) or s.trust >= confidence_stage.LIKELY_FAILED_BELOW:
             attempts.append(promote(s))
 
+    def best_trust() -> float:
+        return max((a.trust for a in attempts), default=0.0)
+
     def confident() -> bool:  # some attempt so far is trusted
-        return bool(attempts) and max(a.trust for a in attempts) >= confidence_stage.LIKELY_FAILED_BELOW
+        return best_trust() >= confidence_stage.LIKELY_FAILED_BELOW
 
     def settled() -> bool:  # some attempt so far is trusted enough to end the feature match
-        return bool(attempts) and max(a.trust for a in attempts) >= max(config.search_feature_stop, confidence_stage.LIKELY_FAILED_BELOW)
+        return best_trust() >= max(config.search_feature_stop, confidence_stage.LIKELY_FAILED_BELOW)
 
     def network_pass() -> coarse_stage.CoarseEstimate:
         # Coarse: the soft-alignment network, then back to the original frames.
