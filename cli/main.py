@@ -45,6 +45,44 @@ def main() -> None:
     """o3dsoft: rigid registration of 3D point clouds (learned coarse stage + Open3D ICP)."""
 
 
+
+def _apply_options(options, fn):
+    for option in reversed(options):
+        fn = option(fn)
+    return fn
+
+
+def _pipeline_options(fn):
+    """o3dsoft's pipeline settings, declared once for `register` and every bench command (each
+    a field of RegisterConfig, see :func:`_register_config`)."""
+    return _apply_options([
+        click.option("--weights", type=click.Path(path_type=Path), help=WEIGHTS_HELP),
+        click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1..."),
+        click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None,
+                     help="Downsample both clouds on a voxel grid of this size (their units) first: for scans (see the README's Real scans)."),
+        click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True,
+                     help="Network passes, each on the source moved by the estimate so far (more: closer start for ICP, slower)."),
+        click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True,
+                     help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the networks from 39 starting rotations): auto = when the first result looks wrong."),
+        click.option("--search-features/--no-search-features", default=True, show_default=True,
+                     help="The search starts with FPFH features matched by RANSAC (for partial scans, any rotation)."),
+        click.option("--search-restart", is_flag=True,
+                     help="End a search that found nothing confident by refining every distinct start again with ICP's tight stages (partial overlap; see the README's pipeline)."),
+        click.option("--search-feature-stop", type=click.FloatRange(0.5, 1.0), default=0.5, show_default=True,
+                     help="The search's feature match goes on until an estimate reaches this confidence (0.9: doubtful results, 0.5-0.9, are searched further; see the README's pipeline)."),
+        click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP),
+    ], fn)
+
+
+def _register_config(*, weights, device, voxel, coarse_iterations, search, search_features, search_restart, search_feature_stop, max_rotation, **more):
+    """RegisterConfig from the values of :func:`_pipeline_options` and further fields (`more`)."""
+    from ..pipeline import RegisterConfig
+
+    return RegisterConfig(weights=str(weights) if weights else None, device=device, voxel=voxel, coarse_iterations=coarse_iterations,
+                          search=search, search_features=search_features, search_restart=search_restart,
+                          search_feature_stop=search_feature_stop, max_rotation=max_rotation, **more)
+
+
 @main.command()
 @click.argument("source", type=click.Path(path_type=Path))
 @click.argument("target", type=click.Path(path_type=Path))
@@ -52,25 +90,16 @@ def main() -> None:
 @click.option("--out", "out_path", type=click.Path(path_type=Path), help="Write the transformed source here (.ply .pcd .xyz .xyzn .xyzrgb .pts .npy).")
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
-@click.option("--weights", type=click.Path(path_type=Path), help=WEIGHTS_HELP)
 @click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")
 @click.option("--icp-distance", type=click.FloatRange(min=0, min_open=True), default=0.1, show_default=True, help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.")
 @click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
-@click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="Downsample both clouds on a voxel grid of this size (their units) first: for scans (see the README's Real scans).")
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
-@click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="Network passes, each on the source moved by the estimate so far (more: closer start for ICP, slower).")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
-@click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1...")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
-@click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the networks from 39 starting rotations): auto = when the first result looks wrong.")
-@click.option("--search-features/--no-search-features", default=True, show_default=True, help="The search starts with FPFH features matched by RANSAC (for partial scans, any rotation).")
-@click.option("--search-restart", is_flag=True, help="End a search that found nothing confident by refining every distinct start again with ICP's tight stages (partial overlap; see the README's pipeline).")
-@click.option("--search-feature-stop", type=click.FloatRange(0.5, 1.0), default=0.5, show_default=True,
-              help="The search's feature match goes on until an estimate reaches this confidence (0.9: doubtful results, 0.5-0.9, are searched further; see the README's pipeline).")
-@click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP)
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
+@_pipeline_options
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, weights, no_refine, icp_distance, icp_absolute, voxel, num_points, coarse_iterations, mesh_points, device, render_path, search, search_features, search_restart, search_feature_stop, max_rotation, strict):
+def register(source, target, gt_path, out_path, save_transform, as_json, no_refine, icp_distance, icp_absolute, num_points, mesh_points, render_path, strict, **pipeline):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -79,7 +108,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     from .. import io
     from ..coarse import load_model
     from ..metrics import pair_errors
-    from ..pipeline import RegisterConfig, register as run_register
+    from ..pipeline import register as run_register
     from ..refine import ICPConfig
     from ..transforms import apply_transform, rotation_angle_deg
 
@@ -93,20 +122,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     tgt = io.read_points(target, mesh_points=mesh_points)
     T_gt = io.read_transform(gt_path) if gt_path is not None else None
     read_ms = (time.perf_counter() - t0) * 1000.0
-    config = RegisterConfig(
-        voxel=voxel,
-        num_points=num_points,
-        coarse_iterations=coarse_iterations,
-        search=search,
-        search_features=search_features,
-        search_restart=search_restart,
-        search_feature_stop=search_feature_stop,
-        max_rotation=max_rotation,
-        refine=not no_refine,
-        icp=ICPConfig(distance=icp_distance, absolute=icp_absolute),
-        weights=str(weights) if weights else None,
-        device=device,
-    )
+    config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(distance=icp_distance, absolute=icp_absolute))
     t0 = time.perf_counter()
     model = load_model(config.weights, config.device)
     load_ms = (time.perf_counter() - t0) * 1000.0
@@ -138,6 +154,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, weights
     else:
         click.echo(_format_result(source, target, result, errors, model_info, config))
     if result.likely_failed:
+        max_rotation = config.max_rotation
         turn = rotation_angle_deg(result.transformation[:3, :3])
         if max_rotation is not None and turn > max_rotation:
             why = f"it rotates the source by {turn:.1f} degrees, beyond --max-rotation {max_rotation:g}"
@@ -283,43 +300,27 @@ def _bench_options(fn):
 
     options = [
         click.option("--method", "methods", multiple=True, help=f"Methods to run (repeat the option; default all): {', '.join(METHODS)}."),
-        click.option("--weights", type=click.Path(path_type=Path), help=WEIGHTS_HELP),
-        click.option("--device", default="cpu", show_default=True, help="Torch device of the network."),
         click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC (o3dsoft's search repeats exactly; Open3D's multi-threaded RANSAC, in the FPFH baselines, can vary between runs)."),
-        click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True, help="o3dsoft's network passes."),
-        click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True, help="o3dsoft's global search (see register --help)."),
-        click.option("--search-features/--no-search-features", default=True, show_default=True, help="o3dsoft's search starts with FPFH + RANSAC (see register --help)."),
-        click.option("--search-restart", is_flag=True, help="o3dsoft's search ends with a tight restart of every distinct start (see register --help)."),
-        click.option("--search-feature-stop", type=click.FloatRange(0.5, 1.0), default=0.5, show_default=True,
-                     help="o3dsoft's feature match goes on until this confidence (see register --help)."),
-        click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="o3dsoft's voxel grid, in the clouds' units (see register --help)."),
-        click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help="o3dsoft's rotation prior, in degrees (see register --help)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
         click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
                      help="Pairs run at once, in as many processes sharing the CPU's threads (for many cores; every method's time is then measured on its process's share)."),
     ]
-    for option in reversed(options):
-        fn = option(fn)
-    return fn
+    return _pipeline_options(_apply_options(options, fn))
 
 
-def _run_bench(name, pairs, count, description, recall=None, *, methods, weights, device, seed, coarse_iterations, search, search_features, search_restart, search_feature_stop, voxel, max_rotation, out, overwrite, no_progress, jobs):
+def _run_bench(name, pairs, count, description, recall=None, *, methods, seed, out, overwrite, no_progress, jobs, **pipeline):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
     from ..coarse import load_model
-    from ..pipeline import RegisterConfig
 
-    config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed,
-                         register=RegisterConfig(weights=str(weights) if weights else None, device=device, coarse_iterations=coarse_iterations,
-                                                  search=search, search_features=search_features, search_restart=search_restart,
-                                                  search_feature_stop=search_feature_stop, voxel=voxel,
-                                                  max_rotation=max_rotation))
+    config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed, register=_register_config(**pipeline))
     if recall is not None:
         config = replace(config, recall=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
+    device = config.register.device
     model = load_model(config.register.weights, device) if needs_model else None
     searches = needs_model and config.register.search != "off" and config.register.search_weights is not None
     search_model = load_model(config.register.search_weights, device) if searches else None
