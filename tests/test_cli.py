@@ -168,3 +168,19 @@ def test_weights_help_names_every_shipped_model():
     from o3dsoft.coarse import bundled_model_names
 
     assert all(f" {name}" in WEIGHTS_HELP.split("(")[0] for name in bundled_model_names())
+
+
+def test_register_and_the_bench_commands_take_the_same_pipeline_options():
+    from dataclasses import fields
+
+    from o3dsoft.cli import main as cli
+    from o3dsoft.pipeline import RegisterConfig
+
+    names = {p.name for p in cli._pipeline_options(lambda: None).__click_params__}
+    assert names <= {f.name for f in fields(RegisterConfig)}  # each option is a setting of the library's pipeline
+    for command, args in ((main.commands["register"], ["a.ply", "b.ply"]), (main.commands["bench"].commands["modelnet40"], []),
+                          (main.commands["bench"].commands["bunny"], [])):
+        values = command.make_context(command.name, args).params
+        assert names <= set(values), command.name
+        # given nothing, the command line's settings are the library's defaults
+        assert cli._register_config(**{n: values[n] for n in names}) == RegisterConfig(), command.name
