@@ -52,7 +52,13 @@ class ICPConfig:
             of the two clouds) unless `absolute` is set. Fitness and inlier RMSE are reported at it.
         schedule: ICP runs once per entry, at distance * entry, in this order.
         absolute: `distance` is in the clouds' own units.
-        max_iterations, relative_fitness, relative_rmse: Open3D's convergence criteria.
+        max_iterations, relative_fitness, relative_rmse: Open3D's convergence criteria (of the
+            last stage, see `early_relative`).
+        early_relative: the stages before the last stop when their fitness and RMSE change by
+            less than this share from one iteration to the next. The next stage goes on from
+            where they stop, so only the last needs to converge tightly: on 100 `rpmnet-crop`
+            pairs (60 flagged ones), 1e-4 here instead of 1e-7 took 24 % less time (README,
+            The pipeline).
         max_points: clouds above this size are voxel-downsampled before ICP.
         polish: end with one float64 point-to-point step at the last distance (:func:`polish`).
         noise_factor: the last stage's distance is at least this many times the residual of the
@@ -65,6 +71,7 @@ class ICPConfig:
     max_iterations: int = 100
     relative_fitness: float = 1e-7
     relative_rmse: float = 1e-7
+    early_relative: float = 1e-4
     max_points: int = 100_000
     polish: bool = True
     noise_factor: float = 2.5
@@ -127,17 +134,16 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
     reg = o3d.pipelines.registration
     src = to_open3d(downsample(source, config.max_points))
     tgt = to_open3d(downsample(target, config.max_points))
-    criteria = reg.ICPConvergenceCriteria(
-        relative_fitness=config.relative_fitness,
-        relative_rmse=config.relative_rmse,
-        max_iteration=config.max_iterations,
-    )
+    last = reg.ICPConvergenceCriteria(relative_fitness=config.relative_fitness, relative_rmse=config.relative_rmse,
+                                      max_iteration=config.max_iterations)
+    early = reg.ICPConvergenceCriteria(relative_fitness=config.early_relative, relative_rmse=config.early_relative,
+                                       max_iteration=config.max_iterations)
     T = np.asarray(init, dtype=np.float64)
     distances = [distance * factor for factor in config.schedule]
     src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
     tree = cKDTree(tgt_points)
 
-    def run(T: np.ndarray, stage_distance: float) -> np.ndarray:
+    def run(T: np.ndarray, stage_distance: float, criteria=last) -> np.ndarray:
         result = reg.registration_icp(src, tgt, stage_distance, T, reg.TransformationEstimationPointToPoint(), criteria)
         return np.asarray(result.transformation).copy()
 
@@ -153,7 +159,7 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
                 T, wider = run(T, proposed), proposed
             distances[stage] = wider
         else:
-            T = run(T, stage_distance)
+            T = run(T, stage_distance, last if stage == len(distances) - 1 else early)
     if config.polish:
         T = polish(src_points, tgt_points, T, distances[-1], tree)
     scored = reg.evaluate_registration(src, tgt, distance, T)
