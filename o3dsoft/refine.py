@@ -56,9 +56,9 @@ class ICPConfig:
             last stage, see `early_relative`).
         early_relative: the stages before the last stop when their fitness and RMSE change by
             less than this share from one iteration to the next. The next stage goes on from
-            where they stop, so only the last needs to converge tightly: on 100 `rpmnet-crop`
-            pairs (60 flagged ones), 1e-4 here instead of 1e-7 took 24 % less time (README,
-            The pipeline).
+            where they stop, so only the last needs to converge tightly: on the whole
+            `rpmnet-crop` test split, 1e-4 here instead of 1e-7 cut the mean time per pair from
+            0.58 to 0.42 s (README, The pipeline).
         max_points: clouds above this size are voxel-downsampled before ICP.
         polish: end with one float64 point-to-point step at the last distance (:func:`polish`).
         noise_factor: the last stage's distance is at least this many times the residual of the
