@@ -45,8 +45,8 @@ def main() -> None:
     """o3dsoft: rigid registration of 3D point clouds (learned coarse stage + Open3D ICP)."""
 
 
-
 def _apply_options(options, fn):
+    """Decorate `fn` with click `options`, listed in --help in their order."""
     for option in reversed(options):
         fn = option(fn)
     return fn
