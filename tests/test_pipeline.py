@@ -472,7 +472,7 @@ def test_only_icps_last_stage_needs_to_converge_tightly(modelnet_root, monkeypat
     for pair in (pairs[i] for i in range(8)):
         source, target = pair.source.astype(np.float64), pair.target.astype(np.float64)
         start = random_transform(rng, max_angle=8.0, max_t=0.02) @ pair.transform
-        for config in (ICPConfig(), replace(ICPConfig(), early_relative=1e-7)):
+        for config in (ICPConfig(), ICPConfig(early_relative=1e-7)):
             T = icp(source, target, start, 0.1, config).transformation
             assert rotation_error_deg(T[:3, :3], pair.transform[:3, :3]) < 1e-6
     # The criteria as Open3D receives them: loose in the stages before the last, tight in it.
