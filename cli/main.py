@@ -331,7 +331,7 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, seed, o
     click.echo(result.table)
     click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
     if result.interrupted:
-        click.echo("Interrupted: the table covers the pairs finished before Ctrl-C.", err=True)
+        click.echo("Interrupted: the table covers the pairs finished before Ctrl-C (or SIGTERM).", err=True)
         sys.exit(130)
 
 

@@ -13,8 +13,11 @@ import csv
 import json
 import os
 import platform
+import signal
 import subprocess
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
@@ -598,6 +601,26 @@ def run_pairs(pairs: Iterator[BenchPair], config: BenchConfig, model: Optional[C
         yield from pool.imap(_run_in_worker, pairs)
 
 
+@contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM (``kill``, a scheduler's time limit) stops the run as Ctrl-C
+    does. A run started in the background by a shell (``cmd &``) ignores SIGINT, so ``kill`` is
+    how it is stopped there. Only the main thread may set signal handlers; elsewhere nothing
+    changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    before = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
 def run(
     pairs: Iterator[BenchPair],
     count: int,
@@ -614,7 +637,8 @@ def run(
 
     jobs: pairs run at once, in as many processes (:func:`run_pairs`). Each method's time is
     then measured with that process's share of the CPU, the same for every method.
-    On Ctrl-C, the pairs finished so far are summarised and written, and ``interrupted`` is set.
+    On Ctrl-C or SIGTERM, the pairs finished so far are summarised and written, and
+    ``interrupted`` is set.
     """
     from tqdm import tqdm
 
@@ -626,15 +650,16 @@ def run(
     bar = tqdm(total=count, unit="pair", disable=None if progress else True, dynamic_ncols=True)  # None: only on a terminal
     failed: List[dict] = []
     try:
-        for outcome in run_pairs(pairs, config, model, search_model, jobs):
-            if outcome.error is not None:
-                failed.append({"protocol": outcome.protocol, "index": outcome.index, "error": outcome.error})
-                log(f"pair {outcome.protocol}/{outcome.index} skipped: {outcome.error}")
-            for row, e in outcome.scored:  # appended only once every method is done: no half pairs
-                rows.append(row)
-                errors.append(e)
-            bar.set_postfix_str(outcome.protocol, refresh=False)
-            bar.update(1)
+        with _terminate_as_interrupt():
+            for outcome in run_pairs(pairs, config, model, search_model, jobs):
+                if outcome.error is not None:
+                    failed.append({"protocol": outcome.protocol, "index": outcome.index, "error": outcome.error})
+                    log(f"pair {outcome.protocol}/{outcome.index} skipped: {outcome.error}")
+                for row, e in outcome.scored:  # appended only once every method is done: no half pairs
+                    rows.append(row)
+                    errors.append(e)
+                bar.set_postfix_str(outcome.protocol, refresh=False)
+                bar.update(1)
     except KeyboardInterrupt:
         interrupted = True
     finally:

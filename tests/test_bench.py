@@ -1,6 +1,8 @@
 import csv
 import json
+import os
 import shutil
+import signal
 
 import numpy as np
 import pytest
@@ -133,7 +135,8 @@ def test_bad_names_and_data(tmp_path, monkeypatch):
     assert r.exit_code == 1 and "no ModelNet40 test split here" in r.output and "Traceback" not in r.output
 
 
-def test_interrupted_run_keeps_what_finished(modelnet_root, tmp_path, monkeypatch):
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
+def test_interrupted_run_keeps_what_finished(modelnet_root, tmp_path, monkeypatch, how):
     count, pairs = bench.modelnet_pairs(str(modelnet_root), ["paper"], 3, seed=0)
     real = bench.run_methods
     calls = []
@@ -141,12 +144,16 @@ def test_interrupted_run_keeps_what_finished(modelnet_root, tmp_path, monkeypatc
     def interrupt_on_third(pair, config, model, search_model=None):
         calls.append(pair.index)
         if len(calls) == 3:
-            raise KeyboardInterrupt
+            if how == "ctrl-c":
+                raise KeyboardInterrupt
+            os.kill(os.getpid(), signal.SIGTERM)  # as `kill PID` does to a run in the background
         return real(pair, config, model, search_model)
 
     monkeypatch.setattr(bench, "run_methods", interrupt_on_third)
     config = bench.BenchConfig(methods=("icp",))
+    handler = signal.getsignal(signal.SIGTERM)
     result = bench.run(pairs, count, config, None, tmp_path, {"benchmark": "test"}, progress=False)
+    assert signal.getsignal(signal.SIGTERM) is handler  # the process's own handling is back
     assert result.interrupted and result.summaries[0]["pairs"] == 2
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["interrupted"] and summary["pairs_completed"] == 2
