@@ -1,6 +1,10 @@
 """Write the README's "Results" section from bench run folders (never typed by hand).
 
-    python -m benchmarks.results_table RUN_DIR [RUN_DIR ...] [--readme README.md] [--marker results]
+    python -m benchmarks.results_table RUN [RUN ...] [--readme README.md] [--marker results]
+
+Each RUN is a bench run folder or a copy of its summary.json; the README's table is made from
+the copies in benchmarks/results/ (``python -m benchmarks.results_table benchmarks/results/*.json``),
+so that it can be made again from the repository alone, from runs of different sessions.
 
 Replaces the text between the markers ``<!-- MARKER:start -->`` and ``<!-- MARKER:end -->``
 (MARKER: ``results`` unless told) with each run's command, machine and versions, a short table
@@ -77,8 +81,14 @@ def merged(docs: Sequence[dict]) -> dict:
     return {"methods": docs[0]["methods"], "recall_thresholds": docs[0]["recall_thresholds"], "summaries": summaries}
 
 
+def summary_of(run: Path) -> dict:
+    """A run's summary: from a run folder (its summary.json) or from a summary file itself, such
+    as the copies kept in benchmarks/results/ (run folders are not kept in the repository)."""
+    return json.loads((run if run.is_file() else run / "summary.json").read_text())
+
+
 def markdown(runs: Union[Path, Sequence[Path]]) -> str:
-    docs = [json.loads((run / "summary.json").read_text()) for run in ([runs] if isinstance(runs, Path) else runs)]
+    docs = [summary_of(run) for run in ([runs] if isinstance(runs, Path) else runs)]
     doc = merged(docs)
     recall = doc["recall_thresholds"]
     r1, r5 = recall[0], recall[-1]
@@ -112,7 +122,7 @@ def markdown(runs: Union[Path, Sequence[Path]]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("runs", type=Path, nargs="+", help="bench run folders (each protocol from one of them)")
+    ap.add_argument("runs", type=Path, nargs="+", help="bench run folders or summary.json files (each protocol from one of them)")
     ap.add_argument("--readme", type=Path, default=Path(__file__).resolve().parents[1] / "README.md")
     ap.add_argument("--marker", default="results", help="the README section's marker name")
     args = ap.parse_args()

@@ -300,10 +300,11 @@ def test_a_run_records_the_versions_it_started_with(modelnet_root, tmp_path, mon
 def test_results_table_joins_runs_of_different_protocols(tmp_path):
     from benchmarks.results_table import markdown
 
-    for name, protocols, ours in (("crops", ["so3-crop", "rpmnet-crop"], 30.0), ("complete", ["dcp", "paper"], 20.0)):
-        (tmp_path / name).mkdir()
-        (tmp_path / name / "summary.json").write_text(json.dumps(_summary_doc(f"bench {name}", protocols, ours, 40.0)))
-    md = markdown([tmp_path / "crops", tmp_path / "complete"])
+    # One run as its folder, one as a copy of its summary.json (as kept in benchmarks/results/).
+    (tmp_path / "crops").mkdir()
+    (tmp_path / "crops" / "summary.json").write_text(json.dumps(_summary_doc("bench crops", ["so3-crop", "rpmnet-crop"], 30.0, 40.0)))
+    (tmp_path / "complete.json").write_text(json.dumps(_summary_doc("bench complete", ["dcp", "paper"], 20.0, 40.0)))
+    md = markdown([tmp_path / "crops", tmp_path / "complete.json"])
     assert "Command: `bench crops`" in md and "Command: `bench complete`" in md
     assert "o3dsoft 0 (commit 1234567+changes)," in md
     short = [line.split(" |")[0] for line in md.splitlines() if line.startswith("| `")]
@@ -316,4 +317,4 @@ def test_results_table_joins_runs_of_different_protocols(tmp_path):
     (tmp_path / "again").mkdir()
     (tmp_path / "again" / "summary.json").write_text(json.dumps(_summary_doc("bench again", ["dcp"], 25.0, 40.0)))
     with pytest.raises(SystemExit, match="dcp is in two of the runs"):
-        markdown([tmp_path / "complete", tmp_path / "again"])
+        markdown([tmp_path / "complete.json", tmp_path / "again"])
