@@ -89,37 +89,58 @@ def point_spacing(points: np.ndarray) -> float:
     return float(np.median(np.asarray(refine_stage.to_open3d(points).compute_nearest_neighbor_distance())))
 
 
+class Scorer:
+    """:func:`features` of any number of alignments of one pair of clouds. What an alignment does
+    not change (the downsampled clouds, their point spacings, which cloud is compared with which
+    and its KD-tree) is computed once: the search scores up to a hundred estimates of a pair.
+
+    Args:
+        source: (N, 3); target: (M, 3).
+        distance: d, the correspondence distance of the fine stage (cloud units).
+        max_points: clouds above this size are voxel-downsampled first, as in ICP.
+    """
+
+    def __init__(self, source: np.ndarray, target: np.ndarray, distance: float,
+                 max_points: int = refine_stage.ICPConfig.max_points) -> None:
+        source = refine_stage.downsample(np.asarray(source, dtype=np.float64), max_points)
+        target = refine_stage.downsample(np.asarray(target, dtype=np.float64), max_points)
+        s_source, s_target = point_spacing(source), point_spacing(target)
+        # A sparse target: ask which target points the source covers.
+        self.swapped = bool(s_target > SPACINGS * s_source)
+        self.tight = max(TIGHT * distance, SPACINGS * (s_source if self.swapped else s_target))
+        self.near, far = (target, source) if self.swapped else (source, target)
+        self.reach = max(distance, self.tight)
+        self.far, self.far_tree = far, cKDTree(far)
+
+    def __call__(self, transformation: np.ndarray) -> Features:
+        """Features of the alignment by `transformation`, (4, 4) T_target_source."""
+        T = np.linalg.inv(transformation) if self.swapped else transformation
+        near, far = apply_transform(T, self.near), self.far
+        dist, j = self.far_tree.query(near, distance_upper_bound=self.reach)
+        within = np.isfinite(dist)
+        close = dist <= self.tight
+        # A point whose nearest partner has a point of its own cloud over three times closer lies
+        # beyond the other cloud's edge (partial overlap): it has no partner and is not counted. On a
+        # wrong alignment the surfaces lie apart both ways, and no partner is claimed so.
+        claimed = np.zeros(len(near), dtype=bool)
+        claimed[within] = cKDTree(near).query(far[j[within]])[0] <= CLAIMED * dist[within]
+        counted = close | (within & ~claimed)
+        consistency = float(close.sum() / counted.sum()) if counted.any() else 0.0
+        overlap = min(1.0, float(counted.sum()) / min(len(near), len(far)))
+        return Features(float(close.mean()), self.tight, consistency, overlap)
+
+
 def features(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float,
              max_points: int = refine_stage.ICPConfig.max_points) -> Features:
-    """The measurement of an alignment that the confidence is built from.
+    """The measurement of an alignment that the confidence is built from (for several alignments
+    of one pair, :class:`Scorer` computes what they share once).
 
     Args:
         source: (N, 3); target: (M, 3); transformation: (4, 4) T_target_source.
         distance: d, the correspondence distance of the fine stage (cloud units).
         max_points: clouds above this size are voxel-downsampled first, as in ICP.
     """
-    source = refine_stage.downsample(np.asarray(source, dtype=np.float64), max_points)
-    target = refine_stage.downsample(np.asarray(target, dtype=np.float64), max_points)
-    s_source, s_target = point_spacing(source), point_spacing(target)
-    if s_target > SPACINGS * s_source:  # sparse target: ask which target points the source covers
-        tight = max(TIGHT * distance, SPACINGS * s_source)
-        near, far, T = target, source, np.linalg.inv(transformation)
-    else:
-        tight = max(TIGHT * distance, SPACINGS * s_target)
-        near, far, T = source, target, transformation
-    moved = apply_transform(T, near)
-    dist, j = cKDTree(far).query(moved, distance_upper_bound=max(distance, tight))
-    within = np.isfinite(dist)
-    close = dist <= tight
-    # A point whose nearest partner has a point of its own cloud over three times closer lies
-    # beyond the other cloud's edge (partial overlap): it has no partner and is not counted. On a
-    # wrong alignment the surfaces lie apart both ways, and no partner is claimed so.
-    claimed = np.zeros(len(near), dtype=bool)
-    claimed[within] = cKDTree(moved).query(far[j[within]])[0] <= CLAIMED * dist[within]
-    counted = close | (within & ~claimed)
-    consistency = float(close.sum() / counted.sum()) if counted.any() else 0.0
-    overlap = min(1.0, float(counted.sum()) / min(len(near), len(far)))
-    return Features(float(close.mean()), tight, consistency, overlap)
+    return Scorer(source, target, distance, max_points)(transformation)
 
 
 def confidence(f: Features) -> float:

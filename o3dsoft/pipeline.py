@@ -363,6 +363,16 @@ def register(
     def admissible(T: np.ndarray, margin: float = 0.0) -> bool:
         return config.max_rotation is None or rotation_angle_deg(T[:3, :3]) <= config.max_rotation + margin
 
+    # One scorer per pair of clouds estimates are scored on (work, screen, full resolution), keyed
+    # by the arrays' identities; each entry keeps its arrays, so that no other array takes their ids.
+    scorers: Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray, confidence_stage.Scorer]] = {}
+
+    def scorer(src_at: np.ndarray, tgt_at: np.ndarray) -> confidence_stage.Scorer:
+        key = (id(src_at), id(tgt_at))
+        if key not in scorers:
+            scorers[key] = (src_at, tgt_at, confidence_stage.Scorer(src_at, tgt_at, distance, config.icp.max_points))
+        return scorers[key][2]
+
     def finish(start: np.ndarray, T_coarse: np.ndarray, src_at: np.ndarray = src_work, tgt_at: np.ndarray = tgt_work,
                icp: refine_stage.ICPConfig = config.icp, refine: bool = config.refine) -> _Attempt:
         # Refine: point-to-point ICP from `start` (or just score it).
@@ -372,7 +382,7 @@ def register(
             fine = refine_stage.evaluate(src_at, tgt_at, start, distance, config.icp.max_points)
         lap("refine")
         # Score: how much to trust the result.
-        scored = confidence_stage.features(src_at, tgt_at, fine.transformation, distance, config.icp.max_points)
+        scored = scorer(src_at, tgt_at)(fine.transformation)
         trust = confidence_stage.confidence(scored) if admissible(fine.transformation) else 0.0
         lap("score")
         return _Attempt(trust, scored, fine, T_coarse, start)

@@ -121,7 +121,8 @@ def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, dista
     if icp is None:
         return Choice(candidates[kept[0]], candidates[kept[0]])
     polished = [refine_stage.icp(source, target, candidates[h], distance, icp).transformation for h in kept]
-    trust = [confidence_stage.confidence(confidence_stage.features(source, target, T, distance)) for T in polished]
+    scorer = confidence_stage.Scorer(source, target, distance)
+    trust = [confidence_stage.confidence(scorer(T)) for T in polished]
     best = int(np.argmax(trust))
     return Choice(candidates[kept[best]], polished[best])
 

@@ -222,6 +222,20 @@ def test_sparse_target_is_not_mistaken_for_a_failure():
     assert point_spacing(grid) == pytest.approx(0.5)
 
 
+@pytest.mark.parametrize("sparse_target", [False, True])
+def test_one_scorer_scores_many_alignments_as_fresh_ones_do(sparse_target):
+    from o3dsoft.confidence import Scorer
+
+    rng = np.random.default_rng(4)
+    src = blob(rng, 800)
+    tgt = apply(random_transform(rng), src[: 200 if sparse_target else 700])
+    scorer = Scorer(src, tgt, distance=0.2)
+    assert scorer.swapped == sparse_target  # the roles swap for a much sparser target
+    for _ in range(4):  # arbitrary alignments, each scored by the same scorer
+        T = random_transform(rng)
+        assert scorer(T) == Scorer(src, tgt, distance=0.2)(T)
+
+
 def test_clouds_left_barely_touching_are_not_trusted():
     from o3dsoft.confidence import MIN_OVERLAP, confidence, features
 
