@@ -108,25 +108,25 @@ class Scorer:
         # A sparse target: ask which target points the source covers.
         self.swapped = bool(s_target > SPACINGS * s_source)
         self.tight = max(TIGHT * distance, SPACINGS * (s_source if self.swapped else s_target))
-        self.near, far = (target, source) if self.swapped else (source, target)
+        self.near, self.far = (target, source) if self.swapped else (source, target)
+        self.far_tree = cKDTree(self.far)
         self.reach = max(distance, self.tight)
-        self.far, self.far_tree = far, cKDTree(far)
 
     def __call__(self, transformation: np.ndarray) -> Features:
         """Features of the alignment by `transformation`, (4, 4) T_target_source."""
         T = np.linalg.inv(transformation) if self.swapped else transformation
-        near, far = apply_transform(T, self.near), self.far
-        dist, j = self.far_tree.query(near, distance_upper_bound=self.reach)
+        moved = apply_transform(T, self.near)
+        dist, j = self.far_tree.query(moved, distance_upper_bound=self.reach)
         within = np.isfinite(dist)
         close = dist <= self.tight
         # A point whose nearest partner has a point of its own cloud over three times closer lies
         # beyond the other cloud's edge (partial overlap): it has no partner and is not counted. On a
         # wrong alignment the surfaces lie apart both ways, and no partner is claimed so.
-        claimed = np.zeros(len(near), dtype=bool)
-        claimed[within] = cKDTree(near).query(far[j[within]])[0] <= CLAIMED * dist[within]
+        claimed = np.zeros(len(moved), dtype=bool)
+        claimed[within] = cKDTree(moved).query(self.far[j[within]])[0] <= CLAIMED * dist[within]
         counted = close | (within & ~claimed)
         consistency = float(close.sum() / counted.sum()) if counted.any() else 0.0
-        overlap = min(1.0, float(counted.sum()) / min(len(near), len(far)))
+        overlap = min(1.0, float(counted.sum()) / min(len(moved), len(self.far)))
         return Features(float(close.mean()), self.tight, consistency, overlap)
 
 
