@@ -143,12 +143,13 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
     src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
     tree = cKDTree(tgt_points)
 
-    def run(T: np.ndarray, stage_distance: float, criteria=last) -> np.ndarray:
+    def run(T: np.ndarray, stage_distance: float, criteria) -> np.ndarray:
         result = reg.registration_icp(src, tgt, stage_distance, T, reg.TransformationEstimationPointToPoint(), criteria)
         return np.asarray(result.transformation).copy()
 
     for stage, stage_distance in enumerate(distances):
-        if stage == len(distances) - 1 and stage > 0 and config.noise_factor > 0:
+        last_stage = stage == len(distances) - 1
+        if last_stage and stage > 0 and config.noise_factor > 0:
             # The residual is the noise plus what is left of the misalignment: as the fit
             # tightens, so does the distance, while it shrinks by more than a tenth.
             wider = distances[stage - 1]
@@ -156,10 +157,10 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
                 proposed = max(stage_distance, config.noise_factor * residual(src_points, tree, T, wider))
                 if round_ > 0 and proposed > 0.9 * wider:
                     break
-                T, wider = run(T, proposed), proposed
+                T, wider = run(T, proposed, last), proposed
             distances[stage] = wider
         else:
-            T = run(T, stage_distance, last if stage == len(distances) - 1 else early)
+            T = run(T, stage_distance, last if last_stage else early)
     if config.polish:
         T = polish(src_points, tgt_points, T, distances[-1], tree)
     scored = reg.evaluate_registration(src, tgt, distance, T)
