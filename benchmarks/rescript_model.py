@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import tempfile
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.io import atomic_output
 
 CHECK_PAIRS = 20
+RESCRIPTED = re.compile(r"\s*Re-scripted with later inference code \(benchmarks/rescript_model\.py\); same weights, [^.]*\.")
 TOLERANCE = 1e-4  # largest difference allowed in any entry of R, t (normalised units) and w
 
 
@@ -59,7 +61,9 @@ def main() -> None:
         card_path = path.with_suffix(".json")
         card = json.loads(card_path.read_text())
         card["sha256"] = sha256_of(path)
-        card["note"] = (card.get("note", "") + " Re-scripted with later inference code (benchmarks/rescript_model.py); "
+        # One such sentence, the latest: earlier re-scripts' are dropped.
+        note = RESCRIPTED.sub("", card.get("note", "")).strip()
+        card["note"] = (note + " Re-scripted with later inference code (benchmarks/rescript_model.py); "
                         f"same weights, outputs within {worst:.1g} of the previous file's.").strip()
         card_path.write_text(json.dumps(card, indent=2) + "\n")
         print(f"{name}: {path} re-scripted, sha256 {card['sha256'][:12]}, outputs within {worst:.2g}")
