@@ -64,7 +64,8 @@ def main() -> None:
         # One such sentence, the latest: earlier re-scripts' are dropped.
         note = RESCRIPTED.sub("", card.get("note", "")).strip()
         card["note"] = (note + " Re-scripted with later inference code (benchmarks/rescript_model.py); "
-                        f"same weights, outputs within {worst:.1g} of the previous file's.").strip()
+                        + ("same weights, outputs identical to the previous file's." if worst == 0
+                           else f"same weights, outputs within {worst:.1g} of the previous file's.")).strip()
         card_path.write_text(json.dumps(card, indent=2) + "\n")
         print(f"{name}: {path} re-scripted, sha256 {card['sha256'][:12]}, outputs within {worst:.2g}")
 
