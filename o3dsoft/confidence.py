@@ -122,8 +122,11 @@ class Scorer:
         # A point whose nearest partner has a point of its own cloud over three times closer lies
         # beyond the other cloud's edge (partial overlap): it has no partner and is not counted. On a
         # wrong alignment the surfaces lie apart both ways, and no partner is claimed so.
+        # Only the points within d but not close can go uncounted so; the others need no query.
+        doubtful = within & ~close
         claimed = np.zeros(len(moved), dtype=bool)
-        claimed[within] = cKDTree(moved).query(self.far[j[within]])[0] <= CLAIMED * dist[within]
+        if doubtful.any():
+            claimed[doubtful] = cKDTree(moved).query(self.far[j[doubtful]])[0] <= CLAIMED * dist[doubtful]
         counted = close | (within & ~claimed)
         consistency = float(close.sum() / counted.sum()) if counted.any() else 0.0
         overlap = min(1.0, float(counted.sum()) / min(len(moved), len(self.far)))
