@@ -158,6 +158,8 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
                 if round_ > 0 and proposed > 0.9 * wider:
                     break
                 T, wider = run(T, proposed, last), proposed
+                if proposed <= stage_distance:
+                    break  # at the floor: no later proposal can be lower (clean clouds, at once)
             distances[stage] = wider
         else:
             T = run(T, stage_distance, last if last_stage else early)
