@@ -219,12 +219,13 @@ def _linear_gather_max(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor
     """max_k ReLU(weight x_j + bias) over each neighbourhood, at inference on the CPU.
 
     The linear map runs one block of output channels at a time, so each block comes out
-    contiguous and its K gathers stay nearer the cache; ReLU commutes with the max. On the 2-core
-    machine, the pipeline's batch of both 1,024-point clouds, whole `paper` pair: 41.4 ms in
-    blocks of 256 against 42.8 in blocks of 128, 45.1 in blocks of 64 and 41.6 at once (100
-    pairs, interleaved, medians); the search's 24 hypotheses on 256 points, two at a time: 87
-    against 126 ms in blocks of 64. (On one cloud at a time an earlier release measured the
-    512-channel layer 1.9x faster in blocks of 64 than at once.)
+    contiguous and its K gathers stay nearer the cache; ReLU commutes with the max. The whole
+    `paper` pair (the pipeline encodes both 1,024-point clouds as one batch) in blocks of 256
+    against 64, 128 and all 512 channels at once: 42.4 / 45.1, 41.3 / 42.8 and 41.4 / 41.6 ms
+    (2-core machine, 100 pairs, each comparison interleaved in one run, medians); the search's
+    24 hypotheses on 256 points, two at a time: 87 against 126 ms in blocks of 64. (On one cloud
+    at a time an earlier release measured the 512-channel layer 1.9x faster in blocks of 64 than
+    at once.)
 
     Args:
         x: (B, N, C_in); weight: (C_out, C_in); bias: (C_out,); cols: :func:`neighbour_columns`.
