@@ -25,7 +25,7 @@ from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.io import atomic_output
 
 CHECK_PAIRS = 20
-RESCRIPTED = re.compile(r"\s*Re-scripted with later inference code \(benchmarks/rescript_model\.py\); same weights, [^.]*\.")
+RESCRIPTED = re.compile(r"\s*Re-scripted with later inference code \(benchmarks/rescript_model\.py\); same weights, .*?(?:file's|identical)\.")
 TOLERANCE = 1e-4  # largest difference allowed in any entry of R, t (normalised units) and w
 
 
@@ -41,6 +41,14 @@ def largest_difference(old, new, data: str) -> float:
         for a, b in zip(old.run(*batch), new.run(*batch)):
             worst = max(worst, float((a - b).abs().max()))
     return worst
+
+
+def rescripted_note(note: str, worst: float) -> str:
+    """A card's note with one sentence saying it was re-scripted, the latest (earlier re-scripts'
+    sentences are dropped), and how far the new file's outputs lie from the old one's."""
+    outputs = "identical to the previous file's" if worst == 0 else f"within {worst:.1g} of the previous file's"
+    return (RESCRIPTED.sub("", note).strip() + " Re-scripted with later inference code (benchmarks/rescript_model.py); "
+            f"same weights, outputs {outputs}.").strip()
 
 
 def main() -> None:
@@ -61,11 +69,7 @@ def main() -> None:
         card_path = path.with_suffix(".json")
         card = json.loads(card_path.read_text())
         card["sha256"] = sha256_of(path)
-        # One such sentence, the latest: earlier re-scripts' are dropped.
-        note = RESCRIPTED.sub("", card.get("note", "")).strip()
-        card["note"] = (note + " Re-scripted with later inference code (benchmarks/rescript_model.py); "
-                        + ("same weights, outputs identical to the previous file's." if worst == 0
-                           else f"same weights, outputs within {worst:.1g} of the previous file's.")).strip()
+        card["note"] = rescripted_note(card.get("note", ""), worst)
         card_path.write_text(json.dumps(card, indent=2) + "\n")
         print(f"{name}: {path} re-scripted, sha256 {card['sha256'][:12]}, outputs within {worst:.2g}")
 
