@@ -27,6 +27,8 @@ def main() -> None:
     ap.add_argument("--data", default=str(DEFAULT_DATA))
     ap.add_argument("--rounds", type=int, default=2)
     args = ap.parse_args()
+    if args.rounds < 1 or args.limit < 1:
+        ap.error("--rounds and --limit must be at least 1")
     _, pairs = modelnet_pairs(args.data, [args.protocol], args.limit, 0)
     clouds = [(p.source.astype(np.float64), p.target.astype(np.float64)) for p in pairs]
     model = load_model(None)
