@@ -2,16 +2,19 @@
 
     python -m benchmarks.fit_confidence [--per-group 80] [--weights W] [--data D]
 
-Registers pairs of several kinds with o3dsoft (network + ICP), measures the features of
-o3dsoft.confidence on each result, labels it a success when the rotation error is below 5 degrees
-and the translation error below 0.05 x scale, and fits a logistic regression (Newton's method, a
-small L2 penalty). Prints the coefficients to paste into o3dsoft/confidence.py (INTERCEPT,
-SLOPE), and the area
-under the ROC curve of the confidence vs success on a held-out half, per group and overall.
+Each pair is aligned twice: by o3dsoft's network and ICP (search off: the result whose
+confidence decides whether the search runs), and by ICP from the ground truth turned by a random
+rotation of up to 90 degrees (right and wrong local minima, as the search's starts give). The
+features of o3dsoft.confidence are measured on each alignment, which is labelled a success when
+the rotation error is below 5 degrees and the translation error below 0.05 x scale, and a
+logistic regression is fitted (Newton's method, a small L2 penalty). Prints the coefficients to
+paste into o3dsoft/confidence.py (COEFFICIENTS), and the area under the ROC curve of the
+confidence vs success on a held-out half (every other pair), per group and overall.
 
-Groups: the protocols dcp, so3, rpmnet-crop and so3-crop; `unrelated` (source and target from
-two different shapes: always a failure); `sparse` (dcp pairs whose target keeps a quarter of its
-points); `part` (a source that is 30 % of the shape, cropped by a half-space, onto the whole shape).
+Groups: the protocols dcp, so3, rpmnet-crop, so3-crop and the independently sampled incongruent,
+incongruent-noise and incongruent-crop; `unrelated` (source and target from two different shapes:
+always a failure); `sparse` (dcp pairs whose target keeps a quarter of its points); `part` (a
+source that is 30 % of the shape, cropped by a half-space, onto the whole shape).
 """
 
 from __future__ import annotations
@@ -23,19 +26,22 @@ from pathlib import Path
 import numpy as np
 
 from o3dsoft import confidence as conf
+from o3dsoft import refine
 from o3dsoft.bench import roc_auc
 from o3dsoft.coarse import load_model
 from o3dsoft.data import _crop, get_protocol, load_pairs, make_pair
 from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig, register
+from o3dsoft.transforms import quaternion_to_matrix, rigid
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
-NAMES = ("consistency",)
+NAMES = conf.FEATURE_NAMES
+PROTOCOLS = ("dcp", "so3", "rpmnet-crop", "so3-crop", "incongruent", "incongruent-noise", "incongruent-crop")
 
 
 def make_problems(data: str, per_group: int, seed: int):
     """Yield (group, source, target, T_gt) from the train split."""
-    for protocol in ("dcp", "so3", "rpmnet-crop", "so3-crop"):
+    for protocol in PROTOCOLS:
         ds = load_pairs(data, "train", get_protocol(protocol), seed)
         for i in np.linspace(0, len(ds) - 1, per_group).astype(int):
             p = ds[int(i)]
@@ -50,6 +56,14 @@ def make_problems(data: str, per_group: int, seed: int):
         keep = rng.choice(len(p.target), size=len(p.target) // 4, replace=False)
         yield "sparse", p.source, p.target[keep], p.transform
         yield "part", _crop(p.source.astype(np.float64), 0.3, rng).astype(np.float32), p.target, p.transform
+
+
+def random_rotation_within(rng: np.random.Generator, max_deg: float) -> np.ndarray:
+    """A rotation about a uniform random axis by an angle uniform in [0, max_deg] degrees; (3, 3)."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    half = np.radians(rng.uniform(0.0, max_deg)) / 2
+    return quaternion_to_matrix(*(np.sin(half) * axis), np.cos(half))
 
 
 def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-3, steps: int = 50) -> np.ndarray:
@@ -76,20 +90,26 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args()
     model = load_model(args.weights)
-    groups, X, y = [], [], []
-    for group, src, tgt, T_gt in make_problems(args.data, args.per_group, args.seed):
-        r = register(src, tgt, RegisterConfig(), model=model)
-        e = pair_errors(r.transformation, T_gt)
-        f = conf.features(src, tgt, r.transformation, r.correspondence_distance)
-        groups.append(group)
-        X.append([getattr(f, n) for n in NAMES])
-        y.append(group != "unrelated" and e.rotation_deg < 5.0 and e.translation < 0.05 * r.scale)
+    config = RegisterConfig(search="off")
+    rng = np.random.default_rng(args.seed)
+    groups, X, y, pair_ids = [], [], [], []
+    for n, (group, src, tgt, T_gt) in enumerate(make_problems(args.data, args.per_group, args.seed)):
+        r = register(src, tgt, config, model=model)
+        turn = rigid(random_rotation_within(rng, 90.0), np.zeros(3))
+        icp = refine.icp(src.astype(np.float64), tgt.astype(np.float64), T_gt @ turn, r.correspondence_distance, config.icp)
+        for T in (r.transformation, icp.transformation):
+            e = pair_errors(T, T_gt)
+            f = conf.features(src, tgt, T, r.correspondence_distance)
+            groups.append(group)
+            X.append(conf.feature_vector(f))
+            y.append(group != "unrelated" and e.rotation_deg < 5.0 and e.translation < 0.05 * r.scale)
+            pair_ids.append(n)
     groups, X, y = np.array(groups), np.array(X), np.array(y, dtype=bool)
-    train = np.arange(len(y)) % 2 == 0
+    train = np.array(pair_ids) % 2 == 0  # both alignments of a pair on the same side
     w = fit_logistic(X[train], y[train].astype(float))
     score = 1 / (1 + np.exp(-(w[0] + X @ w[1:])))
     test = ~train
-    report = {"coefficients": {"INTERCEPT": round(float(w[0]), 4), "SLOPE": round(float(w[1]), 4)},
+    report = {"coefficients": {"COEFFICIENTS": [round(float(v), 4) for v in w], "features": ["intercept", *NAMES]},
               "pairs": int(len(y)), "success_rate": float(y.mean()),
               "auc_held_out": auc(score[test], y[test]),
               "flagged_correctly_held_out": float(np.mean((score[test] >= conf.LIKELY_FAILED_BELOW) == y[test])),
@@ -97,7 +117,8 @@ def main() -> None:
     for g in dict.fromkeys(groups):
         sel = test & (groups == g)
         report["per_group"][g] = {"pairs": int(sel.sum()), "success_rate": float(y[sel].mean()), "auc": auc(score[sel], y[sel]),
-                                  "flagged_correctly": float(np.mean((score[sel] >= conf.LIKELY_FAILED_BELOW) == y[sel]))}
+                                  "flagged_correctly": float(np.mean((score[sel] >= conf.LIKELY_FAILED_BELOW) == y[sel])),
+                                  "right_ones_flagged": float(np.mean(score[sel & y] < conf.LIKELY_FAILED_BELOW)) if (sel & y).any() else None}
     print(json.dumps(report, indent=2))
 
 

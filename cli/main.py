@@ -230,14 +230,14 @@ _TRAIN_FIELDS = ("data", "protocol", "epochs", "batch_size", "lr", "lr_schedule"
 @main.command()
 @click.option("--config", "config_file", type=click.Path(path_type=Path), help="YAML file of settings (the keys of config.yaml in a run folder); command-line options override it.")
 @click.option("--data", help="ModelNet40 folder (official HDF5 layout or OFF meshes); default $O3DSOFT_DATA.")
-@click.option("--protocol", default="paper", show_default=True, help="Pair protocol (paper, dcp, wide45, so3, ...).")
+@click.option("--protocol", default="paper", show_default=True, help="Pair protocol (paper, dcp, wide45, so3, incongruent, ...) or mixture (incongruent-mix).")
 @click.option("--epochs", type=click.IntRange(min=1), default=5, show_default=True)
 @click.option("--batch-size", type=click.IntRange(min=1), default=10, show_default=True, help="Pairs per step (per process under torchrun).")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True, help="Adam's learning rate.")
 @click.option("--lr-schedule", type=click.Choice(["constant", "cosine"]), default="constant", show_default=True)
 @click.option("--lr-min", type=click.FloatRange(min=0), default=1e-5, show_default=True, help="Final learning rate of the cosine schedule.")
 @click.option("--grad-clip", type=click.FloatRange(min=0, min_open=True), default=None, help="Clip the gradients' L2 norm (default: no clipping).")
-@click.option("--init", type=click.Path(), default=None, help="Start from the weights of this checkpoint.pt (fine-tuning).")
+@click.option("--init", type=click.Path(), default=None, help="Start from these weights (fine-tuning): a run's checkpoint.pt, a model file, or a shipped model by name (default, paper).")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda (under torchrun: one GPU per process).")
 @click.option("--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config.")
@@ -265,7 +265,6 @@ def train(ctx, config_file, resume, radius, k, separate_encoders, relative, **op
     from click.core import ParameterSource
 
     from ..configfile import read_config
-    from ..data import get_protocol
     from ..model import NetConfig
     from ..train import TrainConfig, train as run_train
 
@@ -285,7 +284,7 @@ def train(ctx, config_file, resume, radius, k, separate_encoders, relative, **op
     if relative is not None:
         net = replace(net, relative=relative)
     config = TrainConfig(net=net, **settings)
-    get_protocol(config.protocol)
+    config.validate()
     run_train(config, resume=resume, log=lambda m: click.echo(m, err=True))
 
 
@@ -336,14 +335,16 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, seed, o
 
 
 @bench.command("modelnet40")
-@click.option("--protocol", "protocols", multiple=True, help="Protocols (repeat the option; default all of DESIGN section 4).")
+@click.option("--protocol", "protocols", multiple=True, help="Protocols (repeat the option; default: the literature's seven and the four incongruent ones).")
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N test pairs of each protocol.")
 @click.option("--data", help="ModelNet40 folder; default $O3DSOFT_DATA.")
+@click.option("--points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True,
+              help="Points of each shape (the first N of the HDF5 data); the incongruent protocols split them into two clouds of N/2.")
 @click.option("--export-pairs", type=click.Path(path_type=Path), help="Also write the pairs to this .npz (for other tools).")
 @click.option("--import-pairs", type=click.Path(path_type=Path), help="Score the pairs of this .npz instead of making them.")
 @_bench_options
 @_friendly_errors
-def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, **common):
+def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, import_pairs, **common):
     """Every method on the ModelNet40 test pairs of each protocol: table, CSV, JSON, plots."""
     from ..bench import BENCH_PROTOCOLS, check_methods, export_pairs as write_pairs, import_pairs as read_pairs, modelnet_pairs
     from ..data import get_protocol
@@ -358,8 +359,9 @@ def bench_modelnet40(protocols, limit, data, export_pairs, import_pairs, **commo
         protocols = protocols or BENCH_PROTOCOLS
         for name in protocols:
             get_protocol(name)
-        count, iterator = modelnet_pairs(data, protocols, limit, seed)
-        description = {"benchmark": "modelnet40", "protocols": list(protocols), "limit": limit, "data": data, "seed": seed}
+        count, iterator = modelnet_pairs(data, protocols, limit, seed, points_per_shape)
+        description = {"benchmark": "modelnet40", "protocols": list(protocols), "limit": limit, "data": data, "seed": seed,
+                       "points_per_shape": points_per_shape}
         if export_pairs:
             pairs = list(iterator)
             write_pairs(export_pairs, pairs)

@@ -52,6 +52,11 @@ class Protocol:
             and noise-free (still resampled to num_points). 1 = every pair, the benchmark setting.
         categories: "all", "seen" (labels 0-19) or "unseen" (labels 20-39) for the test split;
             training on an "unseen" protocol uses the seen half.
+        disjoint_share: share of pairs whose source and target are disjoint subsets of the
+            shape's points (no point in both, as between two scans); the others use the same
+            points in both. 0 = never (the literature's protocols), 1 = every pair.
+        source_share: share of the shape's points that go to the source of a disjoint pair; the
+            target takes the rest.
     """
 
     name: str
@@ -65,7 +70,12 @@ class Protocol:
     num_points: Optional[int] = None
     degraded_share: float = 1.0
     categories: str = "all"
+    disjoint_share: float = 0.0
+    source_share: float = 0.5
 
+
+_NOISE = dict(noise_std=0.01, noise_clip=0.05)
+_WIDE45 = dict(angle_min=-45.0, angle_max=45.0, translation=0.5)
 
 PROTOCOLS: Dict[str, Protocol] = {
     p.name: p
@@ -87,8 +97,55 @@ PROTOCOLS: Dict[str, Protocol] = {
         # Training only: wide45 with every pair cropped and noisy like rpmnet-crop.
         Protocol("wide45-crop", angle_min=-45.0, angle_max=45.0, translation=0.5, noise_std=0.01, noise_clip=0.05,
                  crop_keep=0.7, num_points=717),
+        # Independent sampling: source and target are disjoint halves of the shape's points (512
+        # each from the 1,024-point release, 1,024 each from the 2,048-point one).
+        Protocol("incongruent", disjoint_share=1.0),
+        Protocol("incongruent-noise", disjoint_share=1.0, **_NOISE),
+        Protocol("incongruent-crop", disjoint_share=1.0, crop_keep=0.7, **_NOISE),
+        Protocol("incongruent-so3", rotation="so3", disjoint_share=1.0),
+        # Training only: the components of the mixture "incongruent-mix" (see MIXTURES).
+        Protocol("incongruent-wide", disjoint_share=1.0, **_WIDE45),
+        Protocol("incongruent-wide-noise", disjoint_share=1.0, **_WIDE45, **_NOISE),
+        Protocol("incongruent-wide-crop", disjoint_share=1.0, crop_keep=0.7, **_WIDE45, **_NOISE),
+        Protocol("incongruent-wide-sparse", disjoint_share=1.0, source_share=0.3, **_WIDE45, **_NOISE),
+        Protocol("incongruent-wide-dense", disjoint_share=1.0, source_share=0.7, **_WIDE45, **_NOISE),
     )
 }
+
+
+@dataclass(frozen=True)
+class Mixture:
+    """A training recipe: each batch is drawn from one protocol of `parts`, chosen with the given
+    weights (all pairs of a batch then have the same point counts); `evaluate` names the protocol
+    of the per-epoch evaluation."""
+
+    name: str
+    parts: Tuple[Tuple[str, float], ...]
+    evaluate: str
+
+
+MIXTURES: Dict[str, Mixture] = {
+    m.name: m
+    for m in (
+        # Independently sampled clouds at several densities and point counts, noisy and cropped,
+        # with congruent pairs kept in the mix so that the literature's protocols stay covered.
+        Mixture("incongruent-mix", (("wide45", 0.15), ("wide45-partial", 0.1), ("incongruent-wide", 0.2),
+                                    ("incongruent-wide-noise", 0.15), ("incongruent-wide-crop", 0.2),
+                                    ("incongruent-wide-sparse", 0.1), ("incongruent-wide-dense", 0.1)), "incongruent"),
+    )
+}
+
+
+def training_parts(name: str) -> Tuple[Tuple[Protocol, float], ...]:
+    """(protocol, weight) of a training recipe: a mixture's parts, or one protocol of weight 1."""
+    if name in MIXTURES:
+        return tuple((get_protocol(p), w) for p, w in MIXTURES[name].parts)
+    return ((get_protocol(name), 1.0),)
+
+
+def evaluation_protocol(name: str) -> Protocol:
+    """The protocol a training recipe is evaluated on after each epoch."""
+    return get_protocol(MIXTURES[name].evaluate if name in MIXTURES else name)
 
 
 def get_protocol(name: str) -> Protocol:
@@ -97,6 +154,12 @@ def get_protocol(name: str) -> Protocol:
         return PROTOCOLS[name]
     except KeyError:
         raise InputError(f"unknown protocol {name!r}; valid: {', '.join(PROTOCOLS)}") from None
+
+
+def check_training_recipe(name: str) -> None:
+    """InputError unless `name` is a protocol or a mixture."""
+    if name not in PROTOCOLS and name not in MIXTURES:
+        raise InputError(f"unknown protocol {name!r}; valid: {', '.join(list(PROTOCOLS) + list(MIXTURES))}")
 
 
 def _crop(points: np.ndarray, keep: float, rng: np.random.Generator) -> np.ndarray:
@@ -156,6 +219,11 @@ def make_pair(points: np.ndarray, protocol: Protocol, seed: int, index: int, lab
     tgt = src.copy()
     # Drawn only for mixed protocols, so that the pairs of the others stay as they were.
     degraded = p.degraded_share >= 1.0 or rng.random() < p.degraded_share
+    disjoint = p.disjoint_share >= 1.0 or (p.disjoint_share > 0.0 and rng.random() < p.disjoint_share)
+    if disjoint:
+        order = rng.permutation(len(src))
+        cut = min(max(1, int(round(p.source_share * len(src)))), len(src) - 1)
+        src, tgt = src[order[:cut]], src[order[cut:]]
     if degraded and p.crop_keep < 1.0:
         src = _crop(src, p.crop_keep, rng)
         tgt = _crop(tgt, p.crop_keep, rng)
@@ -167,6 +235,8 @@ def make_pair(points: np.ndarray, protocol: Protocol, seed: int, index: int, lab
         tgt = _noise(tgt, p, rng)
     tgt = tgt @ R.T + t
     tgt = tgt[rng.permutation(len(tgt))]
+    if disjoint:  # in random order too, so that any first n points are a random subset
+        src = src[rng.permutation(len(src))]
     return Pair(src.astype(np.float32), tgt.astype(np.float32), rigid(R, t), index, label, rotation_angle_deg(R))
 
 

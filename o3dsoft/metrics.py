@@ -100,7 +100,7 @@ def modified_chamfer_distance(
     return float(np.mean(d_src**2) + np.mean(d_tgt**2))
 
 
-MODELNET_RECALL = ((1.0, 0.01), (5.0, 0.05))
+MODELNET_RECALL = ((1.0, 0.01), (2.0, 0.02), (5.0, 0.05))
 
 
 def within(rotation_deg, translation, threshold: "tuple") -> np.ndarray:
@@ -115,8 +115,8 @@ def summarise(errors: "list[PairErrors]", recall: "tuple" = MODELNET_RECALL) -> 
 
     Recall is the share of pairs (0-1, higher is better) within both thresholds of each entry of
     `recall` ((degrees, cloud units)); by default rotation error < 1 degree and translation error
-    < 0.01 (``recall_1deg``), and < 5 degrees and < 0.05 (``recall_5deg``), for ModelNet40's
-    radius-1 shapes.
+    < 0.01 (``recall_1deg``), < 2 degrees and < 0.02 (``recall_2deg``), and < 5 degrees and < 0.05
+    (``recall_5deg``), for ModelNet40's radius-1 shapes.
     """
     if not errors:
         return {}

@@ -231,6 +231,10 @@ class RegistrationResult:
             :data:`SCREEN_POINTS` points each), of which only the most trusted count among the
             `attempts`: the search's on larger clouds, and the optional restart's.
         searched: whether the global search ran.
+        network_transformation: (4, 4) the network's own estimate (its passes from the pose the
+            clouds are given in), before ICP and whatever the search found; None when the
+            network did not run (the feature match, tried first on a partial overlap, found a
+            confident result).
         removed: rows dropped by cleaning, per cloud: {"source_non_finite": ..., ...}.
     """
 
@@ -253,12 +257,15 @@ class RegistrationResult:
     screened: int
     searched: bool
     removed: Dict[str, int]
+    network_transformation: Optional[np.ndarray] = None
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
         d = asdict(self)
         d["transformation"] = self.transformation.tolist()
         d["coarse_transformation"] = self.coarse_transformation.tolist()
+        if self.network_transformation is not None:
+            d["network_transformation"] = self.network_transformation.tolist()
         return d
 
 
@@ -432,13 +439,13 @@ def register(
     def settled() -> bool:  # some attempt so far is trusted enough to end the feature match
         return best_trust() >= max(config.search_feature_stop, confidence_stage.LIKELY_FAILED_BELOW)
 
-    def network_pass() -> coarse_stage.CoarseEstimate:
+    def network_pass() -> Tuple[coarse_stage.CoarseEstimate, np.ndarray]:
         # Coarse: the soft-alignment network, then back to the original frames.
         estimate = coarse_stage.estimate(model, src_norm, tgt_norm, config.coarse_iterations)
         lap("coarse")
         T_coarse = denormalise_transform(estimate.transform, norm)
         attempts.append(finish(T_coarse, T_coarse))
-        return estimate
+        return estimate, T_coarse
 
     matchers: List[search_stage.FeatureMatch] = []  # the FPFH features, computed once
 
@@ -477,7 +484,7 @@ def register(
     lap("sample_normalise")
     if features_first:
         feature_match()
-    estimate = network_pass() if not (features_first and confident()) else None
+    estimate, T_network = network_pass() if not (features_first and confident()) else (None, None)
     searched = features_first or config.search == "always" or (config.search == "auto" and not confident())
     if searched and config.search_features and not features_first:
         feature_match()
@@ -575,6 +582,7 @@ def register(
         attempts=len(attempts),
         screened=len(screened),
         searched=searched,
+        network_transformation=T_network,
         removed={
             "source_non_finite": src.non_finite,
             "source_duplicates": src.duplicates,

@@ -22,7 +22,8 @@ import numpy as np
 import torch
 
 from .coarse import export_torchscript, sha256_of
-from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, get_protocol, load_pairs
+from .data import (DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_recipe, evaluation_protocol, load_pairs,
+                   training_parts)
 from .configfile import write_config
 from .errors import InputError, O3dsoftError
 from .io import atomic_output
@@ -38,7 +39,9 @@ class TrainConfig:
 
     Attributes:
         data: ModelNet40 folder (None: $O3DSOFT_DATA).
-        protocol: pair protocol for training and evaluation.
+        protocol: pair protocol for training, or a mixture of protocols (``o3dsoft.data.MIXTURES``:
+            each batch from one of its protocols); evaluation uses the protocol, or the mixture's
+            evaluation protocol.
         epochs, batch_size, lr: the paper's 5, 10, 1e-3 by default.
         lr_schedule: "constant" (the paper's) or "cosine" (per step from ``lr`` down to ``lr_min``
             at the end of the last epoch).
@@ -86,6 +89,7 @@ class TrainConfig:
 
     def validate(self) -> None:
         """InputError naming the first setting out of its range."""
+        check_training_recipe(self.protocol)
         checks = [
             ("epochs", self.epochs >= 1, "at least 1"),
             ("batch_size", self.batch_size >= 1, "at least 1"),
@@ -148,12 +152,44 @@ def _load_checkpoint(path: Path) -> dict:
     try:
         with warnings.catch_warnings():  # torch warns before failing over to jit.load on exported models
             warnings.simplefilter("ignore", UserWarning)
-            ckpt = torch.load(path, map_location="cpu", weights_only=False)
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for truncated or foreign files
         raise InputError(f"{path}: unreadable checkpoint ({e})") from None
     if not isinstance(ckpt, dict) or not {"model", "config", "state"} <= set(ckpt):
         raise InputError(f"{path}: not an o3dsoft training checkpoint (expected the checkpoint.pt of a run folder, not an exported model)")
     return ckpt
+
+
+def _initial_weights(init: str) -> Tuple[dict, dict, dict]:
+    """(state dict, network settings, record for the card) of what ``--init`` names: a training
+    checkpoint, an exported model file, or a shipped model by name ("default", "paper")."""
+    from .coarse import bundled_model_names, load_model
+
+    path = Path(init)
+    if not path.is_file() and init not in bundled_model_names():
+        raise InputError(f"{init}: no such checkpoint or model file (shipped models, by name: {', '.join(bundled_model_names())})")
+    if path.is_file() and zipfile_has(path, "data.pkl") and not zipfile_has(path, "code/"):
+        ckpt = _load_checkpoint(path)
+        record = {"checkpoint": str(init), "protocol": ckpt["config"]["protocol"], "epochs_completed": ckpt["state"]["epoch"],
+                  "steps": ckpt["state"]["global_step"], "training_seconds": round(ckpt["state"]["seconds"], 1),
+                  "history": ckpt["state"]["history"]}
+        return ckpt["model"], ckpt["config"]["net"], record
+    model = load_model(init)
+    weights = {k: v.detach().clone() for k, v in model.module.state_dict().items()}
+    record = {"model": str(model.path), "sha256": sha256_of(model.path), "info": model.meta.get("info", {})}
+    return weights, model.meta["net"], record
+
+
+def zipfile_has(path: Path, name: str) -> bool:
+    """True when the zip archive at `path` (torch's file format) holds an entry whose path inside
+    its top folder starts with `name`; False for anything else."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            return any(n.split("/", 1)[-1].startswith(name) for n in z.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False
 
 
 def export_checkpoint(checkpoint: Path, out: Path) -> Path:
@@ -205,16 +241,33 @@ def _setup_distributed(config: TrainConfig) -> Tuple[int, int, torch.device]:
 
 
 class _TrainingPairs(torch.utils.data.Dataset):
-    """Normalised tensors of protocol pairs, for torch's DataLoader (workers included)."""
+    """Normalised tensors of protocol pairs, for torch's DataLoader (workers included), keyed by
+    (shape index, part): the part names which of a mixture's protocols makes the pair."""
 
-    def __init__(self, pairs: PairDataset) -> None:
-        self.pairs = pairs
+    def __init__(self, parts: Sequence[PairDataset]) -> None:
+        self.parts = list(parts)
 
     def __len__(self) -> int:
-        return len(self.pairs)
+        return len(self.parts[0])
 
-    def __getitem__(self, index: int):
-        return tuple(x[0] for x in normalised_batch([self.pairs[index]]))
+    def __getitem__(self, key: Tuple[int, int]):
+        index, part = key
+        return tuple(x[0] for x in normalised_batch([self.parts[part][index]]))
+
+
+def _batches(order: Sequence[int], first_batch: int, batch_size: int, weights: Sequence[float], seed: int, epoch: int) -> List[List[Tuple[int, int]]]:
+    """Split shape indices into batches of (index, part) keys, every batch from one part.
+
+    Batch b's part is drawn from a generator seeded by (seed, epoch, b) alone, so a resumed run
+    (which starts at batch `first_batch`) sees the same batches as an uninterrupted one.
+    """
+    p = np.asarray(weights, dtype=np.float64) / np.sum(weights)
+    out = []
+    for j in range(len(order) // batch_size):
+        b = first_batch + j
+        part = int(np.random.default_rng([seed, epoch, b]).choice(len(p), p=p)) if len(p) > 1 else 0
+        out.append([(int(i), part) for i in order[j * batch_size : (j + 1) * batch_size]])
+    return out
 
 
 def _replicas_identical(model: torch.nn.Module) -> bool:
@@ -268,22 +321,20 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     lead = rank == 0
     out = Path(config.out)
     ckpt_path = out / "checkpoint.pt"
-    protocol = get_protocol(config.protocol)
+    parts = training_parts(config.protocol)
+    protocol = parts[0][0]  # which split's categories the run uses; every part of a mixture uses all
 
     torch.manual_seed(config.seed)
     model = SoftAlignNet(config.net).to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
     init_record = None
     if config.init is not None and not resume:
-        init_ckpt = _load_checkpoint(Path(config.init))
+        weights, init_net, init_record = _initial_weights(config.init)
         # The relative first layer has the same parameters as the absolute one: a network can
         # start from weights trained either way.
-        if replace(NetConfig.from_dict(init_ckpt["config"]["net"]), relative=config.net.relative) != config.net:
-            raise InputError(f"{config.init}: its network settings differ from this run's ({init_ckpt['config']['net']})")
-        model.load_state_dict(init_ckpt["model"])
-        init_record = {"checkpoint": str(config.init), "protocol": init_ckpt["config"]["protocol"],
-                       "epochs_completed": init_ckpt["state"]["epoch"], "steps": init_ckpt["state"]["global_step"],
-                       "training_seconds": round(init_ckpt["state"]["seconds"], 1), "history": init_ckpt["state"]["history"]}
+        if replace(NetConfig.from_dict(init_net), relative=config.net.relative) != config.net:
+            raise InputError(f"{config.init}: its network settings differ from this run's ({init_net})")
+        model.load_state_dict(weights)
     state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "history": [], "seconds": 0.0}
     if resume:
         if not ckpt_path.is_file():
@@ -308,7 +359,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         )
     test_pairs = None
     if config.eval_pairs != 0:  # loaded by every rank, so that a missing split stops them all alike
-        test_pairs = load_pairs(config.data, "test", protocol, config.seed + 1, config.points_per_shape)
+        test_pairs = load_pairs(config.data, "test", evaluation_protocol(config.protocol), config.seed + 1, config.points_per_shape)
         if len(test_pairs) == 0:
             raise InputError(f"{config.data}: the test split has no shapes for protocol {config.protocol!r}; use --eval-pairs 0")
         if not lead:
@@ -352,18 +403,19 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             kept = "the previous checkpoint is unchanged" if ckpt_path.is_file() else "no checkpoint was written"
             raise O3dsoftError(f"{ckpt_path}: could not write the checkpoint ({e}); {kept}; free space and run again with --resume") from None
 
-    dataset = _TrainingPairs(train_pairs)
+    dataset = _TrainingPairs([train_pairs])
     model.train()
     last_ckpt = time.monotonic()
     done = config.max_steps is not None and state["global_step"] >= config.max_steps
     while state["epoch"] < config.epochs and not done:
         epoch = state["epoch"]
         # Pairs of epoch e differ from those of other epochs (seeded by epoch) but repeat on resume.
-        dataset.pairs = PairDataset(train_pairs.shapes, protocol, seed=config.seed * 1000 + epoch)
+        dataset.parts = [PairDataset(train_pairs.shapes, part, seed=config.seed * 1000 + epoch) for part, _ in parts]
         sampler = torch.utils.data.DistributedSampler(dataset, num_replicas=world, rank=rank, shuffle=True, seed=config.seed, drop_last=True)
         sampler.set_epoch(epoch)
         order = list(sampler)[state["step_in_epoch"] * config.batch_size : steps_per_epoch * config.batch_size]
-        loader = torch.utils.data.DataLoader(dataset, batch_size=config.batch_size, sampler=order, num_workers=config.workers, drop_last=True)
+        batches = _batches(order, state["step_in_epoch"], config.batch_size, [w for _, w in parts], config.seed + 1000 * rank, epoch)
+        loader = torch.utils.data.DataLoader(dataset, batch_sampler=batches, num_workers=config.workers)
         losses: List[float] = state.get("epoch_losses", [])
         progress = _Progress(lead, epoch, config, steps_per_epoch, state["step_in_epoch"], world, log)
         for src, tgt, R_gt, t_gt in loader:
@@ -424,7 +476,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             "dataset": f"ModelNet40 train split ({train_pairs.shapes.points.shape[0]} shapes, {train_pairs.shapes.points.shape[1]} points each)"
                        + (f", first {config.limit_train} shapes" if config.limit_train else ""),
             "evaluated_on": f"ModelNet40 test split, first {config.eval_pairs} pairs of the protocol (seed {config.seed + 1})" if config.eval_pairs else None,
-            "protocol": asdict(protocol),
+            "protocol": asdict(protocol) if len(parts) == 1 else {"mixture": [{**asdict(p), "weight": w} for p, w in parts]},
             "epochs_completed": state["epoch"],
             "steps": state["global_step"],
             "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),

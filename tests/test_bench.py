@@ -33,6 +33,11 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     assert summary["pairs_completed"] == 2 and not summary["interrupted"]
     assert len(summary["weights"]["sha256"]) == 64 and "open3d" in summary["versions"]
     assert {s["method"] for s in summary["summaries"]} == set(bench.METHODS)
+    # ICP from the truth stays there on a pair of identical point sets.
+    assert all(float(r["rotation_deg"]) < 1e-3 for r in rows if r["method"] == "oracle")
+    ours = next(s for s in summary["summaries"] if s["method"] == "o3dsoft")
+    assert 0 <= ours["searched_share"] <= 1 and "false_alarm_share" in ours and "recall_2deg" in ours
+    assert {r["searched"] for r in rows if r["method"] == "o3dsoft"} <= {"True", "False"}
     assert (out / "cdf_rotation_error.png").stat().st_size > 1000 and (out / "recall_vs_angle.png").is_file()
     config = json.loads((out / "config.json").read_text())
     assert config["bench"]["global_"]["voxel"] == 0.05 and config["protocols"] == ["dcp"]
@@ -130,7 +135,7 @@ def test_bad_names_and_data(tmp_path, monkeypatch):
     r = _bench(["modelnet40", "--protocol", "dcpp"])
     assert r.exit_code == 1 and "unknown protocol 'dcpp'; valid: paper, dcp" in r.output
     r = _bench(["modelnet40", "--method", "ransac", "--data", str(tmp_path)])
-    assert r.exit_code == 2 and "unknown method 'ransac'; valid: o3dsoft-coarse, o3dsoft, icp" in r.output
+    assert r.exit_code == 2 and "unknown method 'ransac'; valid: oracle, o3dsoft-coarse, o3dsoft, icp" in r.output
     r = _bench(["modelnet40", "--data", str(tmp_path), "--out", str(tmp_path / "o")])
     assert r.exit_code == 1 and "no ModelNet40 test split here" in r.output and "Traceback" not in r.output
 
@@ -318,3 +323,16 @@ def test_results_table_joins_runs_of_different_protocols(tmp_path):
     (tmp_path / "again" / "summary.json").write_text(json.dumps(_summary_doc("bench again", ["dcp"], 25.0, 40.0)))
     with pytest.raises(SystemExit, match="dcp is in two of the runs"):
         markdown([tmp_path / "complete.json", tmp_path / "again"])
+
+
+def test_incongruent_pairs_share_no_point_and_the_oracle_shows_the_floor(modelnet_root, tmp_path):
+    count, pairs = bench.modelnet_pairs(str(modelnet_root), ["incongruent"], 3, seed=0)
+    pairs = list(pairs)
+    assert count == 3 and all(len(p.source) == len(p.target) == 512 for p in pairs)
+    count, dense = bench.modelnet_pairs(str(modelnet_root), ["incongruent"], 1, seed=0, points_per_shape=None)
+    assert len(next(dense).source) == 512  # the 1,024-point data: halves of 512 at most
+    config = bench.BenchConfig(methods=("oracle",))
+    for p in pairs:
+        (result,) = bench.run_methods(p, config, None)
+        e = bench.pair_errors(result.transform, p.transform)
+        assert 0 < e.rotation_deg < 5  # ICP from the truth moves off it, but not far

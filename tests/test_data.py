@@ -21,14 +21,18 @@ def test_pairs_follow_their_protocol(shape, name):
     assert np.array_equal(pair.source, again.source) and np.array_equal(pair.target, again.target)
     other = make_pair(shape, p, seed=7, index=4)
     assert not np.array_equal(pair.transform, other.transform)
-    n = p.num_points or len(shape)
-    assert pair.source.shape == (n, 3) and pair.target.shape == (n, 3)
+    if p.disjoint_share >= 1:
+        n_source = int(round(p.source_share * len(shape)))
+        n_source, n_target = (int(round(p.crop_keep * n)) for n in (n_source, len(shape) - n_source))
+    else:
+        n_source = n_target = p.num_points or len(shape)
+    assert pair.source.shape == (n_source, 3) and pair.target.shape == (n_target, 3)
     R, t = pair.transform[:3, :3], pair.transform[:3, 3]
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0)
     assert (np.abs(t) <= p.translation).all()
     if p.rotation == "euler":
         assert pair.angle <= np.sqrt(3) * max(abs(p.angle_min), abs(p.angle_max)) + 1e-6
-    if p.noise_std == 0 and p.crop_keep == 1:
+    if p.noise_std == 0 and p.crop_keep == 1 and p.disjoint_share == 0:
         # Same points, shuffled: each target point is a transformed source point, order differs.
         moved = apply(pair.transform, pair.source.astype(np.float64))
         assert not np.allclose(moved, pair.target, atol=1e-4)
@@ -143,3 +147,38 @@ def test_off_folder_is_sampled_on_faces_and_normalised(tmp_path):
     (tmp_path / "box" / "test" / "box_0001.off").write_text("OFF\n3 1 0\n0 0 0\n1 0\n")
     with pytest.raises(InputError, match="box_0001.off"):
         load_modelnet40(tmp_path, "test", points_per_shape=64)
+
+
+@pytest.mark.parametrize("name", [n for n, p in sorted(PROTOCOLS.items()) if p.disjoint_share >= 1])
+def test_independently_sampled_protocols_share_no_point(shape, name):
+    p = get_protocol(name)
+    pair = make_pair(shape, p, seed=3, index=5)
+    back = apply(np.linalg.inv(pair.transform), pair.target.astype(np.float64))
+    gap = np.min(np.linalg.norm(pair.source[:, None].astype(np.float64) - back[None], axis=2), axis=1)
+    spacing = np.sort(np.linalg.norm(shape[:, None] - shape[None], axis=2), axis=1)[:, 1]
+    assert gap.min() > 0  # not one point in both clouds
+    if p.noise_std == 0 and p.crop_keep == 1:
+        # Two disjoint halves that together make up the shape, each in random order.
+        both = np.concatenate([pair.source, back]).astype(np.float64)
+        assert np.allclose(np.sort(both, axis=0), np.sort(shape.astype(np.float64), axis=0), atol=1e-5)
+        assert np.median(gap) < 3 * np.median(spacing)  # yet samples of the same surface
+
+
+def test_the_literatures_protocols_share_every_point(shape):
+    for name in ("paper", "dcp", "so3"):
+        pair = make_pair(shape, get_protocol(name), seed=3, index=5)
+        back = apply(np.linalg.inv(pair.transform), pair.target.astype(np.float64))
+        assert np.allclose(np.sort(back, axis=0), np.sort(pair.source, axis=0), atol=1e-5)
+
+
+def test_mixture_parts_and_evaluation_protocol():
+    from o3dsoft.data import MIXTURES, check_training_recipe, evaluation_protocol, training_parts
+
+    for name, mixture in MIXTURES.items():
+        parts = training_parts(name)
+        assert abs(sum(w for _, w in parts) - 1) < 1e-9
+        assert any(p.disjoint_share > 0 for p, _ in parts) and any(p.disjoint_share == 0 for p, _ in parts)
+        assert evaluation_protocol(name).name == mixture.evaluate
+    assert training_parts("dcp") == ((get_protocol("dcp"), 1.0),)
+    with pytest.raises(InputError, match="incongruent-mix"):
+        check_training_recipe("nonsense")

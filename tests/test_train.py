@@ -31,7 +31,7 @@ def test_train_exports_a_usable_model_and_card(modelnet_root, tmp_path):
     assert model.config.k == TINY.k
 
 
-@pytest.mark.parametrize("extra", [{}, {"lr_schedule": "cosine", "grad_clip": 0.01}])
+@pytest.mark.parametrize("extra", [{}, {"lr_schedule": "cosine", "grad_clip": 0.01}, {"protocol": "incongruent-mix"}])
 def test_resume_continues_exactly(modelnet_root, tmp_path, extra):
     # 4 steps in one go == 2 steps, stop, resume for 2 more.
     train(_config(modelnet_root, tmp_path / "a", max_steps=4, eval_pairs=0, **extra), log=lambda m: None)
@@ -61,8 +61,15 @@ def test_init_from_a_checkpoint(modelnet_root, tmp_path):
     train(_config(modelnet_root, tmp_path / "b", max_steps=1, eval_pairs=0, init=str(tmp_path / "a" / "checkpoint.pt")), log=lambda m: None)
     card = json.loads((tmp_path / "b" / "model_card.json").read_text())
     assert card["initialised_from"]["steps"] == 2 and card["steps"] == 1
-    with pytest.raises(InputError, match="not an o3dsoft training checkpoint"):
-        train(_config(modelnet_root, tmp_path / "m", max_steps=1, init=str(tmp_path / "a" / "model.pt")))
+    # An exported model file starts a run too, and its card names it.
+    train(_config(modelnet_root, tmp_path / "m", max_steps=1, eval_pairs=0, init=str(tmp_path / "a" / "model.pt")), log=lambda m: None)
+    card = json.loads((tmp_path / "m" / "model_card.json").read_text())
+    assert card["initialised_from"]["sha256"] == sha256_of(tmp_path / "a" / "model.pt")
+    with pytest.raises(InputError, match="no such checkpoint or model file"):
+        train(_config(modelnet_root, tmp_path / "n", max_steps=1, init=str(tmp_path / "missing.pt")))
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    with pytest.raises(InputError, match="junk.pt"):
+        train(_config(modelnet_root, tmp_path / "j", max_steps=1, init=str(tmp_path / "junk.pt")))
     other = NetConfig(k=4, radius=0.3, channels=(8, 8, 8, 8, 8))
     with pytest.raises(InputError, match="network settings differ"):
         train(_config(modelnet_root, tmp_path / "c", max_steps=1, net=other, init=str(tmp_path / "a" / "checkpoint.pt")))
@@ -148,3 +155,22 @@ def test_two_processes_under_torchrun_stay_identical(modelnet_root, tmp_path):
     assert r.stderr.count("wrote ") == 1  # only rank 0 writes and logs
     ckpt = torch.load(out / "checkpoint.pt", weights_only=False)
     assert ckpt["world_size"] == 2
+
+
+def test_a_mixture_draws_each_batch_from_one_protocol_repeatably():
+    from o3dsoft.train import _batches
+
+    order = list(range(100))
+    batches = _batches(order, 0, 10, [0.5, 0.25, 0.25], seed=1, epoch=2)
+    assert len(batches) == 10 and [k[0] for b in batches for k in b] == order
+    assert all(len({part for _, part in b}) == 1 for b in batches)
+    assert len({b[0][1] for b in batches}) > 1  # several protocols over the epoch
+    # A run resumed at batch 4 sees the batches an uninterrupted one does from there.
+    assert _batches(order[40:], 4, 10, [0.5, 0.25, 0.25], seed=1, epoch=2) == batches[4:]
+
+
+def test_mixture_training_evaluates_on_its_evaluation_protocol(modelnet_root, tmp_path):
+    train(_config(modelnet_root, tmp_path, protocol="incongruent-mix", max_steps=2, eval_pairs=4), log=lambda m: None)
+    card = json.loads((tmp_path / "model_card.json").read_text())
+    assert [p["name"] for p in card["protocol"]["mixture"]][:2] == ["wide45", "wide45-partial"]
+    assert card["history"][0]["test"]["pairs"] == 4
