@@ -14,9 +14,11 @@ import click
 from .. import __version__
 from ..errors import O3dsoftError
 
-# The values of RegisterConfig.search (o3dsoft.pipeline.SEARCH_MODES, not imported here: it would
-# load torch before --help); a test keeps the two equal.
+# The values of RegisterConfig.search (o3dsoft.pipeline.SEARCH_MODES) and the bench's methods
+# (o3dsoft.bench.METHODS), not imported here: that would load torch and Open3D before --help;
+# a test keeps them equal.
 SEARCH_MODES = ("auto", "always", "off")
+METHOD_NAMES = ("oracle", "o3dsoft-coarse", "o3dsoft", "icp", "fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp")
 WEIGHTS_HELP = "TorchScript model file, or a shipped model by name: default, paper, partial (default: default; partial is the search network, trained on cropped, noisy clouds)."
 MAX_ROTATION_HELP = ("The clouds are given within this many degrees of their true relative rotation (e.g. from odometry): "
                      "estimates beyond it are not trusted and the search goes on (default: any rotation).")
@@ -189,6 +191,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     lines = [
         f"o3dsoft register  {source} -> {target}",
         f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}); scale {result.scale:.4g} units",
+        "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
         f"  model:  {model_info['path']}",
         "",
         "T_target_source (maps the source onto the target):",
@@ -295,10 +298,9 @@ def bench():
 
 def _bench_options(fn):
     """Options shared by every bench command."""
-    from ..bench import METHODS
 
     options = [
-        click.option("--method", "methods", multiple=True, help=f"Methods to run (repeat the option; default all): {', '.join(METHODS)}."),
+        click.option("--method", "methods", multiple=True, help=f"Methods to run (repeat the option; default all): {', '.join(METHOD_NAMES)}."),
         click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC (o3dsoft's search repeats exactly; Open3D's multi-threaded RANSAC, in the FPFH baselines, can vary between runs)."),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),

@@ -11,14 +11,41 @@ Each stage is exposed on its own: :mod:`o3dsoft.preprocess` (clean, sample, norm
 :mod:`o3dsoft.coarse` (the network), :mod:`o3dsoft.refine` (ICP, scoring), :mod:`o3dsoft.metrics`.
 """
 
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING, Any
 
-from .coarse import CoarseModel, load_model
 from .errors import InputError, O3dsoftError, UsageError
-from .io import read_points, read_transform, write_points, write_transform
-from .metrics import pair_errors, rotation_error_deg
-from .pipeline import RegisterConfig, RegistrationResult, register
-from .refine import ICPConfig
+
+# The public names and the module of each, imported at first use: torch and Open3D take seconds
+# to import, which `o3dsoft --help` and `--version` do not need.
+_LAZY = {
+    "CoarseModel": "coarse", "load_model": "coarse",
+    "read_points": "io", "read_transform": "io", "write_points": "io", "write_transform": "io",
+    "pair_errors": "metrics", "rotation_error_deg": "metrics",
+    "RegisterConfig": "pipeline", "RegistrationResult": "pipeline", "register": "pipeline",
+    "ICPConfig": "refine",
+}
+
+if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
+    from .coarse import CoarseModel, load_model
+    from .io import read_points, read_transform, write_points, write_transform
+    from .metrics import pair_errors, rotation_error_deg
+    from .pipeline import RegisterConfig, RegistrationResult, register
+    from .refine import ICPConfig
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(import_module(f".{_LAZY[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'o3dsoft' has no attribute {name!r}")
+
+
+def __dir__() -> list:
+    return sorted(list(globals()) + list(_LAZY))
+
 
 try:
     __version__ = version("o3dsoft")

@@ -231,6 +231,9 @@ class RegistrationResult:
             :data:`SCREEN_POINTS` points each), of which only the most trusted count among the
             `attempts`: the search's on larger clouds, and the optional restart's.
         searched: whether the global search ran.
+        points_used: points per cloud (source, target) at each stage: "network" (the network's
+            samples), "attempts" (the clouds every estimate is refined and scored on) and
+            "final" (the kept estimate's last refinement, the registered clouds).
         network_transformation: (4, 4) the network's own estimate (its passes from the pose the
             clouds are given in), before ICP and whatever the search found; None when the
             network did not run (the feature match, tried first on a partial overlap, found a
@@ -258,6 +261,7 @@ class RegistrationResult:
     searched: bool
     removed: Dict[str, int]
     network_transformation: Optional[np.ndarray] = None
+    points_used: Dict[str, Tuple[int, int]] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
@@ -583,6 +587,8 @@ def register(
         screened=len(screened),
         searched=searched,
         network_transformation=T_network,
+        points_used={"network": (len(src_net), len(tgt_net)), "attempts": (len(src_work), len(tgt_work)),
+                     "final": (len(src_points), len(tgt_points))},
         removed={
             "source_non_finite": src.non_finite,
             "source_duplicates": src.duplicates,

@@ -156,11 +156,27 @@ def test_max_rotation_option_reaches_the_library(pair_files, tiny_model_path):
     assert "ICP leaves --max-rotation 0.001" in r.output  # the warning on stderr says why
 
 
-def test_cli_search_modes_match_the_library():
-    from o3dsoft.cli.main import SEARCH_MODES as cli_modes
+def test_cli_search_modes_and_methods_match_the_library():
+    from o3dsoft.bench import METHODS
+    from o3dsoft.cli.main import METHOD_NAMES, SEARCH_MODES as cli_modes
     from o3dsoft.pipeline import SEARCH_MODES
 
     assert cli_modes == SEARCH_MODES
+    assert METHOD_NAMES == tuple(METHODS)
+
+
+def test_help_and_version_load_neither_torch_nor_open3d():
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom o3dsoft.cli.main import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in ('torch', 'open3d') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "[]"
+    # The library's names still load on first use.
+    out = subprocess.run([sys.executable, "-c", "import o3dsoft; print(o3dsoft.register.__module__, 'torch' in __import__('sys').modules)"],
+                         capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["o3dsoft.pipeline", "True"]
 
 
 def test_weights_help_names_every_shipped_model():

@@ -100,6 +100,19 @@ def test_hundred_point_clouds(tiny_model_path):
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
 
 
+def test_clouds_of_very_different_sizes_say_how_many_points_each_stage_used(tiny_model_path):
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(20_000, 3))
+    dense = d / np.linalg.norm(d, axis=1, keepdims=True) * [1.0, 0.6, 0.3]  # an ellipsoid's surface
+    T = random_transform(rng, max_angle=5.0, max_t=0.05)
+    sparse = apply(T, dense[rng.choice(len(dense), size=100, replace=False)])
+    res = register(dense, sparse, RegisterConfig(weights=str(tiny_model_path), search="off"))
+    assert res.points_used["network"] == (1024, 100)  # each cloud at the network's sample size, or all of it
+    assert res.points_used["attempts"][1] == 100 and res.points_used["attempts"][0] <= 5_000
+    assert res.points_used["final"] == (20_000, 100) == (res.num_source, res.num_target)
+    assert pair_errors(res.transformation, T).rotation_deg < 5  # a sparse sample of the same surface
+
+
 def test_large_clouds_are_downsampled_for_icp_and_still_exact(tiny_model_path):
     rng = np.random.default_rng(7)
     d = rng.normal(size=(300_000, 3))
