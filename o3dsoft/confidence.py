@@ -47,9 +47,8 @@ Two independent samplings of one surface (every pair of real scans) cannot reach
 1 at the right pose: a point's nearest partner in the other sampling lies about one point spacing
 away, over 1.5 spacings for about a fifth of the points. On sparse clouds, whose spacing is close
 to d, right alignments score about 0.85 and are flagged. ``spacing_ratio`` measures such pairs on
-any density; it enters the logistic with weight 0 for now (``python -m benchmarks.fit_confidence``
-fits both weights; the fit it gives today trusts wrong alignments of cropped clouds that the
-consistency alone flags, see docs/incongruent.md).
+any density; it enters the logistic with weight 0 (``python -m benchmarks.fit_confidence`` fits
+both weights; docs/incongruent.md says why that fit is not used).
 """
 
 from __future__ import annotations
@@ -130,7 +129,6 @@ class Scorer:
         self.near, self.far = (target, source) if self.swapped else (source, target)
         self.far_tree = cKDTree(self.far)
         self.far_spacing = max(s_source if self.swapped else s_target, 1e-12)
-        self.distance = distance
         self.reach = max(distance, self.tight)
         self.wide_reach = max(self.reach, WIDE_SPACINGS * self.far_spacing)
 

@@ -34,6 +34,10 @@ _HOW_TO_GET = (
 # --------------------------------------------------------------------------------------------
 # Protocols
 # --------------------------------------------------------------------------------------------
+_NOISE = dict(noise_std=0.01, noise_clip=0.05)  # per cloud, as dcp-noise and rpmnet-crop
+_WIDE45 = dict(angle_min=-45.0, angle_max=45.0, translation=0.5)  # the shipped default's range
+
+
 @dataclass(frozen=True)
 class Protocol:
     """How a registration pair is made from one shape.
@@ -74,29 +78,24 @@ class Protocol:
     source_share: float = 0.5
 
 
-_NOISE = dict(noise_std=0.01, noise_clip=0.05)
-_WIDE45 = dict(angle_min=-45.0, angle_max=45.0, translation=0.5)
-
 PROTOCOLS: Dict[str, Protocol] = {
     p.name: p
     for p in (
         Protocol("paper", angle_min=-22.5, angle_max=22.5, translation=0.25),
         Protocol("dcp"),
         Protocol("dcp-unseen", categories="unseen"),
-        Protocol("dcp-noise", noise_std=0.01, noise_clip=0.05),
-        Protocol("rpmnet-crop", noise_std=0.01, noise_clip=0.05, crop_keep=0.7, num_points=717),
+        Protocol("dcp-noise", **_NOISE),
+        Protocol("rpmnet-crop", **_NOISE, crop_keep=0.7, num_points=717),
         Protocol("so3", rotation="so3"),
-        Protocol("so3-crop", rotation="so3", noise_std=0.01, noise_clip=0.05, crop_keep=0.7, num_points=717),
+        Protocol("so3-crop", rotation="so3", **_NOISE, crop_keep=0.7, num_points=717),
         # The range the shipped default model is trained on: paper's +-22.5 and DCP's 0-45 inside.
-        Protocol("wide45", angle_min=-45.0, angle_max=45.0, translation=0.5),
+        Protocol("wide45", **_WIDE45),
         # Training only: wide45 where half of the pairs are cropped and noisy like rpmnet-crop and
         # the rest complete, all independently resampled (so the weights w_i learn to down-weight
         # points without a partner while clean pairs stay in the mix).
-        Protocol("wide45-partial", angle_min=-45.0, angle_max=45.0, translation=0.5, noise_std=0.01, noise_clip=0.05,
-                 crop_keep=0.7, num_points=717, degraded_share=0.5),
+        Protocol("wide45-partial", **_WIDE45, **_NOISE, crop_keep=0.7, num_points=717, degraded_share=0.5),
         # Training only: wide45 with every pair cropped and noisy like rpmnet-crop.
-        Protocol("wide45-crop", angle_min=-45.0, angle_max=45.0, translation=0.5, noise_std=0.01, noise_clip=0.05,
-                 crop_keep=0.7, num_points=717),
+        Protocol("wide45-crop", **_WIDE45, **_NOISE, crop_keep=0.7, num_points=717),
         # Independent sampling: source and target are disjoint halves of the shape's points (512
         # each from the 1,024-point release, 1,024 each from the 2,048-point one).
         Protocol("incongruent", disjoint_share=1.0),

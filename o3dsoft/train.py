@@ -168,7 +168,7 @@ def _initial_weights(init: str) -> Tuple[dict, dict, dict]:
     path = Path(init)
     if not path.is_file() and init not in bundled_model_names():
         raise InputError(f"{init}: no such checkpoint or model file (shipped models, by name: {', '.join(bundled_model_names())})")
-    if path.is_file() and zipfile_has(path, "data.pkl") and not zipfile_has(path, "code/"):
+    if path.is_file() and _zipfile_has(path, "data.pkl") and not _zipfile_has(path, "code/"):
         ckpt = _load_checkpoint(path)
         record = {"checkpoint": str(init), "protocol": ckpt["config"]["protocol"], "epochs_completed": ckpt["state"]["epoch"],
                   "steps": ckpt["state"]["global_step"], "training_seconds": round(ckpt["state"]["seconds"], 1),
@@ -180,7 +180,7 @@ def _initial_weights(init: str) -> Tuple[dict, dict, dict]:
     return weights, model.meta["net"], record
 
 
-def zipfile_has(path: Path, name: str) -> bool:
+def _zipfile_has(path: Path, name: str) -> bool:
     """True when the zip archive at `path` (torch's file format) holds an entry whose path inside
     its top folder starts with `name`; False for anything else."""
     import zipfile
