@@ -119,7 +119,7 @@ def inference_latency(weights: str | None, runs: int, data: str) -> dict:
     model = load_model(weights)
     pairs = load_pairs(data, "test", get_protocol("paper"))
     normalised = [normalise_pair(pairs[i].source, pairs[i].target)[:2] for i in range(runs + 3)]
-    small = RegisterConfig().search_points
+    small = RegisterConfig().search.starts.points
     jobs = {
         "one_pass": lambda s, t: estimate(model, s, t),
         "two_passes": lambda s, t: estimate(model, s, t, iterations=2),
@@ -133,7 +133,12 @@ def inference_latency(weights: str | None, runs: int, data: str) -> dict:
             job(s, t)
             times.append(time.perf_counter() - t0)
         warm = times[3:]  # TorchScript's profiling executor optimises during the first calls
-        report[name] = {"first_call_ms": times[0] * 1000, "median_ms": statistics.median(warm) * 1000, "p90_ms": float(np.percentile(warm, 90)) * 1000, "runs": len(warm)}
+        report[name] = {
+            "first_call_ms": times[0] * 1000,
+            "median_ms": statistics.median(warm) * 1000,
+            "p90_ms": float(np.percentile(warm, 90)) * 1000,
+            "runs": len(warm),
+        }
     return report
 
 

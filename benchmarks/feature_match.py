@@ -4,7 +4,7 @@
 
 For each of the first test pairs of the protocol: Open3D's RANSAC (seed 0) and
 :meth:`o3dsoft.search.FeatureMatch.candidates` (seed 0) from the same features (the search's,
-:data:`o3dsoft.search.FEATURES`); every estimate is
+:class:`o3dsoft.search.FeatureMatchConfig`); every estimate is
 refined by o3dsoft's ICP and scored by the confidence. Prints the share of pairs within
 (1 deg, 0.01) for Open3D's estimate, for the first candidate, for the most confident of the
 candidates, and for the best of them (had one known the truth), and the median time of Open3D's

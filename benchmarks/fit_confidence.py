@@ -8,7 +8,7 @@ rotation of up to 90 degrees (right and wrong local minima, as the search's star
 features of o3dsoft.confidence are measured on each alignment, which is labelled a success when
 the rotation error is below 5 degrees and the translation error below 0.05 x scale, and a
 logistic regression is fitted (Newton's method, a small L2 penalty). Prints the coefficients to
-paste into o3dsoft/confidence.py (COEFFICIENTS), and the area under the ROC curve of the
+paste into o3dsoft/confidence.py (ConfidenceConfig.coefficients), and the area under the ROC curve of the
 confidence vs success on a held-out half (every other pair), per group and overall.
 
 Groups: the protocols dcp, so3, rpmnet-crop, so3-crop and the independently sampled incongruent,
@@ -29,6 +29,7 @@ from o3dsoft import confidence as conf
 from o3dsoft import refine
 from o3dsoft.bench import roc_auc
 from o3dsoft.coarse import load_model
+from o3dsoft.config import SearchConfig
 from o3dsoft.data import _crop, get_protocol, load_pairs, make_pair
 from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig, register
@@ -90,7 +91,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args()
     model = load_model(args.weights)
-    config = RegisterConfig(search="off")
+    config = RegisterConfig(search=SearchConfig(mode="off"))
     rng = np.random.default_rng(args.seed)
     groups, X, y, pair_ids = [], [], [], []
     for n, (group, src, tgt, T_gt) in enumerate(make_problems(args.data, args.per_group, args.seed)):
@@ -109,16 +110,23 @@ def main() -> None:
     w = fit_logistic(X[train], y[train].astype(float))
     score = 1 / (1 + np.exp(-(w[0] + X @ w[1:])))
     test = ~train
-    report = {"coefficients": {"COEFFICIENTS": [round(float(v), 4) for v in w], "features": ["intercept", *NAMES]},
-              "pairs": int(len(y)), "success_rate": float(y.mean()),
-              "auc_held_out": auc(score[test], y[test]),
-              "flagged_correctly_held_out": float(np.mean((score[test] >= conf.LIKELY_FAILED_BELOW) == y[test])),
-              "per_group": {}}
+    report = {
+        "coefficients": {"COEFFICIENTS": [round(float(v), 4) for v in w], "features": ["intercept", *NAMES]},
+        "pairs": int(len(y)),
+        "success_rate": float(y.mean()),
+        "auc_held_out": auc(score[test], y[test]),
+        "flagged_correctly_held_out": float(np.mean((score[test] >= conf.ConfidenceConfig().likely_failed_below) == y[test])),
+        "per_group": {},
+    }
     for g in dict.fromkeys(groups):
         sel = test & (groups == g)
-        report["per_group"][g] = {"pairs": int(sel.sum()), "success_rate": float(y[sel].mean()), "auc": auc(score[sel], y[sel]),
-                                  "flagged_correctly": float(np.mean((score[sel] >= conf.LIKELY_FAILED_BELOW) == y[sel])),
-                                  "right_ones_flagged": float(np.mean(score[sel & y] < conf.LIKELY_FAILED_BELOW)) if (sel & y).any() else None}
+        report["per_group"][g] = {
+            "pairs": int(sel.sum()),
+            "success_rate": float(y[sel].mean()),
+            "auc": auc(score[sel], y[sel]),
+            "flagged_correctly": float(np.mean((score[sel] >= conf.ConfidenceConfig().likely_failed_below) == y[sel])),
+            "right_ones_flagged": float(np.mean(score[sel & y] < conf.ConfidenceConfig().likely_failed_below)) if (sel & y).any() else None,
+        }
     print(json.dumps(report, indent=2))
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from o3dsoft.coarse import load_model
+from o3dsoft.config import FeatureSearchConfig, RestartConfig, SearchConfig
 from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig, register
@@ -41,15 +42,13 @@ def main() -> None:
     parser.add_argument("--protocol", required=True)
     parser.add_argument("--which", choices=("failed", "flagged", "doubtful"), default="failed")
     parser.add_argument("--max-rotation", type=float, default=None)
-    parser.add_argument("--search-restart", action="store_true", help="RegisterConfig(search_restart=True)")
-    parser.add_argument("--search-feature-stop", type=float, default=0.5, help="RegisterConfig(search_feature_stop=...)")
+    parser.add_argument("--search-restart", action="store_true", help="search.restart.enabled = True")
+    parser.add_argument("--search-feature-stop", type=float, default=0.5, help="search.features.stop")
     parser.add_argument("--data", default=str(DEFAULT_DATA))
     args = parser.parse_args()
 
-    rows = [r for r in csv.DictReader(open(args.run / "pairs.csv"))
-            if r["method"] == "o3dsoft" and r["protocol"] == args.protocol]
-    before = {int(r["index"]): (outcome(float(r["rotation_deg"]), float(r["translation"]), float(r["confidence"])),
-                                float(r["time_total_ms"])) for r in rows}
+    rows = [r for r in csv.DictReader(open(args.run / "pairs.csv")) if r["method"] == "o3dsoft" and r["protocol"] == args.protocol]
+    before = {int(r["index"]): (outcome(float(r["rotation_deg"]), float(r["translation"]), float(r["confidence"])), float(r["time_total_ms"])) for r in rows}
     confidence = {int(r["index"]): float(r["confidence"]) for r in rows}
     if args.which == "failed":
         chosen = [i for i, (o, _) in sorted(before.items()) if not o[1]]
@@ -59,7 +58,8 @@ def main() -> None:
         chosen = [i for i in sorted(before) if 0.5 <= confidence[i] < 0.9]
     pairs = load_pairs(args.data, "test", get_protocol(args.protocol), 0)
     model, search_model = load_model(None, "cpu"), load_model("partial", "cpu")
-    config = RegisterConfig(max_rotation=args.max_rotation, search_restart=args.search_restart, search_feature_stop=args.search_feature_stop)
+    search = SearchConfig(features=FeatureSearchConfig(stop=args.search_feature_stop), restart=RestartConfig(enabled=args.search_restart))
+    config = RegisterConfig(max_rotation=args.max_rotation, search=search)
     now, times = np.zeros(3, dtype=int), []
     for i in chosen:
         pair = pairs[i]

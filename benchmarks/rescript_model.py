@@ -47,8 +47,9 @@ def rescripted_note(note: str, worst: float) -> str:
     """A card's note with one sentence saying it was re-scripted, the latest (earlier re-scripts'
     sentences are dropped), and how far the new file's outputs lie from the old one's."""
     outputs = "identical to the previous file's" if worst == 0 else f"within {worst:.1g} of the previous file's"
-    return (RESCRIPTED.sub("", note).strip() + " Re-scripted with later inference code (benchmarks/rescript_model.py); "
-            f"same weights, outputs {outputs}.").strip()
+    return (
+        RESCRIPTED.sub("", note).strip() + f" Re-scripted with later inference code (benchmarks/rescript_model.py); same weights, outputs {outputs}."
+    ).strip()
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """Write the README's "Results" section from bench run folders (never typed by hand).
 
-    python -m benchmarks.results_table RUN [RUN ...] [--readme README.md] [--marker results]
+    python -m benchmarks.results_table RUN [RUN ...] [--readme README.md] [--marker results] [--short]
 
 Each RUN is a bench run folder or a copy of its summary.json; the README's table is made from
 the copies in benchmarks/results/ (``python -m benchmarks.results_table benchmarks/results/*.json``),
@@ -8,7 +8,8 @@ so that it can be made again from the repository alone, from runs of different s
 
 Replaces the text between the markers ``<!-- MARKER:start -->`` and ``<!-- MARKER:end -->``
 (MARKER: ``results`` unless told) with each run's command, machine and versions, a short table
-of o3dsoft against FPFH + RANSAC + ICP, and one table per protocol (from summary.json). Several
+of o3dsoft against FPFH + RANSAC + ICP, and (unless --short) one table per protocol (from
+summary.json). Several
 runs (e.g. the protocols of the whole split run in parts, each within a session) give one table,
 protocols in the order of :data:`o3dsoft.data.PROTOCOLS`; each protocol must come from one run,
 so that its time ratio compares methods measured in the same run.
@@ -26,26 +27,37 @@ from o3dsoft.data import PROTOCOLS
 
 
 def compared(doc: dict, ours: str, theirs: str) -> list:
-    """Lines of a short table, one row per protocol (all categories): recall at the first
-    threshold and median time of `ours` and `theirs`, the time ratio, and ours' confidence AUC.
-    Empty when the run lacks either method."""
+    """Lines of a short table, one row per protocol (all categories): recall at the first and the
+    last threshold and median time of `ours` and `theirs`, the time ratio, and ours' confidence
+    AUC. Empty when the run lacks either method."""
     rows = {(s["protocol"], s["method"]): s for s in doc["summaries"] if s["subset"] == "all"}
     protocols = list(dict.fromkeys(p for p, _ in rows))
     if not all((p, m) in rows for p in protocols for m in (ours, theirs)):
         return []
     name = doc["methods"]
-    r1 = doc["recall_thresholds"][0]
-    lines = ["", f"In short, {name[ours]} against {name[theirs]} in the same run (recall at "
-             f"{r1['rotation_deg']:g} deg / {r1['translation']:g}, higher is better; median time per pair, lower is better):", "",
-             f"| protocol | {name[ours]} recall | {name[theirs]} recall | {name[ours]} time (ms) | {name[theirs]} time (ms) | "
-             f"time ratio | {name[ours]} confidence ROC AUC |",
-             "|---|---|---|---|---|---|---|"]
+    r1, r5 = doc["recall_thresholds"][0], doc["recall_thresholds"][-1]
+    lines = [
+        "",
+        f"{name[ours]} against {name[theirs]}, measured in the same run: recall within "
+        f"({r1['rotation_deg']:g} deg, {r1['translation']:g}) / ({r5['rotation_deg']:g} deg, {r5['translation']:g}) "
+        "(higher is better), median time per pair (lower is better):",
+        "",
+        f"| protocol | {name[ours]} recall | {name[theirs]} recall | {name[ours]} time (ms) | {name[theirs]} time (ms) | "
+        f"time ratio | {name[ours]} confidence ROC AUC |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
+    def recall(s: dict) -> str:
+        keys = recall_keys(s)
+        return f"{100 * s[keys[0]]:.1f} / {100 * s[keys[-1]]:.1f} %"
+
     for p in protocols:
         a, b = rows[p, ours], rows[p, theirs]
-        key = recall_keys(a)[0]
         auc = a.get("confidence_auc")
-        lines.append(f"| `{p}` | {100 * a[key]:.1f} % | {100 * b[key]:.1f} % | {a['time_ms_median']:.0f} | {b['time_ms_median']:.0f} | "
-                     f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {'-' if auc is None else f'{auc:.3f}'} |")
+        lines.append(
+            f"| `{p}` | {recall(a)} | {recall(b)} | {a['time_ms_median']:.0f} | {b['time_ms_median']:.0f} | "
+            f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {'-' if auc is None else f'{auc:.3f}'} |"
+        )
     return lines
 
 
@@ -60,7 +72,8 @@ def run_lines(doc: dict) -> List[str]:
         f"Command: `{desc.get('command', 'o3dsoft bench modelnet40')}`"
         + (f" (first {limit} test pairs per protocol)" if limit else " (the whole ModelNet40 test split)")
         + f"; {doc['pairs_completed']} pairs in {doc['seconds'] / 60:.1f} min"
-        + (" (interrupted)" if doc["interrupted"] else "") + ".",
+        + (" (interrupted)" if doc["interrupted"] else "")
+        + ".",
         f"Machine: {v['machine']}; o3dsoft {v['o3dsoft']}{commit}, torch {v['torch']}, Open3D {v['open3d']}. "
         f"Weights sha256 `{(doc['weights']['sha256'] or '-')[:12]}`.",
     ]
@@ -87,7 +100,7 @@ def summary_of(run: Path) -> dict:
     return json.loads((run if run.is_file() else run / "summary.json").read_text())
 
 
-def markdown(runs: Union[Path, Sequence[Path]]) -> str:
+def markdown(runs: Union[Path, Sequence[Path]], short: bool = False) -> str:
     docs = [summary_of(run) for run in ([runs] if isinstance(runs, Path) else runs)]
     doc = merged(docs)
     recall = doc["recall_thresholds"]
@@ -102,15 +115,21 @@ def markdown(runs: Union[Path, Sequence[Path]]) -> str:
         f"(and < {r5['rotation_deg']:g} deg, < {r5['translation']:g}): higher is better. Time: per pair, lower is better.",
     ]
     lines += compared(doc, "o3dsoft", "fpfh-ransac+icp")
+    if short:
+        return "\n".join(lines)
     block = None
     for s in doc["summaries"]:
         if (s["protocol"], s["subset"]) != block:
             block = (s["protocol"], s["subset"])
             title = f"**{s['protocol']}**" + (" without symmetric categories" if s["subset"] != "all" else "")
-            lines += ["", title, "",
-                      "| method | pairs | rotation mean / median (deg) | translation mean | Euler RMSE (deg) | "
-                      f"recall {r1['rotation_deg']:g} deg | recall {r5['rotation_deg']:g} deg | time median / p90 (ms) |",
-                      "|---|---|---|---|---|---|---|---|"]
+            lines += [
+                "",
+                title,
+                "",
+                "| method | pairs | rotation mean / median (deg) | translation mean | Euler RMSE (deg) | "
+                f"recall {r1['rotation_deg']:g} deg | recall {r5['rotation_deg']:g} deg | time median / p90 (ms) |",
+                "|---|---|---|---|---|---|---|---|",
+            ]
         rk = recall_keys(s)
         lines.append(
             f"| {doc['methods'][s['method']]} | {int(s['pairs'])} | {s['rotation_deg_mean']:.3g} / {s['rotation_deg_median']:.3g} | "
@@ -125,6 +144,7 @@ def main() -> None:
     ap.add_argument("runs", type=Path, nargs="+", help="bench run folders or summary.json files (each protocol from one of them)")
     ap.add_argument("--readme", type=Path, default=Path(__file__).resolve().parents[1] / "README.md")
     ap.add_argument("--marker", default="results", help="the README section's marker name")
+    ap.add_argument("--short", action="store_true", help="only the runs and the short table, not one table per protocol")
     args = ap.parse_args()
     START, END = f"<!-- {args.marker}:start -->", f"<!-- {args.marker}:end -->"
     text = args.readme.read_text()
@@ -132,7 +152,7 @@ def main() -> None:
         raise SystemExit(f"{args.readme}: no {START} ... {END} markers")
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
-    args.readme.write_text(head + START + "\n" + markdown(args.runs) + "\n" + END + tail)
+    args.readme.write_text(head + START + "\n" + markdown(args.runs, args.short) + "\n" + END + tail)
     print(f"updated {args.readme} from {', '.join(map(str, args.runs))}")
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import shlex
@@ -14,14 +15,16 @@ import click
 from .. import __version__
 from ..errors import O3dsoftError
 
-# The values of RegisterConfig.search (o3dsoft.pipeline.SEARCH_MODES) and the bench's methods
+# The values of RegisterConfig.search.mode (o3dsoft.config.SEARCH_MODES) and the bench's methods
 # (o3dsoft.bench.METHODS), not imported here: that would load torch and Open3D before --help;
 # a test keeps them equal.
 SEARCH_MODES = ("auto", "always", "off")
 METHOD_NAMES = ("oracle", "o3dsoft-coarse", "o3dsoft", "icp", "fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp")
 WEIGHTS_HELP = "TorchScript model file, or a shipped model by name: default, paper, partial (default: default; partial is the search network, trained on cropped, noisy clouds)."
-MAX_ROTATION_HELP = ("The clouds are given within this many degrees of their true relative rotation (e.g. from odometry): "
-                     "estimates beyond it are not trusted and the search goes on (default: any rotation).")
+MAX_ROTATION_HELP = (
+    "The clouds are given within this many degrees of their true relative rotation (e.g. from odometry): "
+    "estimates beyond it are not trusted and the search goes on (default: any rotation)."
+)
 
 
 def _friendly_errors(fn):
@@ -57,32 +60,70 @@ def _apply_options(options, fn):
 def _pipeline_options(fn):
     """o3dsoft's pipeline settings, declared once for `register` and every bench command (each
     a field of RegisterConfig, see :func:`_register_config`)."""
-    return _apply_options([
-        click.option("--weights", type=click.Path(path_type=Path), help=WEIGHTS_HELP),
-        click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1..."),
-        click.option("--voxel", type=click.FloatRange(min=0, min_open=True), default=None,
-                     help="Downsample both clouds on a voxel grid of this size (their units) first: for scans (see the README's Real scans)."),
-        click.option("--coarse-iterations", type=click.IntRange(min=1), default=1, show_default=True,
-                     help="Network passes, each on the source moved by the estimate so far (more: closer start for ICP, slower)."),
-        click.option("--search", type=click.Choice(SEARCH_MODES), default="auto", show_default=True,
-                     help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the networks from 39 starting rotations): auto = when the first result looks wrong."),
-        click.option("--search-features/--no-search-features", default=True, show_default=True,
-                     help="The search starts with FPFH features matched by RANSAC (for partial scans, any rotation)."),
-        click.option("--search-restart", is_flag=True,
-                     help="End a search that found nothing confident by refining every distinct start again with ICP's tight stages (partial overlap; see the README's pipeline)."),
-        click.option("--search-feature-stop", type=click.FloatRange(0.5, 1.0), default=0.5, show_default=True,
-                     help="The search's feature match goes on until an estimate reaches this confidence (0.9: doubtful results, 0.5-0.9, are searched further; see the README's pipeline)."),
-        click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP),
-    ], fn)
+    return _apply_options(
+        [
+            click.option("--weights", type=click.Path(path_type=Path), help=WEIGHTS_HELP),
+            click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1..."),
+            click.option(
+                "--voxel",
+                type=click.FloatRange(min=0, min_open=True),
+                default=None,
+                help="Downsample both clouds on a voxel grid of this size (their units) first: for scans (see the README's Real scans).",
+            ),
+            click.option(
+                "--coarse-iterations",
+                type=click.IntRange(min=1),
+                default=1,
+                show_default=True,
+                help="Network passes, each on the source moved by the estimate so far (more: closer start for ICP, slower).",
+            ),
+            click.option(
+                "--search",
+                type=click.Choice(SEARCH_MODES),
+                default="auto",
+                show_default=True,
+                help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the networks from 39 starting rotations): auto = when the first result looks wrong.",
+            ),
+            click.option(
+                "--search-features/--no-search-features",
+                default=True,
+                show_default=True,
+                help="The search starts with FPFH features matched by RANSAC (for partial scans, any rotation).",
+            ),
+            click.option(
+                "--search-restart",
+                is_flag=True,
+                help="End a search that found nothing confident by refining every distinct start again with ICP's tight stages (partial overlap; see docs/pipeline.md).",
+            ),
+            click.option(
+                "--search-feature-stop",
+                type=click.FloatRange(0.5, 1.0),
+                default=0.5,
+                show_default=True,
+                help="The search's feature match goes on until an estimate reaches this confidence (0.9: doubtful results, 0.5-0.9, are searched further; see docs/pipeline.md).",
+            ),
+            click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP),
+        ],
+        fn,
+    )
 
 
 def _register_config(*, weights, device, voxel, coarse_iterations, search, search_features, search_restart, search_feature_stop, max_rotation, **more):
     """RegisterConfig from the values of :func:`_pipeline_options` and further fields (`more`)."""
-    from ..pipeline import RegisterConfig
+    from ..config import FeatureSearchConfig, RegisterConfig, RestartConfig, SearchConfig
 
-    return RegisterConfig(weights=str(weights) if weights else None, device=device, voxel=voxel, coarse_iterations=coarse_iterations,
-                          search=search, search_features=search_features, search_restart=search_restart,
-                          search_feature_stop=search_feature_stop, max_rotation=max_rotation, **more)
+    search_config = SearchConfig(
+        mode=search, features=FeatureSearchConfig(enabled=search_features, stop=search_feature_stop), restart=RestartConfig(enabled=search_restart)
+    )
+    return RegisterConfig(
+        weights=str(weights) if weights else None,
+        device=device,
+        voxel=voxel,
+        coarse_iterations=coarse_iterations,
+        search=search_config,
+        max_rotation=max_rotation,
+        **more,
+    )
 
 
 @main.command()
@@ -93,7 +134,13 @@ def _register_config(*, weights, device, voxel, coarse_iterations, search, searc
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
 @click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")
-@click.option("--icp-distance", type=click.FloatRange(min=0, min_open=True), default=0.1, show_default=True, help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.")
+@click.option(
+    "--icp-distance",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.1,
+    show_default=True,
+    help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.",
+)
 @click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
@@ -101,7 +148,9 @@ def _register_config(*, weights, device, voxel, coarse_iterations, search, searc
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_pipeline_options
 @_friendly_errors
-def register(source, target, gt_path, out_path, save_transform, as_json, no_refine, icp_distance, icp_absolute, num_points, mesh_points, render_path, strict, **pipeline):
+def register(
+    source, target, gt_path, out_path, save_transform, as_json, no_refine, icp_distance, icp_absolute, num_points, mesh_points, render_path, strict, **pipeline
+):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
@@ -112,7 +161,7 @@ def register(source, target, gt_path, out_path, save_transform, as_json, no_refi
     from ..metrics import pair_errors
     from ..pipeline import register as run_register
     from ..refine import ICPConfig
-    from ..transforms import apply_transform, rotation_angle_deg
+    from ..transforms import apply_transform
 
     for opt, p in (("--out", out_path), ("--render", render_path)):
         if p is not None and p.suffix == "":
@@ -129,8 +178,9 @@ def register(source, target, gt_path, out_path, save_transform, as_json, no_refi
     model = load_model(config.weights, config.device)
     load_ms = (time.perf_counter() - t0) * 1000.0
     result = run_register(src, tgt, config, model=model, source_name=str(source), target_name=str(target))
-    result.timings_ms = {"read": read_ms, "load_model": load_ms, **result.timings_ms}
-    result.timings_ms["total"] += read_ms + load_ms
+    timings_ms = {"read": read_ms, "load_model": load_ms, **result.timings_ms}
+    timings_ms["total"] += read_ms + load_ms
+    result = dataclasses.replace(result, timings_ms=timings_ms)
 
     if out_path is not None:
         io.write_points(out_path, apply_transform(result.transformation, src))
@@ -156,20 +206,8 @@ def register(source, target, gt_path, out_path, save_transform, as_json, no_refi
     else:
         click.echo(_format_result(source, target, result, errors, model_info, config))
     if result.likely_failed:
-        max_rotation = config.max_rotation
-        turn = rotation_angle_deg(result.transformation[:3, :3])
-        if max_rotation is not None and turn > max_rotation:
-            why = f"it rotates the source by {turn:.1f} degrees, beyond --max-rotation {max_rotation:g}"
-        elif max_rotation is not None and result.confidence == 0.0:
-            why = f"ICP leaves --max-rotation {max_rotation:g} from every estimate, so the pose as given is returned unrefined"
-        else:
-            why = (f"of the points near the other cloud, only {100 * result.consistency:.0f} % lie within "
-                   f"{result.tight_distance:.3g} units of it")
         click.echo(
-            f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: {why}"
-            + ("; the global search found nothing better" if result.searched else "")
-            + "). Check it visually (--render).",
-            err=True,
+            f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: {result.failure_reason}). Check it visually (--render).", err=True
         )
         if strict:
             sys.exit(3)
@@ -183,9 +221,7 @@ def _errors_dict(e) -> dict:
 
 
 def _format_result(source, target, result, errors, model_info, config) -> str:
-    from ..pipeline import SCREEN_POINTS
-
-    refined, search_mode = config.refine, config.search
+    refined, search_mode = config.refine, config.search.mode
     grid = f" and the {config.voxel:g} voxel grid" if config.voxel is not None else ""
     T = result.transformation
     lines = [
@@ -204,7 +240,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     ]
     if result.searched:
         why = "the first result looked wrong" if search_mode == "auto" else "--search always"
-        screened = f" ({result.screened} screened on at most {SCREEN_POINTS:,} points per cloud first)" if result.screened else ""
+        screened = f" ({result.screened} screened on at most {config.search.screen.points:,} points per cloud first)" if result.screened else ""
         lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}, the most confident kept")
     if errors is not None:
         f, c = errors["final"], errors["coarse"]
@@ -226,12 +262,35 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
 
 # Command-line options of `train` that are TrainConfig fields of the same name; given on the
 # command line, they override the --config file, which overrides TrainConfig's defaults.
-_TRAIN_FIELDS = ("data", "protocol", "epochs", "batch_size", "lr", "lr_schedule", "lr_min", "grad_clip", "init", "seed",
-                 "device", "out", "checkpoint_minutes", "eval_pairs", "max_steps", "limit_train", "points_per_shape", "workers")
+_TRAIN_FIELDS = (
+    "data",
+    "protocol",
+    "epochs",
+    "batch_size",
+    "lr",
+    "lr_schedule",
+    "lr_min",
+    "grad_clip",
+    "init",
+    "seed",
+    "device",
+    "out",
+    "checkpoint_minutes",
+    "eval_pairs",
+    "max_steps",
+    "limit_train",
+    "points_per_shape",
+    "workers",
+)
 
 
 @main.command()
-@click.option("--config", "config_file", type=click.Path(path_type=Path), help="YAML file of settings (the keys of config.yaml in a run folder); command-line options override it.")
+@click.option(
+    "--config",
+    "config_file",
+    type=click.Path(path_type=Path),
+    help="YAML file of settings (the keys of config.yaml in a run folder); command-line options override it.",
+)
 @click.option("--data", help="ModelNet40 folder (official HDF5 layout or OFF meshes); default $O3DSOFT_DATA.")
 @click.option("--protocol", default="paper", show_default=True, help="Pair protocol (paper, dcp, wide45, so3, incongruent, ...) or mixture (incongruent-mix).")
 @click.option("--epochs", type=click.IntRange(min=1), default=5, show_default=True)
@@ -240,16 +299,32 @@ _TRAIN_FIELDS = ("data", "protocol", "epochs", "batch_size", "lr", "lr_schedule"
 @click.option("--lr-schedule", type=click.Choice(["constant", "cosine"]), default="constant", show_default=True)
 @click.option("--lr-min", type=click.FloatRange(min=0), default=1e-5, show_default=True, help="Final learning rate of the cosine schedule.")
 @click.option("--grad-clip", type=click.FloatRange(min=0, min_open=True), default=None, help="Clip the gradients' L2 norm (default: no clipping).")
-@click.option("--init", type=click.Path(), default=None, help="Start from these weights (fine-tuning): a run's checkpoint.pt, a model file, or a shipped model by name (default, paper).")
+@click.option(
+    "--init",
+    type=click.Path(),
+    default=None,
+    help="Start from these weights (fine-tuning): a run's checkpoint.pt, a model file, or a shipped model by name (default, paper).",
+)
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda (under torchrun: one GPU per process).")
-@click.option("--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config.")
+@click.option(
+    "--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config."
+)
 @click.option("--k", "k", type=click.IntRange(min=1), default=None, help="Neighbourhood size K; default 32.")
 @click.option("--separate-encoders", is_flag=True, default=None, help="One encoder per cloud instead of a shared one.")
-@click.option("--relative", is_flag=True, default=None, help="First layer on neighbour offsets instead of coordinates: descriptors that do not move with a cropped cloud's centroid.")
+@click.option(
+    "--relative",
+    is_flag=True,
+    default=None,
+    help="First layer on neighbour offsets instead of coordinates: descriptors that do not move with a cropped cloud's centroid.",
+)
 @click.option("--out", default="runs/train", show_default=True, help="Output folder: checkpoint, config, model, model card.")
 @click.option("--checkpoint-minutes", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True)
-@click.option("--resume", is_flag=True, help="Continue from OUT/checkpoint.pt exactly where it stopped, with the settings of OUT/config.yaml (options given here override them).")
+@click.option(
+    "--resume",
+    is_flag=True,
+    help="Continue from OUT/checkpoint.pt exactly where it stopped, with the settings of OUT/config.yaml (options given here override them).",
+)
 @click.option("--max-steps", type=click.IntRange(min=1), default=None, help="Stop after this many steps (quick runs).")
 @click.option("--limit-train", type=click.IntRange(min=1), default=None, help="Use only the first N training shapes.")
 @click.option("--points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True, help="Points per shape (first N of the HDF5 data).")
@@ -263,31 +338,14 @@ def train(ctx, config_file, resume, radius, k, separate_encoders, relative, **op
     Several processes or machines: run the same command under torchrun, e.g.
     `torchrun --nproc_per_node 4 -m o3dsoft.cli.main train --device cuda`.
     """
-    from dataclasses import replace
-
     from click.core import ParameterSource
 
-    from ..configfile import read_config
-    from ..model import NetConfig
-    from ..train import TrainConfig, train as run_train
+    from ..train import settings_from
+    from ..train import train as run_train
 
-    if resume and config_file is None and (Path(options["out"]) / "config.yaml").is_file():
-        config_file = Path(options["out"]) / "config.yaml"  # resume with the run's own settings
-    settings = read_config(config_file, TrainConfig) if config_file else {}
-    for name in _TRAIN_FIELDS:
-        if name not in settings or ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE:
-            settings[name] = options[name]
-    net = settings.pop("net", NetConfig())
-    if radius is not None:
-        net = replace(net, radius=radius)
-    if k is not None:
-        net = replace(net, k=k)
-    if separate_encoders is not None:
-        net = replace(net, shared_encoder=not separate_encoders)
-    if relative is not None:
-        net = replace(net, relative=relative)
-    config = TrainConfig(net=net, **settings)
-    config.validate()
+    given = {name: options[name] for name in _TRAIN_FIELDS if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE}
+    net = {"radius": radius, "k": k, "shared_encoder": None if separate_encoders is None else not separate_encoders, "relative": relative}
+    config = settings_from(given, {name: options[name] for name in _TRAIN_FIELDS}, config_file, {n: v for n, v in net.items() if v is not None}, resume)
     run_train(config, resume=resume, log=lambda m: click.echo(m, err=True))
 
 
@@ -301,12 +359,23 @@ def _bench_options(fn):
 
     options = [
         click.option("--method", "methods", multiple=True, help=f"Methods to run (repeat the option; default all): {', '.join(METHOD_NAMES)}."),
-        click.option("--seed", type=int, default=0, show_default=True, help="Seed of the pairs and of RANSAC (o3dsoft's search repeats exactly; Open3D's multi-threaded RANSAC, in the FPFH baselines, can vary between runs)."),
+        click.option(
+            "--seed",
+            type=int,
+            default=0,
+            show_default=True,
+            help="Seed of the pairs and of RANSAC (o3dsoft's search repeats exactly; Open3D's multi-threaded RANSAC, in the FPFH baselines, can vary between runs).",
+        ),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
         click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
-        click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
-                     help="Pairs run at once, in as many processes sharing the CPU's threads (for many cores; every method's time is then measured on its process's share)."),
+        click.option(
+            "--jobs",
+            type=click.IntRange(min=1),
+            default=1,
+            show_default=True,
+            help="Pairs run at once, in as many processes sharing the CPU's threads (for many cores; every method's time is then measured on its process's share).",
+        ),
     ]
     return _pipeline_options(_apply_options(options, fn))
 
@@ -323,12 +392,13 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, seed, o
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
     device = config.register.device
     model = load_model(config.register.weights, device) if needs_model else None
-    searches = needs_model and config.register.search != "off" and config.register.search_weights is not None
-    search_model = load_model(config.register.search_weights, device) if searches else None
+    searches = needs_model and config.register.search.mode != "off" and config.register.search.starts.weights is not None
+    search_model = load_model(config.register.search.starts.weights, device) if searches else None
     description = {"command": shlex.join(["o3dsoft", *sys.argv[1:]]), **description, "jobs": jobs}
     folder = prepare_folder(out or Path("runs") / f"bench-{name}-{time.strftime('%Y%m%d-%H%M%S')}", overwrite)
-    result = run(pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True),
-                 search_model=search_model, jobs=jobs)
+    result = run(
+        pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True), search_model=search_model, jobs=jobs
+    )
     click.echo(result.table)
     click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
     if result.interrupted:
@@ -340,15 +410,22 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, seed, o
 @click.option("--protocol", "protocols", multiple=True, help="Protocols (repeat the option; default: the literature's seven and the four incongruent ones).")
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N test pairs of each protocol.")
 @click.option("--data", help="ModelNet40 folder; default $O3DSOFT_DATA.")
-@click.option("--points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True,
-              help="Points of each shape (the first N of the HDF5 data); the incongruent protocols split them into two clouds of N/2.")
+@click.option(
+    "--points-per-shape",
+    type=click.IntRange(min=1),
+    default=1024,
+    show_default=True,
+    help="Points of each shape (the first N of the HDF5 data); the incongruent protocols split them into two clouds of N/2.",
+)
 @click.option("--export-pairs", type=click.Path(path_type=Path), help="Also write the pairs to this .npz (for other tools).")
 @click.option("--import-pairs", type=click.Path(path_type=Path), help="Score the pairs of this .npz instead of making them.")
 @_bench_options
 @_friendly_errors
 def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, import_pairs, **common):
     """Every method on the ModelNet40 test pairs of each protocol: table, CSV, JSON, plots."""
-    from ..bench import BENCH_PROTOCOLS, check_methods, export_pairs as write_pairs, import_pairs as read_pairs, modelnet_pairs
+    from ..bench import BENCH_PROTOCOLS, check_methods, modelnet_pairs
+    from ..bench import export_pairs as write_pairs
+    from ..bench import import_pairs as read_pairs
     from ..data import get_protocol
 
     check_methods(common["methods"])
@@ -362,8 +439,14 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
         for name in protocols:
             get_protocol(name)
         count, iterator = modelnet_pairs(data, protocols, limit, seed, points_per_shape)
-        description = {"benchmark": "modelnet40", "protocols": list(protocols), "limit": limit, "data": data, "seed": seed,
-                       "points_per_shape": points_per_shape}
+        description = {
+            "benchmark": "modelnet40",
+            "protocols": list(protocols),
+            "limit": limit,
+            "data": data,
+            "seed": seed,
+            "points_per_shape": points_per_shape,
+        }
         if export_pairs:
             pairs = list(iterator)
             write_pairs(export_pairs, pairs)
@@ -373,9 +456,19 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
 
 
 @bench.command("bunny")
-@click.option("--data", type=click.Path(path_type=Path), default=None, help="Folder with scans and their .conf (default ../shared/data/stanford_bunny or $O3DSOFT_SCANS).")
-@click.option("--min-overlap", type=click.FloatRange(0, 1), default=0.3, show_default=True, help="Keep ordered scan pairs with at least this ground-truth overlap.")
-@click.option("--recall-translation", type=click.FloatRange(min=0, min_open=True), default=0.002, show_default=True, help="Translation threshold of the 1-degree recall, in the scans' units (metres for the bunny); x5 for the 5-degree one.")
+@click.option(
+    "--data", type=click.Path(path_type=Path), default=None, help="Folder with scans and their .conf (default ../shared/data/stanford_bunny or $O3DSOFT_SCANS)."
+)
+@click.option(
+    "--min-overlap", type=click.FloatRange(0, 1), default=0.3, show_default=True, help="Keep ordered scan pairs with at least this ground-truth overlap."
+)
+@click.option(
+    "--recall-translation",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.002,
+    show_default=True,
+    help="Translation threshold of the 1-degree recall, in the scans' units (metres for the bunny); x5 for the 5-degree one.",
+)
 @_bench_options
 @_friendly_errors
 def bench_bunny(data, min_overlap, recall_translation, **common):
@@ -391,7 +484,10 @@ def bench_bunny(data, min_overlap, recall_translation, **common):
         raise UsageError(f"{folder}: no such folder of scans; pass --data FOLDER (scans + a Stanford .conf)")
     pairs, table = scan_pairs(folder, min_overlap)
     kept = sum(r["kept"] for r in table)
-    click.echo(f"{kept} of {len(table)} ordered scan pairs have a ground-truth overlap of at least {min_overlap:.0%} (share of source points within 1 % of the scale of a target point)", err=True)
+    click.echo(
+        f"{kept} of {len(table)} ordered scan pairs have a ground-truth overlap of at least {min_overlap:.0%} (share of source points within 1 % of the scale of a target point)",
+        err=True,
+    )
     if not pairs:
         raise UsageError(f"no scan pair in {folder} reaches --min-overlap {min_overlap}")
     description = {"benchmark": "scans", "folder": str(folder), "min_overlap": min_overlap, "pairs": table}

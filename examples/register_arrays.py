@@ -1,6 +1,6 @@
 """Register NumPy arrays: move a ModelNet-like shape by a known transform and recover it.
 
-    python examples/register_arrays.py
+python examples/register_arrays.py
 """
 
 import numpy as np
@@ -27,8 +27,10 @@ def main() -> None:
     np.set_printoptions(precision=5, suppress=True)
     print("estimated T_target_source:\n", result.transformation)
     print(f"rotation error {err.rotation_deg:.2e} deg, translation error {err.translation:.2e} mm (lower is better)")
-    print(f"fitness {result.fitness:.3f} (higher is better), confidence {result.confidence:.3f} (0-1, higher is better)"
-          + (" - likely failed" if result.likely_failed else ""))
+    print(
+        f"fitness {result.fitness:.3f} (higher is better), confidence {result.confidence:.3f} (0-1, higher is better)"
+        + (" - likely failed" if result.likely_failed else "")
+    )
 
 
 if __name__ == "__main__":

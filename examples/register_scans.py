@@ -10,7 +10,7 @@ The recipe, for scans in metres of up to a few million points:
 2. Give ICP an absolute correspondence distance (`--icp-distance`, metres): about the size of the
    error you expect from the coarse stage, here 10 x the voxel. ICP then runs at 1, 0.3 and 0.1 of
    it, so the last stage keeps only pairs closer than about one voxel.
-3. Keep the global search's FPFH feature match (`search_features`, on by default): scans overlap
+3. Keep the global search's FPFH feature match (`search.features.enabled`, on by default): scans overlap
    partly and can be turned any way, where a coarse stage trained on whole objects is least reliable.
 4. Read the confidence: below 0.5 the result is flagged as likely failed; scans that share less
    than ~80 % of their surface can be flagged although right, so look at them (`--render`).
@@ -42,13 +42,17 @@ def main() -> None:
     config = o3dsoft.RegisterConfig(
         voxel=args.voxel,  # step 1
         icp=o3dsoft.ICPConfig(distance=args.icp_distance or 10 * args.voxel, absolute=True),  # step 2
-    )  # step 3: search_features is on by default
+    )  # step 3: the search's feature match is on by default
     result = o3dsoft.register(source, target, config)
-    print(f"{args.source.name}: {len(source)} points, {args.target.name}: {len(target)} points; "
-          f"{result.num_source} and {result.num_target} on the {args.voxel:g} voxel grid")
+    print(
+        f"{args.source.name}: {len(source)} points, {args.target.name}: {len(target)} points; "
+        f"{result.num_source} and {result.num_target} on the {args.voxel:g} voxel grid"
+    )
     print("T_target_source:\n" + np.array2string(result.transformation, precision=6, suppress_small=True))
-    print(f"confidence {result.confidence:.3f} (0-1, higher is better){'  LIKELY FAILED' if result.likely_failed else ''}; "
-          f"fitness {result.fitness:.3f} (higher is better); inlier RMSE {result.inlier_rmse:.4g} units (lower is better)")
+    print(
+        f"confidence {result.confidence:.3f} (0-1, higher is better){'  LIKELY FAILED' if result.likely_failed else ''}; "
+        f"fitness {result.fitness:.3f} (higher is better); inlier RMSE {result.inlier_rmse:.4g} units (lower is better)"
+    )
     print(f"search ran: {result.searched}; time {result.timings_ms['total']:.0f} ms (lower is better)")
     if gt is not None:
         e = o3dsoft.pair_errors(result.transformation, o3dsoft.read_transform(gt))

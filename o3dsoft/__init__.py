@@ -20,19 +20,37 @@ from .errors import InputError, O3dsoftError, UsageError
 # The public names and the module of each, imported at first use: torch and Open3D take seconds
 # to import, which `o3dsoft --help` and `--version` do not need.
 _LAZY = {
-    "CoarseModel": "coarse", "load_model": "coarse",
-    "read_points": "io", "read_transform": "io", "write_points": "io", "write_transform": "io",
-    "pair_errors": "metrics", "rotation_error_deg": "metrics",
-    "RegisterConfig": "pipeline", "RegistrationResult": "pipeline", "register": "pipeline",
+    "CoarseModel": "coarse",
+    "load_model": "coarse",
+    "read_points": "io",
+    "read_transform": "io",
+    "write_points": "io",
+    "write_transform": "io",
+    "pair_errors": "metrics",
+    "rotation_error_deg": "metrics",
+    "RegisterConfig": "config",
+    "SearchConfig": "config",
+    "FeatureSearchConfig": "config",
+    "StartsConfig": "config",
+    "VotesConfig": "config",
+    "RestartConfig": "config",
+    "ScreenConfig": "config",
+    "RegistrationResult": "pipeline",
+    "register": "pipeline",
     "ICPConfig": "refine",
+    "ConfidenceConfig": "confidence",
+    "FeatureMatchConfig": "search",
 }
 
 if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
     from .coarse import CoarseModel, load_model
+    from .confidence import ConfidenceConfig
+    from .config import FeatureSearchConfig, RegisterConfig, RestartConfig, ScreenConfig, SearchConfig, StartsConfig, VotesConfig
     from .io import read_points, read_transform, write_points, write_transform
     from .metrics import pair_errors, rotation_error_deg
-    from .pipeline import RegisterConfig, RegistrationResult, register
+    from .pipeline import RegistrationResult, register
     from .refine import ICPConfig
+    from .search import FeatureMatchConfig
 
 
 def __getattr__(name: str) -> Any:
@@ -54,11 +72,18 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 
 __all__ = [
     "CoarseModel",
+    "ConfidenceConfig",
+    "FeatureMatchConfig",
+    "FeatureSearchConfig",
     "ICPConfig",
     "InputError",
     "O3dsoftError",
     "RegisterConfig",
     "RegistrationResult",
+    "RestartConfig",
+    "ScreenConfig",
+    "SearchConfig",
+    "StartsConfig",
     "UsageError",
     "load_model",
     "pair_errors",
@@ -68,5 +93,6 @@ __all__ = [
     "rotation_error_deg",
     "write_points",
     "write_transform",
+    "VotesConfig",
     "__version__",
 ]

@@ -8,7 +8,7 @@ same settings serve unit-sphere objects and scans in metres: voxel 0.05, normals
 edge-length (0.9) and distance checkers, 100,000 iterations at confidence 0.999, FGR distance
 0.5 voxel. As in the tutorial, the normals keep the sign Open3D's estimate gives them, which
 depends on the frame the cloud is given in, so the features of a rotated copy differ; the
-search's feature match orients them (:data:`o3dsoft.search.FEATURES`).
+search's feature match orients them (:class:`o3dsoft.search.FeatureMatchConfig`).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Benchmark harness: every method on the very same pairs, scored with the metrics of DESIGN §4.
+"""Benchmark harness: every method on the very same pairs, scored with the literature's metrics
+(:mod:`o3dsoft.metrics`; the protocols and metrics are described in docs/results.md).
 
 Pairs come from ModelNet40 under the protocols of :mod:`o3dsoft.data`, from real scans with a
 ``.conf`` of ground-truth poses (:func:`scan_pairs`), or from a pairs file
@@ -27,7 +28,6 @@ import numpy as np
 from . import baselines
 from . import refine as refine_stage
 from .coarse import CoarseModel, sha256_of
-from .confidence import LIKELY_FAILED_BELOW
 from .data import DEFAULT_POINTS_PER_SHAPE, get_protocol, load_pairs
 from .errors import InputError, O3dsoftError, UsageError
 from .io import atomic_output
@@ -50,8 +50,19 @@ METHODS: Dict[str, str] = {
 # about the axis is meaningless; excluded in the second row of each protocol, as OMNet does.
 SYMMETRIC_CATEGORIES = ("bottle", "bowl", "cone", "cup", "flower_pot", "lamp", "tent", "vase")
 # The literature's protocols, then the same with independently sampled clouds (no point shared).
-BENCH_PROTOCOLS = ("paper", "dcp", "dcp-unseen", "dcp-noise", "rpmnet-crop", "so3", "so3-crop",
-                   "incongruent", "incongruent-noise", "incongruent-crop", "incongruent-so3")
+BENCH_PROTOCOLS = (
+    "paper",
+    "dcp",
+    "dcp-unseen",
+    "dcp-noise",
+    "rpmnet-crop",
+    "so3",
+    "so3-crop",
+    "incongruent",
+    "incongruent-noise",
+    "incongruent-crop",
+    "incongruent-so3",
+)
 STAGES = ("features", "coarse", "search", "ransac", "fgr", "icp", "total")
 PAIRS_FORMAT = "o3dsoft-pairs"
 
@@ -113,8 +124,9 @@ class BenchPair(NamedTuple):
 # --------------------------------------------------------------------------------------------
 # Pair sources
 # --------------------------------------------------------------------------------------------
-def modelnet_pairs(data: Optional[str], protocols: Sequence[str], limit: Optional[int], seed: int,
-                   points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE) -> Tuple[int, Iterator[BenchPair]]:
+def modelnet_pairs(
+    data: Optional[str], protocols: Sequence[str], limit: Optional[int], seed: int, points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE
+) -> Tuple[int, Iterator[BenchPair]]:
     """(count, iterator) of the test pairs of each protocol, the first `limit` of each, from the
     first `points_per_shape` points of each shape (None: all; the incongruent protocols split them
     in two)."""
@@ -184,13 +196,16 @@ def export_pairs(path: Path, pairs: Sequence[BenchPair]) -> None:
     (when every pair has one) clean_target_points / clean_target_offsets: the complete, noise-free
     target of the modified Chamfer distance.
     """
+
     def offsets(clouds):
         return np.concatenate([[0], np.cumsum([len(c) for c in clouds])]).astype(np.int64)
 
     clean = {}
     if pairs and all(p.clean_target is not None for p in pairs):
-        clean = {"clean_target_points": np.concatenate([p.clean_target for p in pairs]).astype(np.float32),
-                 "clean_target_offsets": offsets([p.clean_target for p in pairs])}
+        clean = {
+            "clean_target_points": np.concatenate([p.clean_target for p in pairs]).astype(np.float32),
+            "clean_target_offsets": offsets([p.clean_target for p in pairs]),
+        }
     with atomic_output(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(
@@ -254,11 +269,15 @@ def _pairs_from_npz(path: Path, z) -> List[BenchPair]:
         if c_off.shape != (P + 1,) or c_off[-1] != len(clean):
             raise InputError(f"{path}: clean_target_offsets must have {P + 1} entries ending at {len(clean)}")
     return [
-        BenchPair(str(z["protocol"][i]), int(z["index"][i]),
-                  z["source_points"][s_off[i]:s_off[i + 1]].astype(np.float64),
-                  z["target_points"][t_off[i]:t_off[i + 1]].astype(np.float64),
-                  z["transform"][i].astype(np.float64), str(category[i]),
-                  None if clean is None else clean[c_off[i]:c_off[i + 1]].astype(np.float64))
+        BenchPair(
+            str(z["protocol"][i]),
+            int(z["index"][i]),
+            z["source_points"][s_off[i] : s_off[i + 1]].astype(np.float64),
+            z["target_points"][t_off[i] : t_off[i + 1]].astype(np.float64),
+            z["transform"][i].astype(np.float64),
+            str(category[i]),
+            None if clean is None else clean[c_off[i] : c_off[i + 1]].astype(np.float64),
+        )
         for i in range(P)
     ]
 
@@ -277,8 +296,7 @@ class MethodResult(NamedTuple):
     searched: Optional[bool] = None
 
 
-def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel],
-                search_model: Optional[CoarseModel] = None) -> List[MethodResult]:
+def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel], search_model: Optional[CoarseModel] = None) -> List[MethodResult]:
     """Run every method of `config` on one pair (`search_model`: o3dsoft's search network, else
     loaded when needed)."""
     methods = config.methods
@@ -299,8 +317,9 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         network = result.network_transformation if result.network_transformation is not None else result.coarse_transformation
         out["o3dsoft-coarse"] = MethodResult("o3dsoft-coarse", network, {**coarse_ms, "total": sum(coarse_ms.values())})
         fine_ms = t["refine"] + t["score"]  # ICP and the confidence, over every refined estimate
-        out["o3dsoft"] = MethodResult("o3dsoft", result.transformation, {**coarse_ms, "icp": fine_ms, "total": sum(coarse_ms.values()) + fine_ms},
-                                      result.confidence, result.searched)
+        out["o3dsoft"] = MethodResult(
+            "o3dsoft", result.transformation, {**coarse_ms, "icp": fine_ms, "total": sum(coarse_ms.values()) + fine_ms}, result.confidence, result.searched
+        )
     if "oracle" in methods:
         t0 = clock()
         T = refine_stage.icp(src, tgt, pair.transform, icp_distance, config.register.icp).transformation
@@ -314,8 +333,10 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         fs = baselines.fpfh_features(src, scale, config.global_)
         ft = baselines.fpfh_features(tgt, scale, config.global_)
         features_ms = clock() - t0
-        for name, solve in (("fpfh-ransac", lambda: baselines.ransac(fs, ft, scale, config.seed + pair.index, config.global_)),
-                            ("fgr", lambda: baselines.fgr(fs, ft, scale, config.global_))):
+        for name, solve in (
+            ("fpfh-ransac", lambda: baselines.ransac(fs, ft, scale, config.seed + pair.index, config.global_)),
+            ("fgr", lambda: baselines.fgr(fs, ft, scale, config.global_)),
+        ):
             if name not in methods and f"{name}+icp" not in methods:
                 continue
             stage = "ransac" if name == "fpfh-ransac" else "fgr"
@@ -327,8 +348,9 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
                 t0 = clock()
                 T_fine = refine_stage.icp(src, tgt, T, icp_distance, config.register.icp).transformation
                 icp_ms = clock() - t0
-                out[f"{name}+icp"] = MethodResult(f"{name}+icp", T_fine, {"features": features_ms, stage: solve_ms, "icp": icp_ms,
-                                                                          "total": features_ms + solve_ms + icp_ms})
+                out[f"{name}+icp"] = MethodResult(
+                    f"{name}+icp", T_fine, {"features": features_ms, stage: solve_ms, "icp": icp_ms, "total": features_ms + solve_ms + icp_ms}
+                )
     return [out[m] for m in methods]
 
 
@@ -337,11 +359,21 @@ def score(pair: BenchPair, result: MethodResult) -> Tuple[dict, PairErrors]:
     e = pair_errors(result.transform, pair.transform)
     chamfer = modified_chamfer_distance(pair.source, pair.target, result.transform, pair.transform, pair.clean_target)
     row = {
-        "protocol": pair.protocol, "index": pair.index, "category": pair.category,
-        "symmetric": pair.category in SYMMETRIC_CATEGORIES, "initial_angle_deg": round(pair.initial_angle, 4),
-        "method": result.method, "rotation_deg": e.rotation_deg, "translation": e.translation,
-        "rotation_l1": e.rotation_l1, "rotation_l2": e.rotation_l2, "translation_l1": e.translation_l1, "translation_l2": e.translation_l2,
-        "euler_abs_x_deg": e.euler_abs_deg[0], "euler_abs_y_deg": e.euler_abs_deg[1], "euler_abs_z_deg": e.euler_abs_deg[2],
+        "protocol": pair.protocol,
+        "index": pair.index,
+        "category": pair.category,
+        "symmetric": pair.category in SYMMETRIC_CATEGORIES,
+        "initial_angle_deg": round(pair.initial_angle, 4),
+        "method": result.method,
+        "rotation_deg": e.rotation_deg,
+        "translation": e.translation,
+        "rotation_l1": e.rotation_l1,
+        "rotation_l2": e.rotation_l2,
+        "translation_l1": e.translation_l1,
+        "translation_l2": e.translation_l2,
+        "euler_abs_x_deg": e.euler_abs_deg[0],
+        "euler_abs_y_deg": e.euler_abs_deg[1],
+        "euler_abs_z_deg": e.euler_abs_deg[2],
         "chamfer": chamfer,
         "confidence": "" if result.confidence is None else result.confidence,
         "searched": "" if result.searched is None else result.searched,
@@ -379,10 +411,10 @@ def summarise_rows(rows: Sequence[dict], errors: Sequence[PairErrors], config: B
                 if len(scores) == len(sel):
                     success = within([errors[i].rotation_deg for i in sel], [errors[i].translation for i in sel], config.recall[-1])
                     summary["confidence_auc"] = roc_auc(np.array(scores), success)
-                    summary["likely_failed_share"] = float(np.mean(np.array(scores) < LIKELY_FAILED_BELOW))
+                    summary["likely_failed_share"] = float(np.mean(np.array(scores) < config.register.confidence.likely_failed_below))
                     # False alarms: right alignments flagged likely failed (share of the right ones).
                     right = np.array(scores)[success]
-                    summary["false_alarm_share"] = float(np.mean(right < LIKELY_FAILED_BELOW)) if len(right) else None
+                    summary["false_alarm_share"] = float(np.mean(right < config.register.confidence.likely_failed_below)) if len(right) else None
                 searched = [rows[i]["searched"] for i in sel if rows[i]["searched"] != ""]
                 if len(searched) == len(sel):
                     summary["searched_share"] = float(np.mean(searched))
@@ -412,10 +444,12 @@ def recall_keys(summary: dict) -> List[str]:
 def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]]) -> str:
     """The table a person reads: one block per protocol and subset, one row per method."""
     d5, t5 = recall[-1]
-    head = (f"{'method':18s} {'pairs':>5s} {'rot mean':>9s} {'rot med':>9s} {'trans mean':>10s} {'Euler RMSE':>10s} "
-            + "".join(f" {f'recall {d:g}d/{t:g}':>14s}" for d, t in recall) + f" {'ms median':>9s} {'ms p90':>8s}")
-    units = (f"{'':18s} {'':>5s} {'deg':>9s} {'deg':>9s} {'units':>10s} {'deg':>10s}" + "".join(f" {'%':>14s}" for _ in recall)
-             + f" {'':>9s} {'':>8s}")
+    head = (
+        f"{'method':18s} {'pairs':>5s} {'rot mean':>9s} {'rot med':>9s} {'trans mean':>10s} {'Euler RMSE':>10s} "
+        + "".join(f" {f'recall {d:g}d/{t:g}':>14s}" for d, t in recall)
+        + f" {'ms median':>9s} {'ms p90':>8s}"
+    )
+    units = f"{'':18s} {'':>5s} {'deg':>9s} {'deg':>9s} {'units':>10s} {'deg':>10s}" + "".join(f" {'%':>14s}" for _ in recall) + f" {'':>9s} {'':>8s}"
     lines = ["Errors and times: lower is better; recall: higher is better. Translation in the clouds' units."]
     block = None
     for s in summaries:
@@ -428,15 +462,18 @@ def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]
         rk = recall_keys(s)
         lines.append(
             f"{s['method']:18s} {int(s['pairs']):>5d} {s['rotation_deg_mean']:>9.3g} {s['rotation_deg_median']:>9.3g} "
-            f"{s['translation_mean']:>10.3g} {s['euler_rmse_deg']:>10.3g}" + "".join(f" {100 * s[k]:>14.1f}" for k in rk)
+            f"{s['translation_mean']:>10.3g} {s['euler_rmse_deg']:>10.3g}"
+            + "".join(f" {100 * s[k]:>14.1f}" for k in rk)
             + f" {s['time_ms_median']:>9.1f} {s['time_ms_p90']:>8.1f}"
         )
         if "confidence_auc" in s:
             auc = "n/a (no failures or no successes)" if s["confidence_auc"] is None else f"{s['confidence_auc']:.3f}"
             alarms = "n/a" if s.get("false_alarm_share") is None else f"{100 * s['false_alarm_share']:.1f} %"
-            lines.append(f"{'':18s} confidence vs success at {d5:g} deg / {t5:g}: ROC AUC {auc} (higher is better); "
-                         f"flagged likely failed: {100 * s['likely_failed_share']:.1f} %; right ones flagged: {alarms} (lower is better)"
-                         + (f"; searched: {100 * s['searched_share']:.1f} %" if "searched_share" in s else ""))
+            lines.append(
+                f"{'':18s} confidence vs success at {d5:g} deg / {t5:g}: ROC AUC {auc} (higher is better); "
+                f"flagged likely failed: {100 * s['likely_failed_share']:.1f} %; right ones flagged: {alarms} (lower is better)"
+                + (f"; searched: {100 * s['searched_share']:.1f} %" if "searched_share" in s else "")
+            )
     return "\n".join(lines)
 
 
@@ -461,8 +498,14 @@ def versions() -> Dict[str, str]:
 
     from . import __version__
 
-    out = {"o3dsoft": __version__, "torch": torch.__version__, "open3d": open3d.__version__, "numpy": np.__version__,
-           "python": platform.python_version(), "machine": f"{platform.machine()}, {platform.system()}, {os.cpu_count()} logical CPUs"}
+    out = {
+        "o3dsoft": __version__,
+        "torch": torch.__version__,
+        "open3d": open3d.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "machine": f"{platform.machine()}, {platform.system()}, {os.cpu_count()} logical CPUs",
+    }
     commit = source_commit()
     if commit:
         out["commit"] = commit
@@ -557,8 +600,7 @@ class PairOutcome(NamedTuple):
     error: Optional[str]
 
 
-def run_pair(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel],
-             search_model: Optional[CoarseModel] = None) -> PairOutcome:
+def run_pair(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel], search_model: Optional[CoarseModel] = None) -> PairOutcome:
     """Every method of `config` on one pair, scored; an unusable pair (or an Open3D failure) is
     reported in ``error``, not raised."""
     try:
@@ -581,21 +623,22 @@ def _start_worker(config: BenchConfig, weights: Optional[str], search_weights: O
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     torch.set_num_threads(threads)
-    _WORKER.update(config=config, model=load_model(weights, device) if weights else None,
-                   search_model=load_model(search_weights, device) if search_weights else None)
+    _WORKER.update(
+        config=config, model=load_model(weights, device) if weights else None, search_model=load_model(search_weights, device) if search_weights else None
+    )
 
 
 def _run_in_worker(pair: BenchPair) -> PairOutcome:
     return run_pair(pair, _WORKER["config"], _WORKER["model"], _WORKER["search_model"])  # type: ignore[arg-type]
 
 
-def run_pairs(pairs: Iterator[BenchPair], config: BenchConfig, model: Optional[CoarseModel],
-              search_model: Optional[CoarseModel] = None, jobs: int = 1) -> Iterator[PairOutcome]:
+def run_pairs(
+    pairs: Iterator[BenchPair], config: BenchConfig, model: Optional[CoarseModel], search_model: Optional[CoarseModel] = None, jobs: int = 1
+) -> Iterator[PairOutcome]:
     """:func:`run_pair` on each pair, in order; with `jobs` > 1 in as many worker processes, each
     with its share of the CPU's threads (the models are loaded again in each, from their files).
 
-    For machines with many cores; on the 2-core development machine a single process already
-    kept both cores 74 % busy on `paper`, and 2 jobs gained little (README, Benchmarks).
+    For machines with many cores: one process already keeps two cores busy (docs/speed.md).
     """
     if jobs == 1:
         for pair in pairs:

@@ -24,7 +24,7 @@ from ._open3d import open3d
 from .errors import InputError
 from .io import atomic_output
 from .model import NetConfig, SoftAlignNet, ball_query
-from .transforms import rigid
+from .transforms import apply_transform, rigid
 
 o3c = open3d.core
 
@@ -128,11 +128,9 @@ class CoarseModel:
     def neighbours(self, points: torch.Tensor) -> torch.Tensor:
         """(B, N, 3) -> (B, N, K) int64 neighbour indices, the sets of the network's ball query.
 
-        On the CPU through Open3D's KD-tree, several times faster than the network's top-k over
-        all N^2 distances; the sets are the same, and their order does not matter at inference (a
-        max over each neighbourhood). Its K nearest, then capped at the radius, took 1.9 ms per
-        1,024-point cloud against 2.4 ms for Open3D's hybrid (radius and K) search, and the
-        whole pair 45.4 against 47.7 ms (2-core machine, 100 `paper` pairs, medians). Elsewhere
+        On the CPU through Open3D's KD-tree (its K nearest, then capped at the radius), several
+        times faster than the network's top-k over all N^2 distances; the sets are the same, and
+        their order does not matter at inference (a max over each neighbourhood). Elsewhere
         :func:`o3dsoft.model.ball_query`.
         """
         k, radius = self.config.k, self.config.radius
@@ -167,16 +165,14 @@ class CoarseModel:
             idx = self.neighbours(source) if idx is None else idx.to(self.device).expand(source.shape[0], -1, -1)
             with torch.no_grad():
                 if not target_descriptors and self.config.shared_encoder and source.shape[0] == 1 and source.shape == target.shape:
-                    # One encoder call on the pair: 18 % faster on the CPU than two calls of
-                    # one cloud each (2-core machine, N = M = 1024, interleaved runs).
+                    # One encoder call on the pair: faster on the CPU than two calls of one cloud each.
                     both = self.module.describe_target(torch.cat([target, source]), torch.cat([self.neighbours(target), idx]))
                     target_descriptors.append(both[:1])
                     return self.module.align(source, both[1:], target, both[:1])
                 if not target_descriptors:
                     target_descriptors.append(self.module.describe_target(target, self.neighbours(target)))
                 g = target_descriptors[0]
-                # On the CPU, a few clouds at a time keep the gather-max's working set in cache: 24
-                # rotation hypotheses ran 4.6x faster in batches of 2 than as one batch (2-core machine).
+                # On the CPU, a few clouds at a time keep the gather-max's working set in cache.
                 step = CPU_BATCH if self.device.type == "cpu" else source.shape[0]
                 parts = []
                 for s in range(0, source.shape[0], step):
@@ -257,7 +253,7 @@ def estimate(model: CoarseModel, source: np.ndarray, target: np.ndarray, iterati
     source = np.asarray(source, dtype=np.float64)
     idx = model.neighbours(torch.as_tensor(source, dtype=torch.float32).unsqueeze(0))  # kept by rigid moves
     for _ in range(iterations):
-        moved = source @ T[:3, :3].T + T[:3, 3]
+        moved = apply_transform(T, source)
         centre = moved.mean(axis=0)
         src = torch.as_tensor(moved - centre, dtype=torch.float32).unsqueeze(0)
         R, t, w = run(src, idx)

@@ -1,4 +1,4 @@
-"""ModelNet40 and the benchmark protocols of the literature (DESIGN section 4).
+"""ModelNet40 and the benchmark protocols of the literature (docs/results.md).
 
 One definition of every protocol serves training and benchmarking. Every pair is drawn from a
 generator seeded by (seed, index) alone, so a pair never depends on which worker made it or on
@@ -128,9 +128,19 @@ MIXTURES: Dict[str, Mixture] = {
     for m in (
         # Independently sampled clouds at several densities and point counts, noisy and cropped,
         # with congruent pairs kept in the mix so that the literature's protocols stay covered.
-        Mixture("incongruent-mix", (("wide45", 0.15), ("wide45-partial", 0.1), ("incongruent-wide", 0.2),
-                                    ("incongruent-wide-noise", 0.15), ("incongruent-wide-crop", 0.2),
-                                    ("incongruent-wide-sparse", 0.1), ("incongruent-wide-dense", 0.1)), "incongruent"),
+        Mixture(
+            "incongruent-mix",
+            (
+                ("wide45", 0.15),
+                ("wide45-partial", 0.1),
+                ("incongruent-wide", 0.2),
+                ("incongruent-wide-noise", 0.15),
+                ("incongruent-wide-crop", 0.2),
+                ("incongruent-wide-sparse", 0.1),
+                ("incongruent-wide-dense", 0.1),
+            ),
+            "incongruent",
+        ),
     )
 }
 
@@ -404,8 +414,7 @@ def split_categories(protocol: Protocol, split: str) -> str:
     return protocol.categories
 
 
-def load_pairs(root: Optional[str], split: str, protocol: Protocol, seed: int = 0,
-               points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE) -> PairDataset:
+def load_pairs(root: Optional[str], split: str, protocol: Protocol, seed: int = 0, points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE) -> PairDataset:
     """The pairs of a protocol over a split of the ModelNet40 found at `root` (or $O3DSOFT_DATA)."""
     shapes = load_modelnet40(resolve_data_root(root), split, split_categories(protocol, split), points_per_shape)
     return PairDataset(shapes, protocol, seed)

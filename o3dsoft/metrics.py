@@ -11,7 +11,7 @@ from typing import Dict, NamedTuple, Optional
 
 import numpy as np
 
-from .transforms import matrix_to_euler_deg
+from .transforms import apply_transform, matrix_to_euler_deg, rotation_angle_deg
 
 
 def _split(T: np.ndarray):
@@ -22,14 +22,8 @@ def _split(T: np.ndarray):
 
 
 def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
-    """Isotropic rotation error: the angle of R_gt^T R_est, in degrees.
-
-    Computed as 2 asin(||R_est - R_gt||_F / (2 sqrt 2)), which is the same angle as the textbook
-    arccos((tr(R_gt^T R_est) - 1) / 2) but stays accurate near 0 (arccos cannot resolve angles
-    below ~0.02 degrees in float32).
-    """
-    d = np.linalg.norm(np.asarray(R_est, np.float64) - np.asarray(R_gt, np.float64))
-    return math.degrees(2.0 * math.asin(min(1.0, d / (2.0 * math.sqrt(2.0)))))
+    """Isotropic rotation error: the angle of R_gt^T R_est, in degrees (accurate near 0)."""
+    return rotation_angle_deg(np.asarray(R_gt, np.float64).T @ np.asarray(R_est, np.float64))
 
 
 class PairErrors(NamedTuple):
@@ -53,7 +47,7 @@ class PairErrors(NamedTuple):
 
 
 def pair_errors(T_est: np.ndarray, T_gt: np.ndarray) -> PairErrors:
-    """All per-pair errors of DESIGN section 4 for one estimate."""
+    """All per-pair errors of the literature's protocols for one estimate."""
     R_e, t_e = _split(T_est)
     R_g, t_g = _split(T_gt)
     dR = R_e - R_g
@@ -91,11 +85,11 @@ def modified_chamfer_distance(
     from scipy.spatial import cKDTree  # noqa: WPS433 - optional, only metrics need it
 
     clean = target if clean_target is None else clean_target
-    R_e, t_e = _split(T_est)
-    src_est = np.asarray(source, np.float64) @ R_e.T + t_e
+    _split(T_est)  # checks the shape
+    src_est = apply_transform(np.asarray(T_est, np.float64), np.asarray(source, np.float64))
     d_src, _ = cKDTree(clean).query(src_est)
     T_rel = np.asarray(T_est, np.float64) @ np.linalg.inv(np.asarray(T_gt, np.float64))
-    clean_moved = np.asarray(clean, np.float64) @ T_rel[:3, :3].T + T_rel[:3, 3]
+    clean_moved = apply_transform(T_rel, np.asarray(clean, np.float64))
     d_tgt, _ = cKDTree(clean_moved).query(np.asarray(target, np.float64))
     return float(np.mean(d_src**2) + np.mean(d_tgt**2))
 

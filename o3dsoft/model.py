@@ -1,4 +1,4 @@
-"""The soft-alignment registration network (DESIGN section 2).
+"""The soft-alignment registration network (Makovetskii et al., 2024; see the README's citation).
 
     P, Q (B, N, 3), (B, M, 3)
       -> radius-capped K-neighbourhoods of every point (computed once per cloud)
@@ -115,27 +115,10 @@ def _flatten_neighbours(idx: torch.Tensor, n: int) -> torch.Tensor:
     return (idx + offset).reshape(b * n, idx.shape[2])
 
 
-def _gather_max_rows(rows: torch.Tensor, flat: torch.Tensor, chunk: int = 512) -> torch.Tensor:
-    """max_k rows[flat[:, k]] for (M, C) rows and (M, K) indices, `chunk` rows at a time.
-
-    Chunks keep a step's working set in cache: 512 rows measured fastest of 128 / 512 / 2048 on
-    the 2-core development machine for training-sized batches (B = 10). On other devices (GPUs),
-    one gather of all K neighbours at once (see :func:`_gather_argmax_rows_at_once`).
-    """
-    if rows.device.type != "cpu":
-        return rows[flat].amax(dim=1)
-    outs: List[torch.Tensor] = []
-    for s in range(0, flat.shape[0], chunk):
-        f = flat[s : s + chunk]
-        out = rows.index_select(0, f[:, 0])
-        for k in range(1, f.shape[1]):
-            out = torch.maximum(out, rows.index_select(0, f[:, k]))
-        outs.append(out)
-    return torch.cat(outs, dim=0)
-
-
 def _gather_argmax_rows(rows: torch.Tensor, flat: torch.Tensor, chunk: int = 512) -> Tuple[torch.Tensor, torch.Tensor]:
-    """As :func:`_gather_max_rows`, also returning the slot k of the first maximum, as float.
+    """max_k rows[flat[:, k]] for (M, C) rows and (M, K) indices, and the slot k of the first
+    maximum, as float: the forward pass of training on the CPU, `chunk` rows at a time so that a
+    step's working set stays in cache (docs/speed.md).
 
     Comparisons producing bool tensors and masked writes are several times slower than float
     arithmetic on CPU, so "cand > best" is computed as sign(relu(cand - best)) in float, and the
@@ -219,13 +202,8 @@ def _linear_gather_max(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor
     """max_k ReLU(weight x_j + bias) over each neighbourhood, at inference on the CPU.
 
     The linear map runs one block of output channels at a time, so each block comes out
-    contiguous and its K gathers stay nearer the cache; ReLU commutes with the max. The whole
-    `paper` pair (the pipeline encodes both 1,024-point clouds as one batch) in blocks of 256
-    against 64, 128 and all 512 channels at once: 42.4 / 45.1, 41.3 / 42.8 and 41.4 / 41.6 ms
-    (2-core machine, 100 pairs, each comparison interleaved in one run, medians); the search's
-    24 hypotheses on 256 points, two at a time: 87 against 126 ms in blocks of 64. (On one cloud
-    at a time an earlier release measured the 512-channel layer 1.9x faster in blocks of 64 than
-    at once.)
+    contiguous and its K gathers stay nearer the cache; ReLU commutes with the max (block sizes:
+    docs/speed.md).
 
     Args:
         x: (B, N, C_in); weight: (C_out, C_in); bias: (C_out,); cols: :func:`neighbour_columns`.
@@ -244,6 +222,11 @@ def _linear_gather_max(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor
 def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """Max of point features over each neighbourhood.
 
+    One implementation per case: without gradients, a loop over the K neighbour columns
+    (:func:`_gather_max_columns`; on the CPU in channel blocks when scripted) or, off the CPU in
+    eager mode, one gather; with gradients, :class:`_GatherMax`, which keeps only the arg-max for
+    backward (rows in chunks on the CPU, one gather elsewhere).
+
     Args:
         z: (B, N, C) point features.
         idx: (B, N, K) neighbour indices.
@@ -255,8 +238,8 @@ def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     if torch.jit.is_scripting():
         # A single loop over K: 4x faster than one big gather at inference, and unlike the
         # chunked double loop it does not send TorchScript's optimiser into multi-second passes.
-        # Contiguous index columns and reused buffers: 20-25 % faster than slicing flat[:, k]
-        # and allocating each step (2-core machine, N = 1024, C = 64-512).
+        # Contiguous index columns and reused buffers: faster than slicing flat[:, k] and
+        # allocating each step.
         # (out= variants do not record gradients: only without them.)
         cols = neighbour_columns(idx)
         if rows.requires_grad:
@@ -264,8 +247,7 @@ def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
             for k in range(1, len(cols)):
                 out = torch.maximum(out, rows.index_select(0, cols[k]))
             return out.view(b, n, c)
-        # On the CPU, channel blocks: the rows gathered K times stay in cache. The 512-channel
-        # layer ran 1.9x faster in blocks of 64 than at once (2-core machine, N = 1024; exact).
+        # On the CPU, channel blocks: the rows gathered K times stay in cache (docs/speed.md).
         block = 64
         if rows.device.type != "cpu" or c <= block:
             return _gather_max_columns(rows, cols).view(b, n, c)
@@ -273,10 +255,11 @@ def gather_max(z: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         for s in range(0, c, block):
             blocks.append(_gather_max_columns(rows[:, s : s + block].contiguous(), cols))
         return torch.cat(blocks, dim=1).view(b, n, c)
-    flat = _flatten_neighbours(idx, n)
     if not z.requires_grad:
-        return _gather_max_rows(rows, flat).view(b, n, c)
-    return _gather_max_autograd(rows, flat).view(b, n, c)
+        if rows.device.type != "cpu":
+            return rows[_flatten_neighbours(idx, n)].amax(dim=1).view(b, n, c)
+        return _gather_max_columns(rows, neighbour_columns(idx)).view(b, n, c)
+    return _gather_max_autograd(rows, _flatten_neighbours(idx, n)).view(b, n, c)
 
 
 class MultiplicityBatchNorm(nn.Module):
@@ -335,8 +318,7 @@ class EdgeLayer(nn.Module):
         self.linear = nn.Linear(c_in, c_out)
         self.bn = MultiplicityBatchNorm(c_out)
 
-    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor,
-                cols: Optional[List[torch.Tensor]] = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor, cols: Optional[List[torch.Tensor]] = None) -> torch.Tensor:
         """x: (B, N, C_in); idx: (B, N, K); multiplicity: (B, N); cols: :func:`neighbour_columns`
         of idx on the inference path (see :class:`Encoder`), else None. Returns (B, N, C_out)."""
         if cols is not None:
@@ -363,8 +345,7 @@ class RelativeEdgeLayer(nn.Module):
         self.linear = nn.Linear(c_in, c_out)
         self.bn = MultiplicityBatchNorm(c_out)
 
-    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor,
-                cols: Optional[List[torch.Tensor]] = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, idx: torch.Tensor, multiplicity: torch.Tensor, cols: Optional[List[torch.Tensor]] = None) -> torch.Tensor:
         """x: (B, N, C_in); idx: (B, N, K); multiplicity: unused (every offset counts once); cols:
         as for :class:`EdgeLayer`. Returns (B, N, C_out)."""
         a = torch.matmul(x, self.linear.weight.t())  # (B, N, C_out), without the bias

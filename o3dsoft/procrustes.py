@@ -92,9 +92,7 @@ def rotation_from_covariance(H: torch.Tensor) -> torch.Tensor:
     return _rotation_with_safe_grad(H)
 
 
-def weighted_procrustes(
-    p: torch.Tensor, q: torch.Tensor, w: Optional[torch.Tensor] = None, eps: float = 1e-8
-) -> ProcrustesResult:
+def weighted_procrustes(p: torch.Tensor, q: torch.Tensor, w: Optional[torch.Tensor] = None, eps: float = 1e-8) -> ProcrustesResult:
     """Rigid transform minimising sum_i w_i ||R p_i + t - q_i||^2, batched.
 
     Args:

@@ -1,29 +1,13 @@
-"""Fine stage: Open3D point-to-point ICP at full resolution, and scoring of a transform.
+"""Fine stage: Open3D point-to-point ICP, and scoring of a transform.
 
-ICP runs coarse to fine: at the given correspondence distance, then at 0.3 and 0.1 of it. The
-first stage pulls in an estimate a few degrees off; the last ones keep only close pairs, so that
-parts of one cloud with no partner in the other (partial overlap) stop biasing the result. On the
-bundled bunny scans, from 10 starts perturbed by up to 8 degrees, the median rotation error was
-2.7 degrees with the single distance 0.1 and 0.48 degrees with the schedule 0.1 / 0.03 / 0.01.
-
-The last stage's distance must not fall below the noise: with noise of 0.01 per cloud
-(`rpmnet-crop`) the true nearest neighbours lie ~0.02 apart, and a distance of 0.01 keeps only a
-lucky few of them, whose fit drifts. So that stage runs at no less than 2.5 times the median
-distance of the pairs the stage before it kept (:func:`residual`; ~0 for identical point sets,
-where nothing changes). Started at the ground truth of the first 150 `rpmnet-crop` test pairs,
-the share within 1 degree went from 77 % to 90 % and the median error from 0.55 to 0.26 degrees.
-
-Open3D's ICP stops about 1e-5 degrees short of the least-squares optimum even when every
-correspondence is right: on the first ModelNet40 `paper` test pair (identical point sets) it
-settled at 1.7e-5 degrees, where one float64 Procrustes step on the same nearest neighbours gives
-4e-8 degrees. ICP therefore ends with such a step (:func:`polish`), kept only if it lowers the
-RMS distance of those pairs.
-
-Clouds larger than ``max_points`` (default 100,000) are voxel-downsampled first, which keeps ICP's
-time bounded for scans of millions of points. Measured on a 1,000,000-point synthetic surface
-(a stretched torus, 1-2 m across, moved by 28 degrees; 2-core machine): refine took 17.9 s with
-the limit at 200,000 points (rotation error 0.003 degrees), 6.0 s at 100,000 (0.005 degrees) and
-5.1 s at 50,000 (0.04 degrees).
+ICP runs coarse to fine over a distance schedule (by default d, 0.3 d, 0.1 d): the first stage
+pulls in an estimate a few degrees off; the last ones keep only close pairs, so that parts of one
+cloud with no partner in the other (partial overlap) stop biasing the result. The last stage's
+distance never falls below ``noise_factor`` times the residual of the stage before it
+(:func:`residual`), so that noisy clouds keep their true pairs. ICP ends with one float64
+Procrustes step on its final pairs (:func:`polish`), since Open3D's ICP stops about 1e-5 degrees
+short of the least-squares optimum. Clouds above ``max_points`` are voxel-downsampled first.
+The measurements behind these choices are in docs/pipeline.md.
 """
 
 from __future__ import annotations
@@ -40,9 +24,6 @@ from .procrustes import weighted_procrustes
 from .transforms import apply_transform, rigid
 
 
-NOISE_ROUNDS = 3
-
-
 @dataclass(frozen=True)
 class ICPConfig:
     """Settings of the fine stage.
@@ -55,14 +36,16 @@ class ICPConfig:
         max_iterations, relative_fitness, relative_rmse: Open3D's convergence criteria (of the
             last stage, see `early_relative`).
         early_relative: the stages before the last stop when their fitness and RMSE change by
-            less than this share from one iteration to the next. The next stage goes on from
-            where they stop, so only the last needs to converge tightly: on the whole
-            `rpmnet-crop` test split, 1e-4 here instead of 1e-7 cut the mean time per pair from
-            0.58 to 0.42 s (README, The pipeline).
+            less than this share from one iteration to the next (only the last, which goes on
+            from there, needs to converge tightly).
         max_points: clouds above this size are voxel-downsampled before ICP.
         polish: end with one float64 point-to-point step at the last distance (:func:`polish`).
         noise_factor: the last stage's distance is at least this many times the residual of the
             stage before it (:func:`residual`), so that noisy clouds keep their true pairs; 0: off.
+        noise_rounds: the last stage re-runs up to this many times while that bound tightens.
+        tight_from: the tight stages (:meth:`tight`) are those from this share of the distance on;
+            they refine an estimate that is already nearly right without the loose first stage,
+            which pulls it towards parts with no partner.
     """
 
     distance: float = 0.1
@@ -75,6 +58,8 @@ class ICPConfig:
     max_points: int = 100_000
     polish: bool = True
     noise_factor: float = 2.5
+    noise_rounds: int = 3
+    tight_from: float = 0.3
 
     def distance_for(self, scale: float) -> float:
         """The correspondence distance in cloud units for a pair of this scale."""
@@ -86,6 +71,10 @@ class ICPConfig:
         if factor >= self.schedule[0]:
             return self
         return replace(self, schedule=(factor,) + tuple(f for f in self.schedule[1:] if f < factor))
+
+    def tight(self) -> "ICPConfig":
+        """The schedule's tight stages only: :meth:`starting_at` `tight_from`."""
+        return self.starting_at(self.tight_from)
 
 
 class ICPResult(NamedTuple):
@@ -134,10 +123,8 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
     reg = o3d.pipelines.registration
     src = to_open3d(downsample(source, config.max_points))
     tgt = to_open3d(downsample(target, config.max_points))
-    last = reg.ICPConvergenceCriteria(relative_fitness=config.relative_fitness, relative_rmse=config.relative_rmse,
-                                      max_iteration=config.max_iterations)
-    early = reg.ICPConvergenceCriteria(relative_fitness=config.early_relative, relative_rmse=config.early_relative,
-                                       max_iteration=config.max_iterations)
+    last = reg.ICPConvergenceCriteria(relative_fitness=config.relative_fitness, relative_rmse=config.relative_rmse, max_iteration=config.max_iterations)
+    early = reg.ICPConvergenceCriteria(relative_fitness=config.early_relative, relative_rmse=config.early_relative, max_iteration=config.max_iterations)
     T = np.asarray(init, dtype=np.float64)
     distances = [distance * factor for factor in config.schedule]
     src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
@@ -153,7 +140,7 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
             # The residual is the noise plus what is left of the misalignment: as the fit
             # tightens, so does the distance, while it shrinks by more than a tenth.
             wider = distances[stage - 1]
-            for round_ in range(NOISE_ROUNDS):
+            for round_ in range(config.noise_rounds):
                 proposed = max(stage_distance, config.noise_factor * residual(src_points, tree, T, wider))
                 if round_ > 0 and proposed > 0.9 * wider:
                     break
@@ -182,8 +169,7 @@ def residual(source: np.ndarray, tree: cKDTree, transformation: np.ndarray, dist
     return float(np.median(near)) if len(near) else 0.0
 
 
-def polish(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float,
-           tree: Optional[cKDTree] = None) -> np.ndarray:
+def polish(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, tree: Optional[cKDTree] = None) -> np.ndarray:
     """One exact point-to-point step: the float64 least-squares transform of the nearest-neighbour
     pairs within `distance`, returned only if it lowers their RMS distance (else `transformation`).
 
@@ -207,9 +193,7 @@ def polish(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, d
     return T_new if after < before else T
 
 
-def evaluate(
-    source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, max_points: int = ICPConfig.max_points
-) -> ICPResult:
+def evaluate(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, max_points: int = ICPConfig.max_points) -> ICPResult:
     """Score a transform without optimising it (Open3D's evaluate_registration)."""
     result = o3d.pipelines.registration.evaluate_registration(
         to_open3d(downsample(source, max_points)),

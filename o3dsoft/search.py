@@ -1,24 +1,19 @@
-"""Global search, for pairs with no initial guess: a feature match, and the coarse stage started
-from many rotations.
+"""The global search's building blocks, for pairs with no usable initial guess.
 
-The pipeline first tries FPFH features matched by RANSAC (:class:`FeatureMatch`), which does
-not depend on how the network was trained: its distinct estimates, best-supported first, each
-refined and scored until one is confident. Then, while no result is confident: the network is
-trained on rotations of up to 45 degrees per axis, and far beyond that its estimate is
-unreliable (the paper's experiment 10), so the search pre-rotates the source by each of
-the 24 rotations of a cube, which cover SO(3) (every rotation lies within 62.8 degrees of one of
-them), runs the network on all of them as one batch, ranks the estimates by the share of sampled
-source points that land near the target, polishes the best few by ICP on the samples and keeps
-the one that fits best, for the pipeline to refine at full resolution. Last, for pairs still
-not confident, the feature matches vote for translations at the rotations of the best results
-(:meth:`FeatureMatch.translations`), which mends estimates that slid along a flat or repeated
-part of a shape, and at the best rotation turned by 180 degrees about each principal axis of
-either cloud (:func:`half_turns`), which mends shapes aligned the other way round.
+- :class:`FeatureMatch`: FPFH features matched by a RANSAC that keeps many distinct hypotheses,
+  best-supported first, and votes for translations at a given rotation.
+- :func:`network_candidates`: the network from many starting rotations as one batch
+  (:func:`cube_rotations` cover SO(3), :func:`local_rotations` the pose as given), ranked and
+  polished by :func:`select`.
+- :func:`half_turns`: the turns that align a nearly symmetric shape the other way round.
+
+The strategies in :mod:`o3dsoft.strategies` use them to propose estimates to the pipeline.
 """
 
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 from typing import Dict, List, NamedTuple, Optional, Tuple
 
 import numpy as np
@@ -31,7 +26,7 @@ from . import confidence as confidence_stage
 from . import refine as refine_stage
 from .coarse import CoarseModel
 from .procrustes import weighted_procrustes
-from .transforms import rigid
+from .transforms import first_of_each_pose, near_poses, rigid
 
 
 def cube_rotations() -> np.ndarray:
@@ -49,8 +44,7 @@ def cube_rotations() -> np.ndarray:
 def local_rotations(angle_deg: float = 45.0) -> np.ndarray:
     """The identity and the 14 rotations by `angle_deg` about the axes through a cube's 6 faces
     and 8 corners: starts around the pose the clouds are given in, (15, 3, 3) float64."""
-    axes = [np.array(a, dtype=np.float64) for a in itertools.product((-1.0, 0.0, 1.0), repeat=3)
-            if np.count_nonzero(a) in (1, 3)]
+    axes = [np.array(a, dtype=np.float64) for a in itertools.product((-1.0, 0.0, 1.0), repeat=3) if np.count_nonzero(a) in (1, 3)]
     rotations = [np.eye(3)]
     for axis in axes:
         k = axis / np.linalg.norm(axis)
@@ -101,8 +95,15 @@ class Choice(NamedTuple):
     polished: np.ndarray
 
 
-def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, distance: float, keep: int,
-           icp: Optional[refine_stage.ICPConfig] = refine_stage.ICPConfig()) -> Choice:
+def select(
+    source: np.ndarray,
+    target: np.ndarray,
+    candidates: np.ndarray,
+    distance: float,
+    keep: int,
+    icp: Optional[refine_stage.ICPConfig] = refine_stage.ICPConfig(),
+    confidence: confidence_stage.ConfidenceConfig = confidence_stage.ConfidenceConfig(),
+) -> Choice:
     """The candidate that fits best, after a quick ICP on small samples of the clouds.
 
     The candidates are ranked by the share of source points within distance / 2 of the target;
@@ -115,61 +116,69 @@ def select(source: np.ndarray, target: np.ndarray, candidates: np.ndarray, dista
         distance: the ICP correspondence distance (cloud units).
         keep: how many of the ranked candidates to refine.
         icp: ICP settings (its distance schedule and convergence criteria), or None.
+        confidence: how the polished candidates are scored.
     """
     fitness = [refine_stage.evaluate(source, target, T, 0.5 * distance).fitness for T in candidates]
     kept = sorted(range(len(candidates)), key=lambda h: -fitness[h])[:keep]
     if icp is None:
         return Choice(candidates[kept[0]], candidates[kept[0]])
     polished = [refine_stage.icp(source, target, candidates[h], distance, icp).transformation for h in kept]
-    scorer = confidence_stage.Scorer(source, target, distance)
-    trust = [confidence_stage.confidence(scorer(T)) for T in polished]
+    scorer = confidence_stage.Scorer(source, target, distance, config=confidence)
+    trust = [confidence_stage.confidence(scorer(T), confidence) for T in polished]
     best = int(np.argmax(trust))
     return Choice(candidates[kept[best]], polished[best])
 
 
-# The feature match's FPFH settings: Open3D's tutorial ones (the baselines') but for normals
-# oriented towards the centroid, which makes the features independent of the frame each cloud is
-# given in, and estimated over 3 voxels instead of 2, which steadies them under noise.
-FEATURES = baselines.GlobalConfig(normal_radius=3.0, orient_normals=True)
-# The feature match's RANSAC (FeatureMatch.candidates).
-HYPOTHESES = 100_000  # triplets of matches drawn, all scored at once
-SCORED_MATCHES = 1_000  # matches a hypothesis is scored on (a random subset when there are more)
-DISTINCT_DEG = 10.0  # candidates closer than this in rotation and ...
-DISTINCT_SHIFT = 0.1  # ... than this x scale in translation are one candidate
-TABLE_POINTS = 2048  # clouds of up to this many points (after the features' voxel grid) are matched
-# through a table of all feature distances, and keep one of squared distances for the edge checks
-# (32 MB each at most)
+# Clouds of up to this many points (after the features' voxel grid) are matched through a table of
+# all feature distances, and keep one of squared distances for the edge checks (32 MB each at
+# most); larger ones through KD-trees. Both give the same matches.
+TABLE_POINTS = 2048
+
+
+@dataclass(frozen=True)
+class FeatureMatchConfig:
+    """Settings of :class:`FeatureMatch`.
+
+    Attributes:
+        features: voxel, FPFH radii, RANSAC distance and edge-length ratio. Open3D's tutorial
+            values but for normals oriented towards the centroid (features independent of the
+            frame each cloud is given in) estimated over 3 voxels (steadier under noise).
+        hypotheses: triplets of matches drawn, all scored at once.
+        scored_matches: matches a hypothesis is scored on (a random subset when there are more).
+        distinct_deg, distinct_shift: candidates closer than this in rotation (degrees) and in
+            where they put the matches' centre (x scale) are one candidate.
+    """
+
+    features: baselines.GlobalConfig = baselines.GlobalConfig(normal_radius=3.0, orient_normals=True)
+    hypotheses: int = 100_000
+    scored_matches: int = 1_000
+    distinct_deg: float = 10.0
+    distinct_shift: float = 0.1
 
 
 class FeatureMatch:
-    """FPFH features of both clouds, computed once with the settings of :data:`FEATURES`
-    (clouds voxel-downsampled to 0.05 x `scale` first), and matched by a RANSAC that keeps many
-    distinct hypotheses (:meth:`candidates`).
+    """FPFH features of both clouds, computed once (clouds voxel-downsampled to
+    ``features.voxel`` x `scale` first), and matched by a RANSAC that keeps many distinct
+    hypotheses (:meth:`candidates`).
 
     Open3D's RANSAC returns the one hypothesis with the most inlier matches, and with partial
     overlap that is often a wrong one. Here every hypothesis is drawn and scored as one array
     operation, and the best-supported distinct ones are returned in order, for the pipeline to
-    refine and score in turn. On the first 200 test pairs of `rpmnet-crop` / `so3-crop`, after
-    ICP, within (1 deg, 0.01) (``python -m benchmarks.feature_match``): Open3D's estimate 65.0 /
-    65.0 %, the first candidate here 77.0 / 76.5 %, the most confident of 20 87.5 / 86.0 % (the
-    best of them 88.5 / 86.5 %); drawing them took 36 / 35 ms, Open3D's RANSAC 20 / 18 ms in the
-    same runs. With the tutorial's features (unoriented normals over 2 voxels) the most confident
-    was right on 82.0 / 68.5 %. It is also reproducible: the draws come from a seeded generator
-    (Open3D runs its hypotheses on several threads, and with its checkers the same seed can give
-    different results; Open3D issue #7475).
+    refine and score in turn. The draws come from a seeded generator, so the same seed gives the
+    same candidates (Open3D's multi-threaded RANSAC may not). Measurements: docs/pipeline.md.
 
     Args:
         source: (N, 3); target: (M, 3), in their original frames.
         scale: the pair's scale (cloud units).
-        config: feature and RANSAC settings (voxel, radii, inlier distance, edge-length ratio).
+        config: feature and RANSAC settings.
     """
 
-    def __init__(self, source: np.ndarray, target: np.ndarray, scale: float,
-                 config: baselines.GlobalConfig = FEATURES) -> None:
-        self.source = baselines.fpfh_features(source, scale, config)
-        self.target = baselines.fpfh_features(target, scale, config)
+    def __init__(self, source: np.ndarray, target: np.ndarray, scale: float, config: FeatureMatchConfig = FeatureMatchConfig()) -> None:
+        self.source = baselines.fpfh_features(source, scale, config.features)
+        self.target = baselines.fpfh_features(target, scale, config.features)
         self.scale = scale
-        self.config = config
+        self.match_config = config
+        self.config = config.features
         self._drawn: Dict[Tuple[int, int], Optional[Tuple[np.ndarray, ...]]] = {}
 
     @property
@@ -193,13 +202,13 @@ class FeatureMatch:
             _, to_source = cKDTree(fs).query(ft)
         return np.concatenate([np.arange(len(fs)), to_source]), np.concatenate([to_target, np.arange(len(ft))])
 
-    def candidates(self, seed: int, count: int, hypotheses: int = HYPOTHESES) -> np.ndarray:
+    def candidates(self, seed: int, count: int) -> np.ndarray:
         """Up to `count` distinct estimates, the best-supported first: (H, 4, 4) T_target_source.
 
         Draws `hypotheses` triplets of matches, keeps those whose three edge lengths agree in
         both clouds (within the edge-length ratio), fits each by least squares, and ranks them by
         how many matches they carry to within the RANSAC distance. The `count` best that differ
-        (by DISTINCT_DEG in rotation or DISTINCT_SHIFT x scale in where they put the matches'
+        (by ``distinct_deg`` in rotation or ``distinct_shift`` x scale in where they put the matches'
         centre) are refitted on all the matches they carry; refits that meet are kept once.
         Empty when there are fewer than 3 matches or no triplet passes the check. With the same
         seed, the candidates for a larger count begin with those for a smaller one, and the
@@ -210,7 +219,7 @@ class FeatureMatch:
         """
         if count < 1:
             raise ValueError(f"count must be at least 1, got {count}")
-        drawn = self._draw(seed, hypotheses)
+        drawn = self._draw(seed, self.match_config.hypotheses)
         if drawn is None:
             return np.empty((0, 4, 4))
         a, b, R, t, support = drawn
@@ -224,9 +233,13 @@ class FeatureMatch:
                 kept.append(int(h))
                 if len(kept) == count:
                     break
-                free &= ~near_poses(R, moved, R[h], moved[h], self.scale)
+                free &= ~near_poses(R, moved, R[h], moved[h], self.scale, *self._distinct)
         refits = self._refit(R[kept], t[kept], a, b, distance)
-        return refits[first_of_each_pose(refits, centre, self.scale)]  # refits can meet: each pose once
+        return refits[first_of_each_pose(refits, centre, self.scale, *self._distinct)]  # refits can meet: each pose once
+
+    @property
+    def _distinct(self) -> Tuple[float, float]:
+        return self.match_config.distinct_deg, self.match_config.distinct_shift
 
     def translations(self, rotation: np.ndarray, count: int) -> np.ndarray:
         """Estimates that keep `rotation` and take the translations most matches vote for: (H, 4, 4).
@@ -286,7 +299,9 @@ class FeatureMatch:
                 return None
             R, t = weighted_procrustes(torch.from_numpy(a[pick]), torch.from_numpy(b[pick]))  # (H', 3, 3) triplets
             R, t = R.numpy(), t.numpy()
-            scored = rng.choice(len(a), size=SCORED_MATCHES, replace=False) if len(a) > SCORED_MATCHES else np.arange(len(a))
+            scored = (
+                rng.choice(len(a), size=self.match_config.scored_matches, replace=False) if len(a) > self.match_config.scored_matches else np.arange(len(a))
+            )
             self._drawn[key] = (a, b, R, t, _support(R, t, a[scored], b[scored], self.inlier_distance))
         return self._drawn[key]
 
@@ -319,33 +334,18 @@ def _support(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, distanc
     ||R a + t - b||^2 = |a|^2 + |b|^2 + |t|^2 + 2 a.(R^T t) - 2 b^T R a - 2 t.b is one matrix
     product of a per-hypothesis and a per-match vector, many times faster than moving every match.
     """
-    x = np.concatenate([R.reshape(-1, 9), t, np.einsum("hji,hj->hi", R, t), np.sum(t**2, axis=1, keepdims=True),
-                        np.ones((len(R), 1))], axis=1)  # (H, 17)
-    y = np.concatenate([-2.0 * np.einsum("nj,ni->nji", b, a).reshape(-1, 9), -2.0 * b, 2.0 * a, np.ones((len(a), 1)),
-                        np.sum(a**2, axis=1, keepdims=True) + np.sum(b**2, axis=1, keepdims=True)], axis=1)  # (C, 17)
+    x = np.concatenate([R.reshape(-1, 9), t, np.einsum("hji,hj->hi", R, t), np.sum(t**2, axis=1, keepdims=True), np.ones((len(R), 1))], axis=1)  # (H, 17)
+    y = np.concatenate(
+        [
+            -2.0 * np.einsum("nj,ni->nji", b, a).reshape(-1, 9),
+            -2.0 * b,
+            2.0 * a,
+            np.ones((len(a), 1)),
+            np.sum(a**2, axis=1, keepdims=True) + np.sum(b**2, axis=1, keepdims=True),
+        ],
+        axis=1,
+    )  # (C, 17)
     counts = np.empty(len(R), dtype=np.int64)
     for s in range(0, len(R), 4096):  # bounded memory: 4096 x C distances at a time
         counts[s : s + 4096] = np.count_nonzero(x[s : s + 4096] @ y.T < distance**2, axis=1)
     return counts
-
-
-def near_poses(R: np.ndarray, moved: np.ndarray, R0: np.ndarray, moved0: np.ndarray, scale: float,
-               degrees: float = DISTINCT_DEG, shift: float = DISTINCT_SHIFT) -> np.ndarray:
-    """Which poses are one with a pose (R0 (3, 3), moved0 (3,)): within `degrees` in rotation
-    (R (H, 3, 3)), and putting the source's centre (`moved` (H, 3), where each pose puts it)
-    within `shift` x scale of `moved0`. Not compared by t, which depends on where the frame's
-    origin lies. (H,) bool."""
-    cos = (np.einsum("ij,hij->h", R0, R) - 1.0) / 2.0  # cos of the angle of R0^T R, from its trace
-    return (cos > np.cos(np.radians(degrees))) & (np.linalg.norm(moved - moved0, axis=1) < shift * scale)
-
-
-def first_of_each_pose(T: np.ndarray, centre: np.ndarray, scale: float,
-                       degrees: float = DISTINCT_DEG, shift: float = DISTINCT_SHIFT) -> List[int]:
-    """Indices of the poses T (H, 4, 4), in order, less those one (:func:`near_poses`, the
-    source's `centre` (3,) moved by each) with an earlier kept one."""
-    moved = T[:, :3, :3] @ centre + T[:, :3, 3]
-    first: List[int] = []
-    for k in range(len(T)):
-        if not near_poses(T[first, :3, :3], moved[first], T[k, :3, :3], moved[k], scale, degrees, shift).any():
-            first.append(k)
-    return first

@@ -16,15 +16,14 @@ import traceback
 import warnings
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
 from .coarse import export_torchscript, sha256_of
-from .data import (DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_recipe, evaluation_protocol, load_pairs,
-                   training_parts)
-from .configfile import write_config
+from .configfile import read_config, write_config
+from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_recipe, evaluation_protocol, load_pairs, training_parts
 from .errors import InputError, O3dsoftError
 from .io import atomic_output
 from .metrics import pair_errors, summarise
@@ -170,9 +169,14 @@ def _initial_weights(init: str) -> Tuple[dict, dict, dict]:
         raise InputError(f"{init}: no such checkpoint or model file (shipped models, by name: {', '.join(bundled_model_names())})")
     if path.is_file() and _zipfile_has(path, "data.pkl") and not _zipfile_has(path, "code/"):
         ckpt = _load_checkpoint(path)
-        record = {"checkpoint": str(init), "protocol": ckpt["config"]["protocol"], "epochs_completed": ckpt["state"]["epoch"],
-                  "steps": ckpt["state"]["global_step"], "training_seconds": round(ckpt["state"]["seconds"], 1),
-                  "history": ckpt["state"]["history"]}
+        record = {
+            "checkpoint": str(init),
+            "protocol": ckpt["config"]["protocol"],
+            "epochs_completed": ckpt["state"]["epoch"],
+            "steps": ckpt["state"]["global_step"],
+            "training_seconds": round(ckpt["state"]["seconds"], 1),
+            "history": ckpt["state"]["history"],
+        }
         return ckpt["model"], ckpt["config"]["net"], record
     model = load_model(init)
     weights = {k: v.detach().clone() for k, v in model.module.state_dict().items()}
@@ -280,6 +284,31 @@ def _replicas_identical(model: torch.nn.Module) -> bool:
     return all(torch.equal(gathered[0], g) for g in gathered[1:])
 
 
+def settings_from(
+    given: Dict[str, Any],
+    defaults: Dict[str, Any],
+    config_file: Optional[Path] = None,
+    net: Optional[Dict[str, Any]] = None,
+    resume: bool = False,
+) -> TrainConfig:
+    """A run's settings, each from the first that has it: `given` (e.g. options typed on a command
+    line), the YAML `config_file` (when resuming without one, the run folder's own config.yaml),
+    `defaults`. `net`: NetConfig fields to override.
+
+    Raises:
+        InputError: the file is unreadable, has unknown or mistyped keys, or the settings are invalid.
+    """
+    out = Path(given.get("out", defaults.get("out", TrainConfig.out)))
+    if resume and config_file is None and (out / "config.yaml").is_file():
+        config_file = out / "config.yaml"
+    settings = read_config(config_file, TrainConfig) if config_file else {}
+    settings = {**defaults, **settings, **given}
+    network = settings.pop("net", NetConfig())
+    config = TrainConfig(net=replace(network, **(net or {})), **settings)
+    config.validate()
+    return config
+
+
 def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> Path:
     """Train, checkpoint, evaluate, and export TorchScript + model card into ``config.out``.
 
@@ -317,6 +346,70 @@ def _teardown_distributed() -> None:
         dist.destroy_process_group()
 
 
+def _resume_checkpoint(path: Path, config: TrainConfig, world: int) -> dict:
+    """The checkpoint to resume from, refused when its run's settings or process count differ."""
+    if not path.is_file():
+        raise InputError(f"{path}: no checkpoint to resume from")
+    ckpt = _load_checkpoint(path)
+    saved = dict(ckpt["config"], net=NetConfig.from_dict(ckpt["config"]["net"]).to_dict())  # with settings added since
+    mismatched = [k for k in RESUME_MUST_MATCH if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
+    if mismatched:
+        raise InputError(f"{path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")
+    if ckpt.get("world_size", 1) != world:
+        raise InputError(f"{path}: written by {ckpt.get('world_size', 1)} processes, cannot resume with {world}")
+    return ckpt
+
+
+def _splits(config: TrainConfig, protocol) -> Tuple[PairDataset, Optional[PairDataset]]:
+    """The training pairs (the first `limit_train` shapes, if set) and the evaluation pairs (None
+    when `eval_pairs` is 0). Every rank loads both, so that a missing split stops them all alike."""
+    train_pairs = load_pairs(config.data, "train", protocol, config.seed, config.points_per_shape)
+    if config.limit_train is not None:
+        train_pairs.shapes = train_pairs.shapes._replace(
+            points=train_pairs.shapes.points[: config.limit_train], labels=train_pairs.shapes.labels[: config.limit_train]
+        )
+    if config.eval_pairs == 0:
+        return train_pairs, None
+    test_pairs = load_pairs(config.data, "test", evaluation_protocol(config.protocol), config.seed + 1, config.points_per_shape)
+    if len(test_pairs) == 0:
+        raise InputError(f"{config.data}: the test split has no shapes for protocol {config.protocol!r}; use --eval-pairs 0")
+    return train_pairs, test_pairs
+
+
+def _write_settings(out: Path, config: TrainConfig) -> None:
+    """The settings actually used, as config.json and config.yaml in the run folder."""
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_output(out / "config.json") as tmp:
+        tmp.write_text(json.dumps(config.to_dict(), indent=2))
+    with atomic_output(out / "config.yaml") as tmp:
+        write_config(tmp, config.to_dict())
+
+
+def _evaluation_line(epoch: int, m: Dict[str, float]) -> str:
+    return (
+        f"epoch {epoch + 1}: {int(m['pairs'])} test pairs, network alone: rotation error median "
+        f"{m['rotation_deg_median']:.3f} deg, mean {m['rotation_deg_mean']:.3f} deg; translation error median "
+        f"{m['translation_median']:.4f} units; recall (5 deg, 0.05) {100 * m['recall_5deg']:.1f} % "
+        "(errors: lower is better; recall: higher is better)"
+    )
+
+
+def _card_facts(config: TrainConfig, train_pairs: PairDataset, parts, state: dict) -> dict:
+    """What the model card says about the data, the protocol and the progress of the run."""
+    shapes = train_pairs.shapes.points
+    return {
+        "config": config.to_dict(),
+        "dataset": f"ModelNet40 train split ({shapes.shape[0]} shapes, {shapes.shape[1]} points each)"
+        + (f", first {config.limit_train} shapes" if config.limit_train else ""),
+        "evaluated_on": f"ModelNet40 test split, first {config.eval_pairs} pairs of the protocol (seed {config.seed + 1})" if config.eval_pairs else None,
+        "protocol": asdict(parts[0][0]) if len(parts) == 1 else {"mixture": [{**asdict(p), "weight": w} for p, w in parts]},
+        "epochs_completed": state["epoch"],
+        "steps": state["global_step"],
+        "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
+        "training_seconds": round(state["seconds"], 1),
+    }
+
+
 def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: int, world: int, device: torch.device) -> Path:
     lead = rank == 0
     out = Path(config.out)
@@ -336,34 +429,18 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             raise InputError(f"{config.init}: its network settings differ from this run's ({init_net})")
         model.load_state_dict(weights)
     state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "history": [], "seconds": 0.0}
+    ckpt: dict = {}
     if resume:
-        if not ckpt_path.is_file():
-            raise InputError(f"{ckpt_path}: no checkpoint to resume from")
-        ckpt = _load_checkpoint(ckpt_path)
-        saved = dict(ckpt["config"], net=NetConfig.from_dict(ckpt["config"]["net"]).to_dict())  # with settings added since
-        mismatched = [k for k in RESUME_MUST_MATCH if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
-        if mismatched:
-            raise InputError(f"{ckpt_path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")
-        if ckpt.get("world_size", 1) != world:
-            raise InputError(f"{ckpt_path}: written by {ckpt.get('world_size', 1)} processes, cannot resume with {world}")
+        ckpt = _resume_checkpoint(ckpt_path, config, world)
         model.load_state_dict(ckpt["model"])
         state = ckpt["state"]
         init_record = ckpt.get("init")
         torch.set_rng_state(ckpt["torch_rng"])
         log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
 
-    train_pairs = load_pairs(config.data, "train", protocol, config.seed, config.points_per_shape)
-    if config.limit_train is not None:
-        train_pairs.shapes = train_pairs.shapes._replace(
-            points=train_pairs.shapes.points[: config.limit_train], labels=train_pairs.shapes.labels[: config.limit_train]
-        )
-    test_pairs = None
-    if config.eval_pairs != 0:  # loaded by every rank, so that a missing split stops them all alike
-        test_pairs = load_pairs(config.data, "test", evaluation_protocol(config.protocol), config.seed + 1, config.points_per_shape)
-        if len(test_pairs) == 0:
-            raise InputError(f"{config.data}: the test split has no shapes for protocol {config.protocol!r}; use --eval-pairs 0")
-        if not lead:
-            test_pairs = None
+    train_pairs, test_pairs = _splits(config, protocol)
+    if not lead:
+        test_pairs = None
     steps_per_epoch = len(train_pairs) // world // config.batch_size
     if steps_per_epoch == 0:
         raise InputError(f"the training split has {len(train_pairs)} shapes, fewer than one batch of {config.batch_size} per process")
@@ -375,11 +452,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         if "scheduler" in ckpt:  # checkpoints of earlier versions had none (constant lr)
             scheduler.load_state_dict(ckpt["scheduler"])
     if lead:
-        out.mkdir(parents=True, exist_ok=True)
-        with atomic_output(out / "config.json") as tmp:
-            tmp.write_text(json.dumps(config.to_dict(), indent=2))
-        with atomic_output(out / "config.yaml") as tmp:
-            write_config(tmp, config.to_dict())
+        _write_settings(out, config)
     net = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
@@ -444,13 +517,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         record = {"epoch": epoch + 1, "steps": len(losses), "train_loss": float(np.mean(losses)) if losses else math.nan}
         if test_pairs is not None:
             record["test"] = evaluate(model, test_pairs, config.eval_pairs, device)
-            m = record["test"]
-            log(
-                f"epoch {epoch + 1}: {int(m['pairs'])} test pairs, network alone: rotation error median "
-                f"{m['rotation_deg_median']:.3f} deg, mean {m['rotation_deg_mean']:.3f} deg; translation error median "
-                f"{m['translation_median']:.4f} units; recall (5 deg, 0.05) {100 * m['recall_5deg']:.1f} % "
-                "(errors: lower is better; recall: higher is better)"
-            )
+            log(_evaluation_line(epoch, record["test"]))
         if state["step_in_epoch"] >= steps_per_epoch:
             state["history"].append(record)
             state["epoch"] += 1
@@ -472,18 +539,10 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         card = {
             "model_file": model_path.name,
             "sha256": sha256_of(model_path),
-            "config": config.to_dict(),
-            "dataset": f"ModelNet40 train split ({train_pairs.shapes.points.shape[0]} shapes, {train_pairs.shapes.points.shape[1]} points each)"
-                       + (f", first {config.limit_train} shapes" if config.limit_train else ""),
-            "evaluated_on": f"ModelNet40 test split, first {config.eval_pairs} pairs of the protocol (seed {config.seed + 1})" if config.eval_pairs else None,
-            "protocol": asdict(protocol) if len(parts) == 1 else {"mixture": [{**asdict(p), "weight": w} for p, w in parts]},
-            "epochs_completed": state["epoch"],
-            "steps": state["global_step"],
-            "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
+            **_card_facts(config, train_pairs, parts, state),
             "initialised_from": init_record,
             "parameters": count_parameters(model),
             "torch_version": torch.__version__,
-            "training_seconds": round(state["seconds"], 1),
             "device": str(device),
             "world_size": world,
             "replicas_identical": identical,

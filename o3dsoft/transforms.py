@@ -6,6 +6,7 @@ Conventions: a transform is a (4, 4) float64 array T_target_source, p_target = R
 from __future__ import annotations
 
 import math
+from typing import List
 
 import numpy as np
 
@@ -61,5 +62,36 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
-    """The angle of a rotation matrix, in degrees."""
-    return math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2))))
+    """The angle of a (3, 3) rotation matrix, in degrees (0-180).
+
+    Computed as 2 asin(||R - I||_F / (2 sqrt 2)), the same angle as the textbook
+    arccos((tr R - 1) / 2) but accurate near 0, where arccos cannot resolve angles below ~0.02
+    degrees in float32.
+    """
+    d = np.linalg.norm(np.asarray(R, np.float64) - np.eye(3))
+    return math.degrees(2.0 * math.asin(min(1.0, d / (2.0 * math.sqrt(2.0)))))
+
+
+def rotations_within(R: np.ndarray, R0: np.ndarray, degrees: float) -> np.ndarray:
+    """Which rotations R (H, 3, 3) lie within `degrees` of R0 (3, 3): (H,) bool."""
+    cos = (np.einsum("ij,hij->h", R0, R) - 1.0) / 2.0  # cos of the angle of R0^T R, from its trace
+    return cos > np.cos(np.radians(degrees))
+
+
+def near_poses(R: np.ndarray, moved: np.ndarray, R0: np.ndarray, moved0: np.ndarray, scale: float, degrees: float, shift: float) -> np.ndarray:
+    """Which poses are one with a pose (R0 (3, 3), moved0 (3,)): within `degrees` in rotation
+    (R (H, 3, 3)), and putting the source's centre (`moved` (H, 3), where each pose puts it)
+    within `shift` x `scale` of `moved0`. Not compared by t, which depends on where the frame's
+    origin lies. (H,) bool."""
+    return rotations_within(R, R0, degrees) & (np.linalg.norm(moved - moved0, axis=1) < shift * scale)
+
+
+def first_of_each_pose(T: np.ndarray, centre: np.ndarray, scale: float, degrees: float, shift: float) -> List[int]:
+    """Indices of the poses T (H, 4, 4), in order, less those one (:func:`near_poses`, the
+    source's `centre` (3,) moved by each) with an earlier kept one."""
+    moved = T[:, :3, :3] @ centre + T[:, :3, 3]
+    first: List[int] = []
+    for k in range(len(T)):
+        if not near_poses(T[first, :3, :3], moved[first], T[k, :3, :3], moved[k], scale, degrees, shift).any():
+            first.append(k)
+    return first

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from o3dsoft.coarse import export_torchscript
-from o3dsoft.transforms import apply_transform, euler_to_matrix
 from o3dsoft.model import NetConfig, SoftAlignNet
+from o3dsoft.transforms import apply_transform, euler_to_matrix
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("O3DSOFT_SHARED_DATA", REPO.parent / "shared" / "data"))

@@ -1,9 +1,14 @@
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
+import o3dsoft
 from o3dsoft import confidence
+from o3dsoft.config import RegisterConfig
 from o3dsoft.transforms import euler_to_matrix, rigid
+
+from .conftest import EXAMPLES, apply, blob, random_transform
 
 
 def torus(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -12,7 +17,8 @@ def torus(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.stack([(1 + 0.4 * np.cos(v)) * np.cos(u), (1 + 0.4 * np.cos(v)) * np.sin(u), 0.4 * np.sin(v)], axis=1)
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=15, deadline=None, derandomize=True)
+@example(seed=5651, n=600)  # the draw that disproved the 1.5x bound claimed before
 @given(seed=st.integers(0, 2**16), n=st.sampled_from([300, 600, 1500]))
 def test_spacing_ratio_reads_independent_samples_of_one_surface_as_aligned(seed, n):
     rng = np.random.default_rng(seed)
@@ -23,7 +29,10 @@ def test_spacing_ratio_reads_independent_samples_of_one_surface_as_aligned(seed,
     assert confidence.features(a, a, np.eye(4), d).spacing_ratio == 0.0  # the same points
     turned = rigid(euler_to_matrix(np.array([0.0, 25.0, 0.0])), np.zeros(3))
     wrong = confidence.features(a, b, turned, d)
-    assert wrong.spacing_ratio > 1.5 * right.spacing_ratio
+    # Turned 25 degrees, the surfaces read farther apart. Over 150 draws per size the ratio wrong /
+    # right was 1.33-2.0 (median 1.65 at 300 points, 1.74 at 1,500): the points that stay within
+    # reach of the tilted torus are the closest ones, which bounds the separation on sparse clouds.
+    assert wrong.spacing_ratio > 1.25 * right.spacing_ratio
 
 
 def test_no_partner_within_reach_reads_as_infinitely_far():
@@ -32,11 +41,99 @@ def test_no_partner_within_reach_reads_as_infinitely_far():
     far = confidence.features(a, a + 100.0, np.eye(4), 0.1)
     assert far.spacing_ratio == np.inf and far.consistency == 0.0
     assert confidence.confidence(far) == 0.0
-    assert confidence.feature_vector(far)[1] == confidence.RATIO_CAP
+    assert confidence.feature_vector(far)[1] == confidence.ConfidenceConfig().ratio_cap
 
 
 def test_the_confidence_is_a_logistic_function_of_the_features():
     f = confidence.Features(fitness_tight=1.0, tight_distance=0.1, consistency=0.95, overlap=1.0, spacing_ratio=1.0)
-    z = confidence.COEFFICIENTS[0] + np.dot(confidence.COEFFICIENTS[1:], confidence.feature_vector(f))
+    z = confidence.ConfidenceConfig().coefficients[0] + np.dot(confidence.ConfidenceConfig().coefficients[1:], confidence.feature_vector(f))
     assert confidence.confidence(f) == pytest.approx(1 / (1 + np.exp(-z)))
-    assert len(confidence.COEFFICIENTS) == len(confidence.FEATURE_NAMES) + 1
+    assert len(confidence.ConfidenceConfig().coefficients) == len(confidence.FEATURE_NAMES) + 1
+
+
+def test_sparse_target_is_not_mistaken_for_a_failure():
+    from o3dsoft.confidence import confidence, features, point_spacing
+
+    rng = np.random.default_rng(2)
+    u, v = rng.uniform(0, 2 * np.pi, size=(2, 4000))
+    torus = np.stack([(1 + 0.3 * np.cos(v)) * np.cos(u), (1 + 0.3 * np.cos(v)) * np.sin(u), 0.3 * np.sin(v)], axis=1)
+    T = random_transform(rng)
+    sparse = apply(T, torus[rng.choice(4000, 300, replace=False)])
+    right = features(torus, sparse, T, distance=0.13)
+    assert confidence(right) > 0.9
+    wrong = T @ np.diag([1.0, -1.0, -1.0, 1.0])  # flipped upside down
+    assert confidence(features(torus, sparse, wrong, distance=0.13)) < 0.5
+    grid = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), [0.0]), axis=-1).reshape(-1, 3) * 0.5
+    assert point_spacing(grid) == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("sparse_target", [False, True])
+def test_one_scorer_scores_many_alignments_as_fresh_ones_do(sparse_target):
+    from o3dsoft.confidence import Scorer
+
+    rng = np.random.default_rng(4)
+    src = blob(rng, 800)
+    tgt = apply(random_transform(rng), src[: 200 if sparse_target else 700])
+    scorer = Scorer(src, tgt, distance=0.2)
+    assert scorer.swapped == sparse_target  # the roles swap for a much sparser target
+    for _ in range(4):  # arbitrary alignments, each scored by the same scorer
+        T = random_transform(rng)
+        assert scorer(T) == Scorer(src, tgt, distance=0.2)(T)
+
+
+def test_clouds_left_barely_touching_are_not_trusted():
+    from o3dsoft.confidence import ConfidenceConfig, confidence, features
+
+    MIN_OVERLAP = ConfidenceConfig().min_overlap
+
+    rng = np.random.default_rng(3)
+    plate = rng.uniform(-1, 1, size=(2000, 3)) * np.array([1.0, 1.0, 0.02])
+    elsewhere = blob(rng, 2000) + np.array([6.0, 0.0, 0.0])  # far beyond ICP's distance of the plate
+
+    def target_sharing(strip: float) -> np.ndarray:  # the plate's points beyond x = strip, and a blob
+        return np.concatenate([plate[plate[:, 0] > strip], elsewhere])
+
+    shared = features(plate, target_sharing(0.5), np.eye(4), distance=0.2)
+    assert shared.overlap > 0.2 and confidence(shared) > 0.9
+    # Only a rim of the plate is shared: the points there lie close, yet they are too few to
+    # vouch for the alignment.
+    for strip in (0.96, 0.85):  # about 2 % and 8 % of the plate
+        rim = features(plate, target_sharing(strip), np.eye(4), distance=0.2)
+        assert rim.consistency > 0.9 and 0 < rim.overlap < MIN_OVERLAP and confidence(rim) == 0.0
+
+
+@pytest.mark.slow
+def test_the_right_alignments_of_real_scans_overlap_well_beyond_the_minimum(bunny_root):
+    from o3dsoft import refine
+    from o3dsoft.bench import scan_pairs
+    from o3dsoft.confidence import ConfidenceConfig, features
+
+    MIN_OVERLAP = ConfidenceConfig().min_overlap
+    from o3dsoft.preprocess import normalisation_for
+
+    # Every ordered pair of the ten scans, at its ground truth and on the pipeline's work clouds:
+    # the least overlapping share about 0.18 (over 30 % overlap: more), so the minimum leaves room.
+    pairs, _ = scan_pairs(bunny_root, 0.0)
+    for pair in pairs:
+        distance = RegisterConfig().icp.distance_for(normalisation_for(pair.source, pair.target).scale)
+        src, tgt = (refine.downsample(c, RegisterConfig().attempt_points) for c in (pair.source, pair.target))
+        assert features(src, tgt, pair.transform, distance).overlap > 1.5 * MIN_OVERLAP
+
+
+def test_a_right_alignment_of_two_partial_scans_is_trusted():
+    from o3dsoft.confidence import confidence, features
+    from o3dsoft.preprocess import normalisation_for
+
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    # Opposite ends of the two scans: much of each lies beyond the other's edge, within ICP's
+    # distance of it. Those points have no partner and must not count against the alignment.
+    src = src[src[:, 1] > np.quantile(src[:, 1], 0.4)]
+    tgt = tgt[tgt[:, 1] < np.quantile(tgt[:, 1], 0.6)]
+    distance = 0.1 * normalisation_for(src, tgt).scale
+    right = features(src, tgt, T, distance)
+    assert right.fitness_tight < 0.5 and confidence(right) > 0.9
+    off = T.copy()
+    off[:3, :3] = euler_to_matrix([3.0, 0.0, 0.0]) @ T[:3, :3]
+    assert confidence(features(src, tgt, off, distance)) < 0.5

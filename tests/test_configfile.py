@@ -6,6 +6,7 @@ from o3dsoft.configfile import read_config, write_config
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.model import NetConfig
 from o3dsoft.train import TrainConfig
+
 from .conftest import REPO
 
 

@@ -23,8 +23,9 @@ def test_shipped_weights_load_and_card_matches():
 
 
 def test_readme_demo_pair_errors_against_ground_truth():
-    r = CliRunner().invoke(main, ["register", str(EXAMPLES / "bun045.ply"), str(EXAMPLES / "bun000.ply"),
-                                  "--gt", str(EXAMPLES / "bun045_to_bun000.txt"), "--json"])
+    r = CliRunner().invoke(
+        main, ["register", str(EXAMPLES / "bun045.ply"), str(EXAMPLES / "bun000.ply"), "--gt", str(EXAMPLES / "bun045_to_bun000.txt"), "--json"]
+    )
     assert r.exit_code == 0, r.output
     out = json.loads(r.output)
     # Real scans about 35 degrees apart with partial overlap: within 1 degree and 2 mm after ICP.

@@ -5,9 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from o3dsoft.transforms import euler_to_matrix, random_rotation
-from o3dsoft.transforms import matrix_to_euler_deg
 from o3dsoft.metrics import modified_chamfer_distance, pair_errors, rotation_error_deg, summarise
+from o3dsoft.transforms import euler_to_matrix, matrix_to_euler_deg, random_rotation
 
 from .conftest import apply, blob
 

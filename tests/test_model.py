@@ -289,8 +289,9 @@ def test_a_rescripted_card_says_so_once_with_the_latest_difference():
     from benchmarks.rescript_model import rescripted_note
 
     note = rescripted_note("Trained on wide45.", 4e-6)
-    assert note == ("Trained on wide45. Re-scripted with later inference code (benchmarks/rescript_model.py); "
-                    "same weights, outputs within 4e-06 of the previous file's.")
+    assert note == (
+        "Trained on wide45. Re-scripted with later inference code (benchmarks/rescript_model.py); same weights, outputs within 4e-06 of the previous file's."
+    )
     for worst in (1e-4, 0.0):  # 1e-4 prints as 0.0001, whose dot must not end the sentence early
         again = rescripted_note(rescripted_note(note, worst), 2e-5)
         assert again.count("Re-scripted") == 1 and again.endswith("outputs within 2e-05 of the previous file's.")

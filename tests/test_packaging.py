@@ -10,7 +10,9 @@ from .conftest import REPO
 def test_wheel_contents(tmp_path):
     r = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "-q", str(REPO), "--no-deps", "--no-build-isolation", "-w", str(tmp_path)],
-        capture_output=True, text=True, timeout=300,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert r.returncode == 0, r.stderr
     (wheel,) = tmp_path.glob("o3dsoft-*.whl")

@@ -87,13 +87,50 @@ def test_resume_errors(modelnet_root, tmp_path):
 
 
 def test_train_cli_smoke(modelnet_root, tmp_path):
-    r = CliRunner().invoke(main, ["train", "--data", str(modelnet_root), "--out", str(tmp_path), "--max-steps", "1",
-                                  "--limit-train", "4", "--batch-size", "2", "--eval-pairs", "0", "--epochs", "1"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "train",
+            "--data",
+            str(modelnet_root),
+            "--out",
+            str(tmp_path),
+            "--max-steps",
+            "1",
+            "--limit-train",
+            "4",
+            "--batch-size",
+            "2",
+            "--eval-pairs",
+            "0",
+            "--epochs",
+            "1",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert (tmp_path / "model.pt").is_file() and (tmp_path / "model_card.json").is_file()
     assert load_model(tmp_path / "model.pt").config.relative is False
-    r = CliRunner().invoke(main, ["train", "--data", str(modelnet_root), "--out", str(tmp_path / "rel"), "--max-steps", "1",
-                                  "--limit-train", "4", "--batch-size", "2", "--eval-pairs", "0", "--epochs", "1", "--relative"])
+    r = CliRunner().invoke(
+        main,
+        [
+            "train",
+            "--data",
+            str(modelnet_root),
+            "--out",
+            str(tmp_path / "rel"),
+            "--max-steps",
+            "1",
+            "--limit-train",
+            "4",
+            "--batch-size",
+            "2",
+            "--eval-pairs",
+            "0",
+            "--epochs",
+            "1",
+            "--relative",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert load_model(tmp_path / "rel" / "model.pt").config.relative is True
 
@@ -144,9 +181,33 @@ def test_two_processes_under_torchrun_stay_identical(modelnet_root, tmp_path):
     config = tmp_path / "tiny.yaml"
     config.write_text(f"net:\n  k: {TINY.k}\n  radius: {TINY.radius}\n  channels: {list(TINY.channels)}\n")
     out = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "-m", "o3dsoft.cli.main",
-           "train", "--config", str(config), "--data", str(modelnet_root), "--out", str(out), "--limit-train", "16",
-           "--batch-size", "2", "--max-steps", "3", "--eval-pairs", "2", "--epochs", "1"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node",
+        "2",
+        "-m",
+        "o3dsoft.cli.main",
+        "train",
+        "--config",
+        str(config),
+        "--data",
+        str(modelnet_root),
+        "--out",
+        str(out),
+        "--limit-train",
+        "16",
+        "--batch-size",
+        "2",
+        "--max-steps",
+        "3",
+        "--eval-pairs",
+        "2",
+        "--epochs",
+        "1",
+    ]
     env = {**__import__("os").environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     assert r.returncode == 0, r.stdout + r.stderr

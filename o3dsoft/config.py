@@ -1,0 +1,202 @@
+"""Settings of :func:`o3dsoft.register`: one small frozen config per stage, nested in
+:class:`RegisterConfig`. Every field says its meaning, unit and default; ``validate`` rejects
+values a stage cannot run with (:class:`o3dsoft.errors.InputError`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Optional
+
+from .confidence import ConfidenceConfig
+from .errors import InputError
+from .refine import ICPConfig
+from .search import FeatureMatchConfig
+
+SEARCH_MODES = ("auto", "always", "off")
+
+
+@dataclass(frozen=True)
+class FeatureSearchConfig:
+    """The search's feature match (:mod:`o3dsoft.strategies.features`).
+
+    Attributes:
+        enabled: propose the feature match's estimates (default True).
+        candidates: at most this many distinct estimates, best-supported first, refined and
+            scored in turn until one is confident (default 100).
+        first_round: the first round picks this many up front; the rest are drawn only for pairs
+            still not confident (default 20).
+        stop: go on through the estimates until one reaches this confidence (0.5-1, default 0.5:
+            stop at the first confident one; higher searches doubtful results further).
+        match: the FPFH features and the RANSAC.
+    """
+
+    enabled: bool = True
+    candidates: int = 100
+    first_round: int = 20
+    stop: float = 0.5
+    match: FeatureMatchConfig = field(default_factory=FeatureMatchConfig)
+
+
+@dataclass(frozen=True)
+class StartsConfig:
+    """The network from many starting rotations (:mod:`o3dsoft.strategies.starts`).
+
+    Attributes:
+        points: points per cloud for the batch of network passes (default 256).
+        refine: how many of the best-ranked estimates are polished by ICP on those samples
+            (default 3).
+        weights: a second network run from 15 starts around the pose as given (a file or a
+            shipped model's name; default "partial", trained on cropped, noisy clouds); None:
+            only the main network, from the 24 cube rotations.
+    """
+
+    points: int = 256
+    refine: int = 3
+    weights: Optional[str] = "partial"
+
+
+@dataclass(frozen=True)
+class VotesConfig:
+    """Translation votes (:mod:`o3dsoft.strategies.votes`), the search's last resort: at the
+    rotations of the most trusted results, the translations most feature matches vote for.
+
+    Attributes:
+        rotations: at the rotations of this many most trusted results (distinct by the feature
+            match's ``distinct_deg``); 0: off (default 2).
+        translations: this many translations each (default 10).
+        flipped: at the most trusted rotation turned by 180 degrees about each principal axis of
+            either cloud, this many translations each; 0: no half turns (default 3).
+    """
+
+    rotations: int = 2
+    translations: int = 10
+    flipped: int = 3
+
+
+@dataclass(frozen=True)
+class RestartConfig:
+    """The optional restart (:mod:`o3dsoft.strategies.restart`): every distinct start so far
+    again, with ICP's tight stages only.
+
+    Attributes:
+        enabled: run it when nothing has reached the feature match's stop (default False).
+        distinct_deg, distinct_shift: starts within this many degrees and this share of the scale
+            of an earlier one are skipped (default 2.0, 0.02).
+        refined: the most trusted this many on the screen clouds are refined and scored on the
+            work clouds (default 3).
+    """
+
+    enabled: bool = False
+    distinct_deg: float = 2.0
+    distinct_shift: float = 0.02
+    refined: int = 3
+
+
+@dataclass(frozen=True)
+class ScreenConfig:
+    """Screening of the search's estimates on large clouds (:class:`o3dsoft.verify.Verifier`).
+
+    Attributes:
+        points: the screen clouds are the work clouds on a voxel grid of at most this many
+            points each; on work clouds larger than that, each search estimate is refined and
+            scored there first (default 1024).
+        min_trust: ... and on the work clouds only when the screen trusts it more than every
+            estimate before it and at least this much, or confidently (default 1e-3).
+    """
+
+    points: int = 1024
+    min_trust: float = 1e-3
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """The global search, for pairs with no usable initial guess.
+
+    Attributes:
+        mode: "auto" runs it when the first result is flagged, or first of all when the clouds
+            look like a partial overlap; "always" on every pair; "off" never (default "auto").
+        partial_pvalue: below this p-value of :func:`o3dsoft.preprocess.same_profile_pvalue` the
+            clouds are taken for a partial overlap, and the feature match runs before the
+            network (default 0.01).
+        prior_margin_deg: under ``RegisterConfig.max_rotation``, estimates are screened against
+            the bound with this margin (degrees) before ICP, which can still move them into it
+            (default 10).
+        features, starts, votes, restart, screen: the search's steps, in the order they run.
+    """
+
+    mode: str = "auto"
+    partial_pvalue: float = 0.01
+    prior_margin_deg: float = 10.0
+    features: FeatureSearchConfig = field(default_factory=FeatureSearchConfig)
+    starts: StartsConfig = field(default_factory=StartsConfig)
+    votes: VotesConfig = field(default_factory=VotesConfig)
+    restart: RestartConfig = field(default_factory=RestartConfig)
+    screen: ScreenConfig = field(default_factory=ScreenConfig)
+
+
+@dataclass(frozen=True)
+class RegisterConfig:
+    """Settings of :func:`o3dsoft.register` (dumped next to every result).
+
+    Attributes:
+        voxel: downsample both clouds on a voxel grid of this size (cloud units) after cleaning;
+            None: keep every point (default).
+        num_points: points sampled from each cloud for the network (default 1024).
+        coarse_iterations: network passes, each on the source moved by the estimate so far
+            (default 1).
+        attempt_points: every estimate is refined and scored on the clouds voxel-downsampled to at
+            most this many points each; the kept one is refined again at full resolution
+            (default 5,000).
+        max_rotation: the clouds are given within this many degrees of their true relative
+            rotation (a prior, e.g. from odometry): estimates beyond it get confidence 0, and the
+            result lies within it; None: any rotation (default).
+        refine: run ICP on every estimate (default True); False: the estimates as they are.
+        weights: TorchScript model file, or a shipped model's name; None: the shipped default.
+        device: torch device of the network ("cpu", "cuda", "cuda:1"...; default "cpu").
+        seed: seed of the point sampling and of the search's RANSAC: the same input and seed
+            give the same result (default 0).
+        icp: the fine stage.
+        search: the global search.
+        confidence: how results are scored and flagged.
+    """
+
+    voxel: Optional[float] = None
+    num_points: int = 1024
+    coarse_iterations: int = 1
+    attempt_points: int = 5_000
+    max_rotation: Optional[float] = None
+    refine: bool = True
+    weights: Optional[str] = None
+    device: str = "cpu"
+    seed: int = 0
+    icp: ICPConfig = field(default_factory=ICPConfig)
+    search: SearchConfig = field(default_factory=SearchConfig)
+    confidence: ConfidenceConfig = field(default_factory=ConfidenceConfig)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def validate(self, k: int) -> None:
+        """Raise InputError for settings the network (neighbourhood size `k`) cannot run with."""
+        search = self.search
+        if search.mode not in SEARCH_MODES:
+            raise InputError(f"search.mode={search.mode!r}; valid: {', '.join(SEARCH_MODES)}")
+        for name, value in (("num_points", self.num_points), ("search.starts.points", search.starts.points), ("attempt_points", self.attempt_points)):
+            if value < k:
+                raise InputError(f"{name}={value} is below the network's neighbourhood size K={k}")
+        if self.voxel is not None and not self.voxel > 0:
+            raise InputError(f"voxel must be positive, got {self.voxel}")
+        if search.features.candidates < 1:
+            raise InputError(f"search.features.candidates must be at least 1, got {search.features.candidates}")
+        if self.max_rotation is not None and not 0 < self.max_rotation <= 180:
+            raise InputError(f"max_rotation must be in (0, 180] degrees, got {self.max_rotation}")
+        threshold = self.confidence.likely_failed_below
+        if not threshold <= search.features.stop <= 1:
+            raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
+        if search.starts.refine < 1:
+            raise InputError(f"search.starts.refine must be at least 1, got {search.starts.refine}")
+        try:
+            self.confidence.validate()
+        except ValueError as e:
+            raise InputError(f"confidence: {e}") from None

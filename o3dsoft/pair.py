@@ -1,0 +1,131 @@
+"""The pair of clouds as the pipeline works on it: cleaned, at each resolution, normalised for
+the network, with what the stages share computed once (KD-trees and point spacings of the
+scorers, the FPFH features)."""
+
+from __future__ import annotations
+
+from functools import cached_property
+from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union
+
+import numpy as np
+
+from . import confidence as confidence_stage
+from . import refine as refine_stage
+from .clock import StageClock
+from .config import RegisterConfig
+from .errors import InputError
+from .preprocess import clean_points, normalisation_for, normalise_pair, same_profile_pvalue, sample_points, voxel_downsample
+from .search import FeatureMatch
+
+if TYPE_CHECKING:
+    import open3d
+
+CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud"]
+Clouds = Tuple[np.ndarray, np.ndarray]  # (N, 3) source, (M, 3) target
+
+
+def as_points(cloud: CloudLike, name: str) -> np.ndarray:
+    """An Open3D PointCloud or an (N, 3) array-like -> (N, 3) float64 array."""
+    if hasattr(cloud, "points") and not isinstance(cloud, np.ndarray):
+        return np.asarray(cloud.points, dtype=np.float64)
+    arr = np.asarray(cloud)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name}: expected points of shape (N, 3), got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number):
+        raise InputError(f"{name}: expected numeric points, got dtype {arr.dtype}")
+    return arr.astype(np.float64, copy=False)
+
+
+class PreparedPair:
+    """Both clouds at every resolution the pipeline uses, in their original frames:
+
+    - ``full``: cleaned (no NaN/inf, no duplicates) and on ``config.voxel``'s grid: what is
+      registered, and where the kept estimate is refined last;
+    - ``work``: ``full`` voxel-downsampled to at most ``config.attempt_points`` each, where every
+      estimate is refined and scored;
+    - ``screen``: ``work`` on a grid of at most ``config.search.screen.points`` each (an even
+      spacing, which the confidence relies on; smaller clouds whole, shuffled), where the
+      search's estimates are tried first on large clouds;
+    - ``net``: ``config.num_points`` random samples of ``full`` for the network, and
+      ``net_normalised`` the same centred on their own centroids and divided by one scale.
+
+    Args:
+        source: (N, 3) array or Open3D PointCloud; target: (M, 3), in the same units.
+        config: the pipeline's settings.
+        k: the network's neighbourhood size (the fewest points a cloud may have).
+        names: how to call the clouds in error messages.
+        clock: charged for "clean" and "sample_normalise".
+    Raises:
+        InputError: a cloud is degenerate, or the voxel grid leaves too few points.
+    """
+
+    def __init__(
+        self,
+        source: CloudLike,
+        target: CloudLike,
+        config: RegisterConfig,
+        k: int,
+        names: Tuple[str, str] = ("source", "target"),
+        clock: Optional[StageClock] = None,
+    ) -> None:
+        clock = clock or StageClock()
+        self.config = config
+        # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds; even out the density.
+        self.cleaned = (clean_points(as_points(source, names[0]), names[0], min_points=k), clean_points(as_points(target, names[1]), names[1], min_points=k))
+        self.full: Clouds = (self.cleaned[0].points, self.cleaned[1].points)
+        if config.voxel is not None:
+            self.full = (
+                voxel_downsample(self.full[0], config.voxel, names[0], min_points=k),
+                voxel_downsample(self.full[1], config.voxel, names[1], min_points=k),
+            )
+        clock.lap("clean")
+        # The network's samples, normalised together (own centroids, one common scale).
+        self.norm = normalisation_for(*self.full)
+        self.distance = config.icp.distance_for(self.norm.scale)  # ICP's and the confidence's d, cloud units
+        self.net: Clouds = (
+            sample_points(self.full[0], config.num_points, seed=config.seed),
+            sample_points(self.full[1], config.num_points, seed=config.seed + 1),
+        )
+        src_norm, tgt_norm, _ = normalise_pair(*self.net, self.norm)
+        self.net_normalised: Clouds = (src_norm, tgt_norm)
+        clock.lap("sample_normalise")
+        self.work: Clouds = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
+        self._scorers: Dict[str, confidence_stage.Scorer] = {}
+
+    @property
+    def reduced(self) -> bool:
+        """The work clouds are smaller than the full ones (the kept estimate is refined again)."""
+        return any(len(w) < len(f) for w, f in zip(self.work, self.full))
+
+    @property
+    def screening(self) -> bool:
+        """The search's estimates are tried on the screen clouds first (large work clouds)."""
+        return self.config.refine and max(map(len, self.work)) > self.config.search.screen.points
+
+    @cached_property
+    def screen(self) -> Clouds:
+        limit, seed = self.config.search.screen.points, self.config.seed
+        src, tgt = (
+            refine_stage.downsample(c, limit) if len(c) > limit else sample_points(c, limit, seed=seed + offset)
+            for offset, c in ((4, self.work[0]), (5, self.work[1]))
+        )
+        return src, tgt
+
+    def clouds(self, level: str) -> Clouds:
+        """The clouds at `level`: "full", "work" or "screen"."""
+        return {"full": lambda: self.full, "work": lambda: self.work, "screen": lambda: self.screen}[level]()
+
+    def scorer(self, level: str) -> confidence_stage.Scorer:
+        """The confidence's scorer of the clouds at `level`, built once."""
+        if level not in self._scorers:
+            self._scorers[level] = confidence_stage.Scorer(*self.clouds(level), self.distance, self.config.icp.max_points, self.config.confidence)
+        return self._scorers[level]
+
+    @cached_property
+    def feature_match(self) -> FeatureMatch:
+        """FPFH features of the full clouds, matched by the search's RANSAC (computed once)."""
+        return FeatureMatch(*self.full, self.norm.scale, self.config.search.features.match)
+
+    def looks_partial(self) -> bool:
+        """The clouds' distances to their centroids differ (a partial overlap, most likely)."""
+        return same_profile_pvalue(*self.net) < self.config.search.partial_pvalue

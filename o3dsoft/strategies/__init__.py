@@ -1,0 +1,34 @@
+"""Ways of proposing estimates of T_target_source: each hands its estimates to the
+:class:`o3dsoft.verify.Verifier`, which refines, scores and keeps them, and stops as soon as the
+verifier's stop rule says so. :func:`o3dsoft.register` runs them in order:
+
+- :class:`NetworkPass` (:mod:`.network`): the network from the pose the clouds are given in;
+- :class:`FeatureMatchProposals` (:mod:`.features`): FPFH + RANSAC's distinct estimates;
+- :class:`NetworkStarts` (:mod:`.starts`): the networks from many starting rotations;
+- :class:`TranslationVotes` (:mod:`.votes`): translations the feature matches vote for at the best
+  rotations and at their half turns;
+- :class:`Restart` (:mod:`.restart`): every distinct start again, with ICP's tight stages.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from ..pair import PreparedPair
+from ..verify import Verifier
+from .features import FeatureMatchProposals
+from .network import NetworkPass
+from .restart import Restart
+from .starts import NetworkStarts
+from .votes import TranslationVotes
+
+
+class Strategy(Protocol):
+    """A way of proposing estimates of one pair."""
+
+    def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
+        """Hand estimates to `verifier` (:meth:`~o3dsoft.verify.Verifier.add` or
+        :meth:`~o3dsoft.verify.Verifier.try_estimate`) until done or its stop rule holds."""
+
+
+__all__ = ["Strategy", "NetworkPass", "FeatureMatchProposals", "NetworkStarts", "TranslationVotes", "Restart"]

@@ -1,0 +1,33 @@
+"""The network's pass from the pose the clouds are given in: the pipeline's first estimate."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .. import coarse as coarse_stage
+from ..pair import PreparedPair
+from ..preprocess import denormalise_transform
+from ..verify import Verifier
+
+
+class NetworkPass:
+    """The soft-alignment network on the normalised samples (``coarse_iterations`` passes, each
+    from the estimate so far), mapped back to the clouds' frames and verified.
+
+    After :meth:`propose`: ``estimate`` (the network's output in the normalised frame, with its
+    per-point weights) and ``transformation`` ((4, 4) T_target_source in the clouds' frames).
+    """
+
+    def __init__(self, model: coarse_stage.CoarseModel, iterations: int = 1) -> None:
+        self.model = model
+        self.iterations = iterations
+        self.estimate: Optional[coarse_stage.CoarseEstimate] = None
+        self.transformation: Optional[np.ndarray] = None
+
+    def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
+        self.estimate = coarse_stage.estimate(self.model, *pair.net_normalised, self.iterations)
+        verifier.clock.lap("coarse")
+        self.transformation = denormalise_transform(self.estimate.transform, pair.norm)
+        verifier.add(self.transformation, self.transformation)

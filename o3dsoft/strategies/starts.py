@@ -1,0 +1,50 @@
+"""The networks from many starting rotations: the main network from the 24 rotations of a cube
+(which cover SO(3)), the search network from 15 around the pose as given."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .. import coarse as coarse_stage
+from .. import search as search_stage
+from ..errors import InputError
+from ..pair import PreparedPair
+from ..preprocess import denormalise_transform, sample_points
+from ..verify import Verifier
+
+
+class NetworkStarts:
+    """One batch of network passes on smaller samples (``search.starts.points``); the
+    best-ranked are polished by ICP on the network's samples, and the one that fits best there is
+    verified (:func:`o3dsoft.search.select`).
+
+    Args:
+        model: the main network.
+        search_model: the search network, else loaded from ``search.starts.weights`` when needed
+            (None there: the main network alone).
+    """
+
+    def __init__(self, model: coarse_stage.CoarseModel, search_model: Optional[coarse_stage.CoarseModel] = None) -> None:
+        self.model = model
+        self.search_model = search_model
+
+    def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
+        config = pair.config
+        settings = config.search.starts
+        src_small = sample_points(pair.net_normalised[0], settings.points, seed=config.seed + 2)
+        tgt_small = sample_points(pair.net_normalised[1], settings.points, seed=config.seed + 3)
+        candidates = search_stage.network_candidates(self.model, src_small, tgt_small, search_stage.cube_rotations())
+        if settings.weights is not None:
+            if self.search_model is None:
+                self.search_model = coarse_stage.load_model(settings.weights, config.device)
+            if self.search_model.config.k > settings.points:
+                raise InputError(f"search.starts.points={settings.points} is below the search network's neighbourhood size K={self.search_model.config.k}")
+            local = search_stage.network_candidates(self.search_model, src_small, tgt_small, search_stage.local_rotations())
+            candidates = np.concatenate([candidates, local])
+        plausible = [T for T in (denormalise_transform(T, pair.norm) for T in candidates) if verifier.plausible(T)]
+        candidates = np.stack(plausible or [np.eye(4)])  # none within the prior: the pose as given
+        chosen = search_stage.select(*pair.net, candidates, pair.distance, settings.refine, config.icp if config.refine else None, config.confidence)
+        verifier.clock.lap("search")
+        verifier.add(chosen.polished, chosen.estimate)

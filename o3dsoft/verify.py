@@ -1,0 +1,114 @@
+"""Verification: every estimate, whoever proposed it, is refined by ICP and scored the same way,
+and kept in one list from which the result is chosen (:class:`Verifier`)."""
+
+from __future__ import annotations
+
+from typing import List, NamedTuple, Optional
+
+import numpy as np
+
+from . import confidence as confidence_stage
+from . import refine as refine_stage
+from .clock import StageClock
+from .pair import PreparedPair
+from .transforms import rotation_angle_deg
+
+
+class Attempt(NamedTuple):
+    """One refined and scored estimate.
+
+    trust: its confidence (0-1, higher is better; 0 beyond the rotation prior).
+    scored: the measurements the confidence came from.
+    fine: ICP's result (transformation (4, 4) T_target_source, fitness, inlier RMSE).
+    coarse: (4, 4) the estimate as proposed.
+    start: (4, 4) where ICP started (the estimate, or its polish on smaller clouds).
+    """
+
+    trust: float
+    scored: confidence_stage.Features
+    fine: refine_stage.ICPResult
+    coarse: np.ndarray
+    start: np.ndarray
+
+
+class Verifier:
+    """Refines and scores estimates of one pair, and keeps them: ``attempts``, scored on the work
+    clouds, among which the result is chosen; ``screened``, the search's estimates as the screen
+    clouds scored them first (on large clouds only the most promising are promoted to attempts).
+
+    The stop rule of every strategy reads :meth:`confident` and :meth:`settled`.
+    """
+
+    def __init__(self, pair: PreparedPair, clock: StageClock) -> None:
+        self.pair = pair
+        self.config = pair.config
+        self.clock = clock
+        self.attempts: List[Attempt] = []
+        self.screened: List[Attempt] = []
+
+    # -- the prior and the stop rule ------------------------------------------------------------
+    def admissible(self, T: np.ndarray, margin: float = 0.0) -> bool:
+        """T (4, 4) rotates the source within ``max_rotation`` (+ `margin`) degrees, or no prior."""
+        bound = self.config.max_rotation
+        return bound is None or rotation_angle_deg(T[:3, :3]) <= bound + margin
+
+    def plausible(self, T: np.ndarray) -> bool:
+        """An estimate worth refining under the prior: within it by ``prior_margin_deg``, since
+        ICP can still move it into the bound."""
+        return self.admissible(T, self.config.search.prior_margin_deg)
+
+    def best_trust(self) -> float:
+        return max((a.trust for a in self.attempts), default=0.0)
+
+    def confident(self) -> bool:
+        """Some attempt so far is trusted (not flagged likely failed)."""
+        return self.best_trust() >= self.config.confidence.likely_failed_below
+
+    def settled(self) -> bool:
+        """Some attempt so far is trusted enough to end the feature match (its ``stop``)."""
+        return self.best_trust() >= max(self.config.search.features.stop, self.config.confidence.likely_failed_below)
+
+    # -- refining and scoring ---------------------------------------------------------------------
+    def refine(
+        self, start: np.ndarray, coarse: np.ndarray, level: str = "work", icp: Optional[refine_stage.ICPConfig] = None, refine: Optional[bool] = None
+    ) -> Attempt:
+        """ICP from `start` (4, 4) on the clouds at `level` (with `icp`, default the config's),
+        or only scored there when `refine` is False; then the confidence. Not kept."""
+        icp = icp or self.config.icp
+        refine = self.config.refine if refine is None else refine
+        src, tgt = self.pair.clouds(level)
+        if refine:
+            fine = refine_stage.icp(src, tgt, start, self.pair.distance, icp)
+        else:
+            fine = refine_stage.evaluate(src, tgt, start, self.pair.distance, self.config.icp.max_points)
+        self.clock.lap("refine")
+        scored = self.pair.scorer(level)(fine.transformation)
+        trust = confidence_stage.confidence(scored, self.config.confidence) if self.admissible(fine.transformation) else 0.0
+        self.clock.lap("score")
+        return Attempt(trust, scored, fine, coarse, start)
+
+    def add(self, start: np.ndarray, coarse: np.ndarray, icp: Optional[refine_stage.ICPConfig] = None) -> Attempt:
+        """Refine and score an estimate on the work clouds, and keep it among the attempts."""
+        attempt = self.refine(start, coarse, icp=icp)
+        self.attempts.append(attempt)
+        return attempt
+
+    def promote(self, screened: Attempt) -> Attempt:
+        """An estimate converged on the screen clouds, refined (tight ICP stages, from where the
+        screen left it) and scored on the work clouds, and kept among the attempts."""
+        attempt = self.refine(screened.fine.transformation, screened.coarse, icp=self.config.icp.tight())._replace(start=screened.start)
+        self.attempts.append(attempt)
+        return attempt
+
+    def try_estimate(self, start: np.ndarray, icp: refine_stage.ICPConfig) -> None:
+        """One of the search's estimates: on small clouds refined and kept at once; on large ones
+        screened first, and kept only when the screen trusts it more than every estimate before
+        it (and at least ``screen.min_trust``), or confidently."""
+        if not self.pair.screening:
+            self.add(start, start, icp)
+            return
+        s = self.refine(start, start, "screen", icp)
+        record = max((a.trust for a in self.screened), default=0.0)
+        self.screened.append(s)
+        if (s.trust > record and s.trust >= self.config.search.screen.min_trust) or s.trust >= self.config.confidence.likely_failed_below:
+            self.promote(s)

@@ -1,0 +1,120 @@
+import numpy as np
+import pytest
+
+from o3dsoft.coarse import load_model
+from o3dsoft.errors import InputError
+from o3dsoft.metrics import rotation_error_deg
+from o3dsoft.transforms import rotation_angle_deg
+
+from .conftest import apply, blob, random_transform
+from .fakes import HalfwayModel
+
+
+def test_bad_weights(tmp_path):
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    with pytest.raises(InputError, match="junk.pt: not a readable TorchScript model file"):
+        load_model(tmp_path / "junk.pt")
+    import torch
+
+    other = torch.jit.script(torch.nn.Linear(3, 3))
+    other.save(str(tmp_path / "other.pt"))
+    with pytest.raises(InputError, match="other.pt: a TorchScript file, but not an o3dsoft model"):
+        load_model(tmp_path / "other.pt")
+    with pytest.raises(InputError, match="weights file not found"):
+        load_model(tmp_path / "missing.pt")
+
+
+def test_shipped_models_load_by_name(tmp_path, monkeypatch):
+    from o3dsoft.coarse import bundled_model_names
+
+    assert {"default", "paper"} <= set(bundled_model_names())
+    paper = load_model("paper")
+    assert paper.path.name == "o3dsoft_paper.pt" and paper.meta["info"]["protocol"] == "paper"
+    assert load_model("default").meta["info"]["protocol"] == "wide45"
+    with pytest.raises(InputError, match="shipped models, by name: default, paper"):
+        load_model("nonesuch")
+    # A file of that name in the working folder wins over the shipped model.
+    import shutil
+
+    shutil.copy(paper.path, tmp_path / "default")
+    monkeypatch.chdir(tmp_path)
+    assert load_model("default").meta["info"]["protocol"] == "paper"
+
+
+@pytest.mark.parametrize("iterations", [1, 2, 3])
+def test_coarse_iterations_compose_the_corrections(iterations):
+    from o3dsoft.coarse import estimate
+
+    rng = np.random.default_rng(3)
+    source = blob(rng, 200) * 0.5
+    T_gt = random_transform(rng, 40.0, 0.3)
+    target = apply(T_gt, source)
+    T = estimate(HalfwayModel(), source, target - target.mean(0), iterations).transform
+    angle = rotation_angle_deg(T_gt[:3, :3])
+    # Each pass halves the remaining rotation; the composition must keep the points in step.
+    assert rotation_error_deg(T[:3, :3], T_gt[:3, :3]) == pytest.approx(angle / 2**iterations, rel=1e-3)
+    residual = apply(T, source) - (target - target.mean(0))
+    assert np.abs(residual.mean(0)).max() < 1e-5  # centroids coincide after every pass
+
+
+def test_aligner_matches_the_plain_call_also_for_files_without_align(tiny_model_path, tmp_path):
+    import json
+
+    import torch
+
+    from o3dsoft.coarse import META_NAME
+
+    class ForwardOnly(torch.nn.Module):
+        """A model file as written before describe_target/align were exported."""
+
+        def __init__(self, net):
+            super().__init__()
+            self.net = net
+
+        def forward(self, source, target):
+            return self.net(source, target)
+
+    model = load_model(tiny_model_path)
+    old_path = tmp_path / "forward_only.pt"
+    torch.jit.save(torch.jit.script(ForwardOnly(model.module)), str(old_path), _extra_files={META_NAME: json.dumps(model.meta)})
+    old = load_model(old_path)
+    assert not hasattr(old.module, "align") and hasattr(model.module, "align")
+    rng = np.random.default_rng(0)
+    src = torch.as_tensor(rng.normal(size=(4, 80, 3)) * 0.4, dtype=torch.float32)
+    tgt = torch.as_tensor(rng.normal(size=(1, 70, 3)) * 0.4, dtype=torch.float32)
+    expected = model.run(src, tgt.expand(4, -1, -1))
+    for m in (model, old):
+        for a, b in zip(m.aligner(tgt)(src), expected):
+            assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_aligner_describes_a_same_size_pair_in_one_batch_with_the_same_result(tiny_model_path):
+    import torch
+
+    model = load_model(tiny_model_path)
+    assert model.config.shared_encoder
+    rng = np.random.default_rng(1)
+    tgt = torch.as_tensor(rng.normal(size=(1, 70, 3)) * 0.4, dtype=torch.float32)
+    first, later = (torch.as_tensor(rng.normal(size=(1, 70, 3)) * 0.4, dtype=torch.float32) for _ in range(2))
+    run = model.aligner(tgt)
+    for src in (first, later, first):  # the batched first call, then the cached target descriptors
+        for a, b in zip(run(src), model.run(src, tgt)):
+            assert torch.allclose(a, b, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_open3d_neighbourhoods_are_the_ball_query_sets(tiny_model_path, seed):
+    import torch
+
+    from o3dsoft.model import ball_query
+
+    model = load_model(tiny_model_path)
+    k, radius = model.config.k, model.config.radius
+    rng = np.random.default_rng(seed)
+    # A dense clump (more than K points within the radius), a sparse spread and lone points.
+    clouds = np.concatenate([rng.normal(size=(150, 3)) * 0.05, rng.uniform(-1, 1, size=(100, 3)), [[5.0, 5, 5], [-5, 5, 5]]])
+    points = torch.as_tensor(clouds[rng.permutation(len(clouds))], dtype=torch.float32)[None]
+    fast, reference = model.neighbours(points)[0], ball_query(points, k, radius)[0]
+    assert fast.shape == reference.shape == (len(clouds), k)
+    assert all(set(a.tolist()) == set(b.tolist()) for a, b in zip(fast, reference))
+    assert (fast[:, 0] == torch.arange(len(clouds))).all()  # the point itself, always

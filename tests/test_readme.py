@@ -1,0 +1,26 @@
+"""The README's Python snippets run as written, from the repository root."""
+
+import re
+
+from .conftest import REPO
+
+
+def test_readme_python_snippets_run(monkeypatch):
+    blocks = re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), flags=re.S)
+    assert len(blocks) >= 2
+    monkeypatch.chdir(REPO)
+    namespace: dict = {}
+    for block in blocks:  # later snippets use the names of earlier ones, as a reader would
+        exec(compile(block, "README.md", "exec"), namespace)
+    result = namespace["result"]
+    assert result.transformation.shape == (4, 4) and 0.0 <= result.confidence <= 1.0
+
+
+def test_readme_results_table_is_the_generated_one():
+    from benchmarks.results_table import markdown
+
+    text = (REPO / "README.md").read_text()
+    command = re.search(r"Made by `python -m benchmarks.results_table ([^`]*)`", text.replace("\n", " ")).group(1).split()
+    runs = [REPO / arg for arg in command if not arg.startswith("--")]
+    block = text.split("<!-- results:start -->\n", 1)[1].split("\n<!-- results:end -->", 1)[0]
+    assert block == markdown(runs, short="--short" in command)
