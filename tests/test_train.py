@@ -87,51 +87,15 @@ def test_resume_errors(modelnet_root, tmp_path):
 
 
 def test_train_cli_smoke(modelnet_root, tmp_path):
-    r = CliRunner().invoke(
-        main,
-        [
-            "train",
-            "--data",
-            str(modelnet_root),
-            "--out",
-            str(tmp_path),
-            "--max-steps",
-            "1",
-            "--limit-train",
-            "4",
-            "--batch-size",
-            "2",
-            "--eval-pairs",
-            "0",
-            "--epochs",
-            "1",
-        ],
-    )
-    assert r.exit_code == 0, r.output
+    def run(out, *more):
+        quick = ["--max-steps", "1", "--limit-train", "4", "--batch-size", "2", "--eval-pairs", "0", "--epochs", "1"]
+        r = CliRunner().invoke(main, ["train", "--data", str(modelnet_root), "--out", str(out), *quick, *more])
+        assert r.exit_code == 0, r.output
+
+    run(tmp_path)
     assert (tmp_path / "model.pt").is_file() and (tmp_path / "model_card.json").is_file()
     assert load_model(tmp_path / "model.pt").config.relative is False
-    r = CliRunner().invoke(
-        main,
-        [
-            "train",
-            "--data",
-            str(modelnet_root),
-            "--out",
-            str(tmp_path / "rel"),
-            "--max-steps",
-            "1",
-            "--limit-train",
-            "4",
-            "--batch-size",
-            "2",
-            "--eval-pairs",
-            "0",
-            "--epochs",
-            "1",
-            "--relative",
-        ],
-    )
-    assert r.exit_code == 0, r.output
+    run(tmp_path / "rel", "--relative")
     assert load_model(tmp_path / "rel" / "model.pt").config.relative is True
 
 
