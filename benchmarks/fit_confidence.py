@@ -111,7 +111,7 @@ def main() -> None:
     score = 1 / (1 + np.exp(-(w[0] + X @ w[1:])))
     test = ~train
     report = {
-        "coefficients": {"COEFFICIENTS": [round(float(v), 4) for v in w], "features": ["intercept", *NAMES]},
+        "coefficients": {"coefficients": [round(float(v), 4) for v in w], "features": ["intercept", *NAMES]},
         "pairs": int(len(y)),
         "success_rate": float(y.mean()),
         "auc_held_out": auc(score[test], y[test]),

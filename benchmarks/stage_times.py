@@ -5,7 +5,7 @@
 Registers the first `limit` ModelNet40 test pairs of a protocol with the default settings,
 `rounds` times over, and prints the median and mean of each stage's time (ms, lower is better)
 over the last round (the earlier ones warm the process up). Run it alone on the machine: other
-work on the same cores slows the network most (README, Speed).
+work on the same cores slows the network most (docs/speed.md).
 """
 
 from __future__ import annotations

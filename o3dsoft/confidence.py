@@ -17,7 +17,7 @@ of the final alignment that overlap does not change (:class:`Features`):
 An alignment that leaves the clouds barely touching (counted points under ``min_overlap`` of the
 smaller cloud) gets confidence 0. The coefficients are fitted by logistic regression
 (``python -m benchmarks.fit_confidence``); the data, the measurements and the rejected
-alternatives are in docs/confidence.md. Below 0.5 a result is flagged ``likely_failed``.
+alternatives are in docs/pipeline.md (The confidence). Below 0.5 a result is flagged ``likely_failed``.
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ class Features(NamedTuple):
     consistency: of the same points within d of the other cloud, the share within the tight
     distance (0-1, higher is better; 0 when none is within d);
     overlap: the points the consistency counts, as a share of the smaller cloud (capped at 1;
-    below :data:`MIN_OVERLAP` the confidence is 0);
+    below ``ConfidenceConfig.min_overlap`` the confidence is 0);
     spacing_ratio: the median distance from a point to its nearest partner over the other
     cloud's median point spacing s (lower is better), over the points within max(d, 3 s) of the
     other cloud less those beyond its edge (as for the consistency): about 1 for two independent

@@ -44,8 +44,8 @@ class StartsConfig:
 
     Attributes:
         points: points per cloud for the batch of network passes (default 256).
-        refine: how many of the best-ranked estimates are polished by ICP on those samples
-            (default 3).
+        refine: how many of the best-ranked estimates are polished by ICP on the network's samples
+            (``num_points``) before the most confident is verified (default 3).
         weights: a second network run from 15 starts around the pose as given (a file or a
             shipped model's name; default "partial", trained on cropped, noisy clouds); None:
             only the main network, from the 24 cube rotations.
@@ -99,8 +99,8 @@ class ScreenConfig:
 
     Attributes:
         points: the screen clouds are the work clouds on a voxel grid of at most this many
-            points each; on work clouds larger than that, each search estimate is refined and
-            scored there first (default 1024).
+            points each; on work clouds larger than that, the feature match's and the votes'
+            estimates (and the restart's starts) are refined and scored there first (default 1024).
         min_trust: ... and on the work clouds only when the screen trusts it more than every
             estimate before it and at least this much, or confidently (default 1e-3).
     """
@@ -122,7 +122,8 @@ class SearchConfig:
         prior_margin_deg: under ``RegisterConfig.max_rotation``, estimates are screened against
             the bound with this margin (degrees) before ICP, which can still move them into it
             (default 10).
-        features, starts, votes, restart, screen: the search's steps, in the order they run.
+        features, starts, votes, restart: the search's steps, in the order they run.
+        screen: how the steps' estimates are tried first on large clouds.
     """
 
     mode: str = "auto"
@@ -196,6 +197,16 @@ class RegisterConfig:
             raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
         if search.starts.refine < 1:
             raise InputError(f"search.starts.refine must be at least 1, got {search.starts.refine}")
+        if search.features.first_round < 1:
+            raise InputError(f"search.features.first_round must be at least 1, got {search.features.first_round}")
+        for name, value in (
+            ("search.votes.rotations", search.votes.rotations),
+            ("search.votes.translations", search.votes.translations),
+            ("search.votes.flipped", search.votes.flipped),
+            ("search.restart.refined", search.restart.refined),
+        ):
+            if value < 0:
+                raise InputError(f"{name} must not be negative, got {value}")
         try:
             self.confidence.validate()
         except ValueError as e:

@@ -4,7 +4,7 @@
     -> propose estimates (the network; when flagged, the search's strategies in turn)
     -> verify each (ICP on the work clouds, confidence)
     -> select the most trusted (within the rotation prior, if any)
-    -> refine it at full resolution.
+    -> refine it at full resolution (when the work clouds were reduced).
 
 Where each stage lives: :class:`o3dsoft.pair.PreparedPair`, :mod:`o3dsoft.strategies`,
 :class:`o3dsoft.verify.Verifier`, :mod:`o3dsoft.refine`, :mod:`o3dsoft.confidence`. The settings
@@ -188,8 +188,10 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool) -> Op
     turn = rotation_angle_deg(best.fine.transformation[:3, :3])
     if bound is not None and turn > bound:
         why = f"it rotates the source by {turn:.1f} degrees, beyond max_rotation {bound:g}"
-    elif bound is not None and best.trust == 0.0:
+    elif bound is not None and best.trust == 0.0 and best.scored.overlap >= config.confidence.min_overlap:
         why = f"ICP leaves max_rotation {bound:g} from every estimate, so the pose as given is returned unrefined"
+    elif best.scored.overlap < config.confidence.min_overlap:
+        why = f"the clouds barely touch: the points near the other cloud are {100 * best.scored.overlap:.0f} % of the smaller one"
     else:
         why = f"of the points near the other cloud, only {100 * best.scored.consistency:.0f} % lie within {best.scored.tight_distance:.3g} units of it"
     return why + ("; the global search found nothing better" if searched else "")

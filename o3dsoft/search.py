@@ -205,7 +205,7 @@ class FeatureMatch:
     def candidates(self, seed: int, count: int) -> np.ndarray:
         """Up to `count` distinct estimates, the best-supported first: (H, 4, 4) T_target_source.
 
-        Draws `hypotheses` triplets of matches, keeps those whose three edge lengths agree in
+        Draws ``hypotheses`` triplets of matches (:class:`FeatureMatchConfig`), keeps those whose three edge lengths agree in
         both clouds (within the edge-length ratio), fits each by least squares, and ranks them by
         how many matches they carry to within the RANSAC distance. The `count` best that differ
         (by ``distinct_deg`` in rotation or ``distinct_shift`` x scale in where they put the matches'

@@ -21,7 +21,8 @@ class Attempt(NamedTuple):
     scored: the measurements the confidence came from.
     fine: ICP's result (transformation (4, 4) T_target_source, fitness, inlier RMSE).
     coarse: (4, 4) the estimate as proposed.
-    start: (4, 4) where ICP started (the estimate, or its polish on smaller clouds).
+    start: (4, 4) where ICP first started (the estimate, or its polish on smaller clouds; for an
+        estimate promoted from the screen clouds, where the screen's ICP started).
     """
 
     trust: float

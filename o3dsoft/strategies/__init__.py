@@ -1,6 +1,7 @@
 """Ways of proposing estimates of T_target_source: each hands its estimates to the
 :class:`o3dsoft.verify.Verifier`, which refines, scores and keeps them, and stops as soon as the
-verifier's stop rule says so. :func:`o3dsoft.register` runs them in order:
+verifier's stop rule says so. :func:`o3dsoft.register` runs them in this order (on a partial
+overlap the feature match goes first, and the network only when it found nothing confident):
 
 - :class:`NetworkPass` (:mod:`.network`): the network from the pose the clouds are given in;
 - :class:`FeatureMatchProposals` (:mod:`.features`): FPFH + RANSAC's distinct estimates;
