@@ -3,6 +3,7 @@ import pytest
 
 import o3dsoft
 from o3dsoft.coarse import load_model
+from o3dsoft.confidence import ConfidenceConfig
 from o3dsoft.config import FeatureSearchConfig, RegisterConfig, RestartConfig, SearchConfig, StartsConfig
 from o3dsoft.errors import InputError
 from o3dsoft.metrics import pair_errors, rotation_error_deg
@@ -25,6 +26,7 @@ def test_register_small_motion_recovered_after_icp(tiny_model_path):
     assert res.inlier_rmse < 1e-5
     assert res.transformation.shape == (4, 4) and res.transformation.dtype == np.float64
     assert res.confidence > 0.99 and not res.likely_failed and res.fitness_tight == pytest.approx(1.0)
+    assert res.failure_reason is None
     assert 0.0 < res.mean_weight <= 1.0
     assert set(res.timings_ms) >= {"clean", "sample_normalise", "coarse", "refine", "score", "total"}
 
@@ -126,6 +128,7 @@ def test_unrelated_clouds_are_flagged(tiny_model_path):
     tgt = rng.uniform(-1, 1, size=(500, 3)) * np.array([1.0, 1.0, 0.05])  # a flat slab: nothing like the blob
     res = register(src, tgt, RegisterConfig(weights=str(tiny_model_path)))
     assert res.likely_failed and res.confidence < 0.5
+    assert "the global search found nothing better" in res.failure_reason  # the library says why
 
 
 def test_a_large_rotation_is_found_by_the_search():
@@ -178,6 +181,12 @@ def test_search_settings_are_checked():
     for bad in (0.0, -5.0, 200.0):
         with pytest.raises(InputError, match=r"max_rotation must be in \(0, 180\] degrees"):
             register(src, src, RegisterConfig(max_rotation=bad), model=model)
+    with pytest.raises(InputError, match="search.features.first_round must be at least 1, got 0"):
+        register(src, src, RegisterConfig(search=SearchConfig(features=FeatureSearchConfig(first_round=0))), model=model)
+    with pytest.raises(InputError, match="search.restart.refined must not be negative, got -1"):
+        register(src, src, RegisterConfig(search=SearchConfig(restart=RestartConfig(refined=-1))), model=model)
+    with pytest.raises(InputError, match="confidence: coefficients: expected 3"):
+        register(src, src, RegisterConfig(confidence=ConfidenceConfig(coefficients=(1.0, 2.0))), model=model)
 
 
 def test_without_icp_the_search_keeps_its_top_ranked_estimate_as_it_is():
