@@ -271,6 +271,7 @@ _TRAIN_FIELDS = (
     "lr_schedule",
     "lr_min",
     "grad_clip",
+    "point_loss",
     "init",
     "seed",
     "device",
@@ -299,6 +300,13 @@ _TRAIN_FIELDS = (
 @click.option("--lr-schedule", type=click.Choice(["constant", "cosine"]), default="constant", show_default=True)
 @click.option("--lr-min", type=click.FloatRange(min=0), default=1e-5, show_default=True, help="Final learning rate of the cosine schedule.")
 @click.option("--grad-clip", type=click.FloatRange(min=0, min_open=True), default=None, help="Clip the gradients' L2 norm (default: no clipping).")
+@click.option(
+    "--point-loss",
+    type=click.FloatRange(min=0),
+    default=0.0,
+    show_default=True,
+    help="Weight of a loss on each source point's soft partner (where it truly lies), added to the paper's transform loss.",
+)
 @click.option(
     "--init",
     type=click.Path(),

@@ -501,6 +501,8 @@ class SoftAlignNet(nn.Module):
         target (B, M, 3) with g (B, M, C); a target of batch 1 serves all B sources."""
         W = self.soft_alignment(f, g)
         virtual = torch.matmul(W, target)  # (B, N, 3)
+        if not torch.jit.is_scripting():
+            self.virtual_points = virtual  # the last eager call's soft partners, for training losses
         w = W.amax(dim=-1)  # (B, N)
         R, t = weighted_procrustes(source, virtual, w)
         return R, t, w
@@ -514,3 +516,26 @@ def count_parameters(module: nn.Module) -> int:
 def registration_loss(R: torch.Tensor, t: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:
     """The paper's loss: MSE(R, R_gt) + MSE(t, t_gt), over (B, 3, 3) and (B, 3) tensors."""
     return F.mse_loss(R, R_gt) + F.mse_loss(t, t_gt)
+
+
+def virtual_point_loss(
+    source: torch.Tensor, target: torch.Tensor, virtual: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor, reach: float = 0.05
+) -> torch.Tensor:
+    """Mean squared distance from each source point's soft partner to where the point truly lies,
+    over the points with a target point within `reach` of that place (partial overlap: the others
+    have no partner to find). Supervises the correspondences themselves, which the transform loss
+    reaches only through the Procrustes fit; for independently sampled clouds the partner is a
+    weighted average of the target points around the true place.
+
+    Args:
+        source: (B, N, 3); target: (B, M, 3); virtual: (B, N, 3) soft partners (W @ target).
+        R_gt: (B, 3, 3), t_gt: (B, 3) the true transform (target ~ R_gt source + t_gt).
+        reach: normalised units.
+    Returns:
+        () loss (normalised units squared).
+    """
+    truth = torch.matmul(source, R_gt.transpose(1, 2)) + t_gt.unsqueeze(1)  # (B, N, 3)
+    with torch.no_grad():
+        has_partner = (torch.cdist(truth, target).amin(dim=-1) < reach).to(virtual.dtype)
+    error = ((virtual - truth) ** 2).sum(dim=-1)
+    return (error * has_partner).sum() / has_partner.sum().clamp(min=1.0)

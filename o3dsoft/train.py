@@ -27,7 +27,7 @@ from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_re
 from .errors import InputError, O3dsoftError
 from .io import atomic_output
 from .metrics import pair_errors, summarise
-from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss
+from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss, virtual_point_loss
 from .preprocess import denormalise_transform, normalisation_for, normalise_pair, normalise_transform
 from .transforms import rigid
 
@@ -46,6 +46,8 @@ class TrainConfig:
             at the end of the last epoch).
         lr_min: final learning rate of the cosine schedule.
         grad_clip: clip the gradients' total L2 norm to this value (None: no clipping, the paper's).
+        point_loss: weight of :func:`o3dsoft.model.virtual_point_loss` added to the paper's loss
+            (0: the paper's loss alone).
         init: start from the model weights of this training checkpoint instead of a random
             initialisation (fine-tuning; optimiser and schedule start fresh). Its network must
             have this run's settings, except ``net.relative``.
@@ -69,6 +71,7 @@ class TrainConfig:
     lr_schedule: str = "constant"
     lr_min: float = 1e-5
     grad_clip: Optional[float] = None
+    point_loss: float = 0.0
     init: Optional[str] = None
     seed: int = 0
     device: str = "cpu"
@@ -96,6 +99,7 @@ class TrainConfig:
             ("lr_schedule", self.lr_schedule in LR_SCHEDULES, f"one of {', '.join(LR_SCHEDULES)}"),
             ("lr_min", self.lr_schedule != "cosine" or 0 <= self.lr_min <= self.lr, "between 0 and lr"),
             ("grad_clip", self.grad_clip is None or self.grad_clip > 0, "positive or null"),
+            ("point_loss", self.point_loss >= 0, "at least 0"),
             ("checkpoint_minutes", self.checkpoint_minutes > 0, "positive"),
             ("eval_pairs", self.eval_pairs is None or self.eval_pairs >= 0, "0 or more, or null for the whole split"),
             ("max_steps", self.max_steps is None or self.max_steps >= 1, "at least 1 or null"),
@@ -495,6 +499,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             src, tgt, R_gt, t_gt = (x.to(device, non_blocking=True) for x in (src, tgt, R_gt, t_gt))
             R, t, _ = net(src, tgt)
             loss = registration_loss(R, t, R_gt, t_gt)
+            if config.point_loss > 0:
+                loss = loss + config.point_loss * virtual_point_loss(src, tgt, model.virtual_points, R_gt, t_gt)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             if config.grad_clip is not None:

@@ -297,3 +297,29 @@ def test_a_rescripted_card_says_so_once_with_the_latest_difference():
         assert again.count("Re-scripted") == 1 and again.endswith("outputs within 2e-05 of the previous file's.")
         assert again.startswith("Trained on wide45. Re-scripted")
     assert rescripted_note("x.", 0.0).endswith("outputs identical to the previous file's.")
+
+
+def test_virtual_point_loss_counts_only_points_with_a_partner():
+    from o3dsoft.model import virtual_point_loss
+
+    torch.manual_seed(0)
+    source = torch.rand(2, 50, 3)
+    R = torch.eye(3).expand(2, 3, 3)
+    t = torch.tensor([[0.1, 0.0, 0.0], [0.0, 0.2, 0.0]])
+    truth = source + t[:, None]
+    assert virtual_point_loss(source, truth, truth, R, t).item() == 0.0  # every soft partner where it belongs
+    off = truth + torch.tensor([0.0, 0.0, 0.1])
+    assert virtual_point_loss(source, truth, off, R, t).item() == pytest.approx(0.01, rel=1e-5)  # 0.1 off each
+    far_target = truth + 10.0  # nothing within reach of where the points lie: no partner, no loss
+    assert virtual_point_loss(source, far_target, off, R, t).item() == 0.0
+
+
+def test_the_network_keeps_its_soft_partners_when_eager_and_scripts_without_them():
+    from o3dsoft.model import NetConfig, SoftAlignNet
+
+    net = SoftAlignNet(NetConfig(k=8, channels=(8, 16))).eval()
+    src, tgt = torch.rand(1, 40, 3), torch.rand(1, 30, 3)
+    R, t, w = net(src, tgt)
+    assert net.virtual_points.shape == (1, 40, 3)
+    R_s, t_s, w_s = torch.jit.script(net)(src, tgt)
+    assert torch.allclose(R, R_s, atol=1e-5) and torch.allclose(t, t_s, atol=1e-5)

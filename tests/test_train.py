@@ -1,6 +1,7 @@
 import json
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
@@ -199,3 +200,14 @@ def test_mixture_training_evaluates_on_its_evaluation_protocol(modelnet_root, tm
     card = json.loads((tmp_path / "model_card.json").read_text())
     assert [p["name"] for p in card["protocol"]["mixture"]][:2] == ["wide45", "wide45-partial"]
     assert card["history"][0]["test"]["pairs"] == 4
+
+
+def test_the_point_loss_changes_the_training_and_is_recorded(modelnet_root, tmp_path):
+    plain = train(_config(modelnet_root, tmp_path / "plain", max_steps=2, eval_pairs=0, protocol="incongruent"), log=lambda m: None)
+    pointed = train(_config(modelnet_root, tmp_path / "point", max_steps=2, eval_pairs=0, protocol="incongruent", point_loss=10.0), log=lambda m: None)
+    cards = [json.loads((p.parent / "model_card.json").read_text()) for p in (plain, pointed)]
+    assert [c["config"]["point_loss"] for c in cards] == [0.0, 10.0]
+    losses = [c["history"][0]["train_loss"] for c in cards]
+    assert np.isfinite(losses).all() and losses[1] > losses[0]  # the same first pairs, a further term
+    with pytest.raises(InputError, match="point_loss"):
+        _config(modelnet_root, tmp_path / "bad", point_loss=-1.0).validate()
