@@ -1,6 +1,6 @@
 """Accuracy of a model on ModelNet40 test pairs: the network alone and followed by ICP.
 
-    python -m benchmarks.eval_model [--weights weights/o3dsoft_default.pt] [--protocol paper dcp]
+    python -m benchmarks.eval_model [--weights weights/o3dsoft_default.pt] [--protocol paper dcp] [--search off]
         [--limit 300] [--data ../shared/data/modelnet40_ply_hdf5_1024] [--seed 0] [--iterations 1 2]
 
 Prints one JSON object per protocol and stage with the summary of o3dsoft.metrics.summarise
@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from o3dsoft.coarse import load_model
+from o3dsoft.config import SearchConfig
 from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.metrics import pair_errors, summarise
 from o3dsoft.pipeline import RegisterConfig, register
@@ -24,11 +25,11 @@ from o3dsoft.pipeline import RegisterConfig, register
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 
 
-def evaluate_protocol(model, data: str, protocol: str, limit: int, seed: int, iterations: int = 1) -> dict:
+def evaluate_protocol(model, data: str, protocol: str, limit: int, seed: int, iterations: int = 1, search: str = "auto") -> dict:
     pairs = load_pairs(data, "test", get_protocol(protocol), seed)
     n = min(limit, len(pairs)) if limit else len(pairs)
     coarse, fine, times = [], [], []
-    config = RegisterConfig(coarse_iterations=iterations)
+    config = RegisterConfig(coarse_iterations=iterations, search=SearchConfig(mode=search))
     for i in range(n):
         p = pairs[i]
         t0 = time.perf_counter()
@@ -54,11 +55,12 @@ def main() -> None:
     ap.add_argument("--data", default=str(DEFAULT_DATA))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--iterations", type=int, nargs="+", default=[1], help="network passes of the coarse stage (several: one run each)")
+    ap.add_argument("--search", choices=["auto", "always", "off"], default="auto", help="the global search (off: the network's own estimate)")
     args = ap.parse_args()
     model = load_model(args.weights)
     for protocol in args.protocol:
         for iterations in args.iterations:
-            print(json.dumps(evaluate_protocol(model, args.data, protocol, args.limit, args.seed, iterations)), flush=True)
+            print(json.dumps(evaluate_protocol(model, args.data, protocol, args.limit, args.seed, iterations, args.search)), flush=True)
 
 
 if __name__ == "__main__":
