@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A/B: the paper's loss against the paper's loss + the virtual-point loss, 150 steps each from the shipped default.
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../.." && mkdir -p runs
 for w in 0 1; do
   .venv/bin/o3dsoft train --protocol incongruent-mix --init default --lr 3e-4 --batch-size 10 --seed 11 \
     --data ../shared/data/modelnet40_ply_hdf5_1024 --max-steps 150 --eval-pairs 100 --epochs 1 \
