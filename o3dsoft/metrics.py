@@ -14,10 +14,16 @@ import numpy as np
 from .transforms import apply_transform, matrix_to_euler_deg, rotation_angle_deg
 
 
-def _split(T: np.ndarray):
+def _as_transform(T: np.ndarray) -> np.ndarray:
+    """T as a (4, 4) float64 array; ValueError for any other shape."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         raise ValueError(f"expected a (4, 4) transform, got shape {T.shape}")
+    return T
+
+
+def _split(T: np.ndarray):
+    T = _as_transform(T)
     return T[:3, :3], T[:3, 3]
 
 
@@ -85,10 +91,10 @@ def modified_chamfer_distance(
     from scipy.spatial import cKDTree  # noqa: WPS433 - optional, only metrics need it
 
     clean = target if clean_target is None else clean_target
-    _split(T_est)  # checks the shape
-    src_est = apply_transform(np.asarray(T_est, np.float64), np.asarray(source, np.float64))
+    T_est = _as_transform(T_est)
+    src_est = apply_transform(T_est, np.asarray(source, np.float64))
     d_src, _ = cKDTree(clean).query(src_est)
-    T_rel = np.asarray(T_est, np.float64) @ np.linalg.inv(np.asarray(T_gt, np.float64))
+    T_rel = T_est @ np.linalg.inv(np.asarray(T_gt, np.float64))
     clean_moved = apply_transform(T_rel, np.asarray(clean, np.float64))
     d_tgt, _ = cKDTree(clean_moved).query(np.asarray(target, np.float64))
     return float(np.mean(d_src**2) + np.mean(d_tgt**2))

@@ -113,7 +113,9 @@ class PreparedPair:
 
     def clouds(self, level: str) -> Clouds:
         """The clouds at `level`: "full", "work" or "screen"."""
-        return {"full": lambda: self.full, "work": lambda: self.work, "screen": lambda: self.screen}[level]()
+        if level not in ("full", "work", "screen"):
+            raise ValueError(f"level must be full, work or screen, got {level!r}")
+        return getattr(self, level)
 
     def scorer(self, level: str) -> confidence_stage.Scorer:
         """The confidence's scorer of the clouds at `level`, built once."""

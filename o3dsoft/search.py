@@ -177,14 +177,14 @@ class FeatureMatch:
         self.source = baselines.fpfh_features(source, scale, config.features)
         self.target = baselines.fpfh_features(target, scale, config.features)
         self.scale = scale
-        self.match_config = config
-        self.config = config.features
+        self.config = config
         self._drawn: Dict[Tuple[int, int], Optional[Tuple[np.ndarray, ...]]] = {}
 
     @property
     def inlier_distance(self) -> float:
         """RANSAC's inlier distance in cloud units: a candidate carries its matches to within it."""
-        return self.config.ransac_distance * self.config.voxel * self.scale
+        features = self.config.features
+        return features.ransac_distance * features.voxel * self.scale
 
     def points(self) -> Tuple[np.ndarray, np.ndarray]:
         """The downsampled clouds the features describe: (N', 3) source, (M', 3) target."""
@@ -219,7 +219,7 @@ class FeatureMatch:
         """
         if count < 1:
             raise ValueError(f"count must be at least 1, got {count}")
-        drawn = self._draw(seed, self.match_config.hypotheses)
+        drawn = self._draw(seed, self.config.hypotheses)
         if drawn is None:
             return np.empty((0, 4, 4))
         a, b, R, t, support = drawn
@@ -239,7 +239,7 @@ class FeatureMatch:
 
     @property
     def _distinct(self) -> Tuple[float, float]:
-        return self.match_config.distinct_deg, self.match_config.distinct_shift
+        return self.config.distinct_deg, self.config.distinct_shift
 
     def translations(self, rotation: np.ndarray, count: int) -> np.ndarray:
         """Estimates that keep `rotation` and take the translations most matches vote for: (H, 4, 4).
@@ -294,14 +294,12 @@ class FeatureMatch:
             for i, j in ((0, 1), (1, 2), (0, 2)):
                 dp = _squared_distances(ps, ms[pick[:, i]], ms[pick[:, j]], tables[0])
                 dq = _squared_distances(pt, mt[pick[:, i]], mt[pick[:, j]], tables[1])
-                pick = pick[(np.minimum(dp, dq) >= self.config.edge_length**2 * np.maximum(dp, dq)) & (dp > 0)]
+                pick = pick[(np.minimum(dp, dq) >= self.config.features.edge_length**2 * np.maximum(dp, dq)) & (dp > 0)]
             if len(pick) == 0:
                 return None
             R, t = weighted_procrustes(torch.from_numpy(a[pick]), torch.from_numpy(b[pick]))  # (H', 3, 3) triplets
             R, t = R.numpy(), t.numpy()
-            scored = (
-                rng.choice(len(a), size=self.match_config.scored_matches, replace=False) if len(a) > self.match_config.scored_matches else np.arange(len(a))
-            )
+            scored = rng.choice(len(a), size=self.config.scored_matches, replace=False) if len(a) > self.config.scored_matches else np.arange(len(a))
             self._drawn[key] = (a, b, R, t, _support(R, t, a[scored], b[scored], self.inlier_distance))
         return self._drawn[key]
 
