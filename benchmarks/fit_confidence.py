@@ -2,12 +2,14 @@
 
     python -m benchmarks.fit_confidence [--per-group 80] [--weights W] [--data D]
 
-Each pair is aligned twice: by o3dsoft's network and ICP (search off: the result whose
-confidence decides whether the search runs), and by ICP from the ground truth turned by a random
-rotation of up to 90 degrees (right and wrong local minima, as the search's starts give). The
-features of o3dsoft.confidence are measured on each alignment, which is labelled a success when
-the rotation error is below 5 degrees and the translation error below 0.05 x scale, and a
-logistic regression is fitted (Newton's method, a small L2 penalty). Prints the coefficients to
+Each pair is aligned several times: by o3dsoft's network and ICP (search off: the result whose
+confidence decides whether the search runs), by ICP from the ground truth turned by a random
+rotation of up to 90 degrees, and by ICP from `--starts` rotations of any angle up to 180 degrees (the wrong
+local minima among which the search must find the right one). The features of
+o3dsoft.confidence are measured on each alignment, which is labelled a success when the rotation
+error is below 5 degrees and the translation error below 0.05 x scale, and a logistic regression
+is fitted (Newton's method, a small L2 penalty), successes and failures weighing equally in
+total, so that 0.5 lies where the two kinds of error balance. Prints the coefficients to
 paste into o3dsoft/confidence.py (ConfidenceConfig.coefficients), and the area under the ROC curve of the
 confidence vs success on a held-out half (every other pair), per group and overall.
 
@@ -67,13 +69,16 @@ def random_rotation_within(rng: np.random.Generator, max_deg: float) -> np.ndarr
     return quaternion_to_matrix(*(np.sin(half) * axis), np.cos(half))
 
 
-def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-3, steps: int = 50) -> np.ndarray:
+def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-3, steps: int = 50, balanced: bool = True) -> np.ndarray:
+    """Logistic regression of y (N,) in {0, 1} on X (N, F): (F + 1,) intercept and weights. With
+    `balanced`, each class weighs half of the total whatever its size."""
     A = np.hstack([np.ones((len(X), 1)), X])
+    sw = np.where(y > 0.5, 0.5 / max(y.mean(), 1e-12), 0.5 / max(1 - y.mean(), 1e-12)) if balanced else np.ones(len(y))
     w = np.zeros(A.shape[1])
     for _ in range(steps):
         p = 1 / (1 + np.exp(-A @ w))
-        grad = A.T @ (p - y) + l2 * w
-        H = A.T @ (A * (p * (1 - p))[:, None]) + l2 * np.eye(len(w))
+        grad = A.T @ (sw * (p - y)) + l2 * w
+        H = A.T @ (A * (sw * p * (1 - p))[:, None]) + l2 * np.eye(len(w))
         w -= np.linalg.solve(H, grad)
     return w
 
@@ -89,24 +94,30 @@ def main() -> None:
     ap.add_argument("--weights", default=None)
     ap.add_argument("--data", default=str(DEFAULT_DATA))
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--rows", default=None, help="also write every alignment's features, label and group to this .npz")
+    ap.add_argument("--starts", type=int, default=6, help="ICP runs per pair from random rotations of up to 180 degrees")
     args = ap.parse_args()
     model = load_model(args.weights)
     config = RegisterConfig(search=SearchConfig(mode="off"))
     rng = np.random.default_rng(args.seed)
-    groups, X, y, pair_ids = [], [], [], []
+    groups, X, y, pair_ids, far_off = [], [], [], [], []
     for n, (group, src, tgt, T_gt) in enumerate(make_problems(args.data, args.per_group, args.seed)):
         r = register(src, tgt, config, model=model)
-        turn = rigid(random_rotation_within(rng, 90.0), np.zeros(3))
-        icp = refine.icp(src.astype(np.float64), tgt.astype(np.float64), T_gt @ turn, r.correspondence_distance, config.icp)
-        for T in (r.transformation, icp.transformation):
+        turns = [random_rotation_within(rng, 90.0)] + [random_rotation_within(rng, 180.0) for _ in range(args.starts)]
+        icps = [refine.icp(src.astype(np.float64), tgt.astype(np.float64), T_gt @ rigid(R, np.zeros(3)), r.correspondence_distance, config.icp) for R in turns]
+        scorer = conf.Scorer(src, tgt, r.correspondence_distance)
+        for T in [r.transformation] + [icp.transformation for icp in icps]:
             e = pair_errors(T, T_gt)
-            f = conf.features(src, tgt, T, r.correspondence_distance)
+            f = scorer(T)
             groups.append(group)
             X.append(conf.feature_vector(f))
             y.append(group != "unrelated" and e.rotation_deg < 5.0 and e.translation < 0.05 * r.scale)
             pair_ids.append(n)
-    groups, X, y = np.array(groups), np.array(X), np.array(y, dtype=bool)
-    train = np.array(pair_ids) % 2 == 0  # both alignments of a pair on the same side
+            far_off.append(group == "unrelated" or e.rotation_deg > 15.0)
+    groups, X, y, far_off = np.array(groups), np.array(X), np.array(y, dtype=bool), np.array(far_off)
+    if args.rows:
+        np.savez(args.rows, groups=groups, X=X, y=y, far_off=far_off, pair=np.array(pair_ids), names=np.array(NAMES))
+    train = np.array(pair_ids) % 2 == 0  # all alignments of a pair on the same side
     w = fit_logistic(X[train], y[train].astype(float))
     score = 1 / (1 + np.exp(-(w[0] + X @ w[1:])))
     test = ~train
@@ -126,6 +137,7 @@ def main() -> None:
             "auc": auc(score[sel], y[sel]),
             "flagged_correctly": float(np.mean((score[sel] >= conf.ConfidenceConfig().likely_failed_below) == y[sel])),
             "right_ones_flagged": float(np.mean(score[sel & y] < conf.ConfidenceConfig().likely_failed_below)) if (sel & y).any() else None,
+            "far_off_trusted": float(np.mean(score[sel & far_off] >= conf.ConfidenceConfig().likely_failed_below)) if (sel & far_off).any() else None,
         }
     print(json.dumps(report, indent=2))
 

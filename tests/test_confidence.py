@@ -137,3 +137,14 @@ def test_a_right_alignment_of_two_partial_scans_is_trusted():
     off = T.copy()
     off[:3, :3] = euler_to_matrix([3.0, 0.0, 0.0]) @ T[:3, :3]
     assert confidence(features(src, tgt, off, distance)) < 0.5
+
+
+def test_the_balanced_fit_puts_one_half_between_the_classes_whatever_their_sizes():
+    from benchmarks.fit_confidence import fit_logistic
+
+    rng = np.random.default_rng(0)
+    X = np.concatenate([rng.normal(0.0, 1.0, 900), rng.normal(3.0, 1.0, 100)])[:, None]
+    y = np.concatenate([np.zeros(900), np.ones(100)])
+    boundary = {b: -w[0] / w[1] for b in (True, False) for w in [fit_logistic(X, y, balanced=b)]}
+    assert 1.2 < boundary[True] < 1.8  # midway between the class means 0 and 3
+    assert boundary[False] > boundary[True] + 0.3  # the larger class pushes the plain fit's boundary away
