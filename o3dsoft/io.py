@@ -3,8 +3,9 @@
 Point clouds are read through Open3D: PLY, PCD, XYZ, XYZN, XYZRGB, PTS as points, and meshes
 (OFF, OBJ, STL, and PLY/GLB/GLTF with faces) sampled uniformly on their faces, as the paper did;
 plus NumPy ``.npy`` arrays of shape (N, 3). Transforms are 4x4 text (whitespace or comma
-separated) or ``.npy``. Every writer writes to a temporary file and renames it, so a failure
-never leaves a half-written output.
+separated) or ``.npy``. Files are written by o3dsoft itself (:func:`write_points`), to a temporary
+file that is flushed to the disk and then renamed, so a failure (a full disk included) never
+leaves a half-written output.
 """
 
 from __future__ import annotations
@@ -131,7 +132,8 @@ def _read_npy_points(path: Path) -> np.ndarray:
 
 @contextmanager
 def atomic_output(path: PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside `path`; rename it to `path` only if the block succeeds.
+    """Yield a temporary path beside `path`; rename it to `path` only if the block succeeds and
+    the file reaches the disk.
 
     The temporary name keeps the extension, so writers that pick a format by extension work.
     Raises InputError if the folder does not exist or is not writable.
@@ -149,6 +151,7 @@ def atomic_output(path: PathLike) -> Iterator[Path]:
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual mode
     try:
         yield tmp
+        _sync(tmp)
         os.replace(tmp, path)
     except OSError as e:
         raise InputError(f"{path}: cannot write ({e.strerror or e})") from None
@@ -164,22 +167,44 @@ def _umask() -> int:
 
 
 def write_points(path: PathLike, points: np.ndarray) -> Path:
-    """Write (N, 3) points to any of the point formats (by extension), atomically."""
+    """Write (N, 3) points to any of the point formats (by extension), atomically.
+
+    The files are written here rather than by Open3D, whose writers report success after a
+    failed write (a full disk left a truncated file): binary little-endian PLY of float64
+    coordinates, PCD of float32 (as Open3D writes them: its reader takes no other), and text with 10 decimals (.pts: the point count first; .xyzn: the normals that
+    format carries, estimated from 30 neighbours)."""
     path = Path(path)
     ext = check_extension(path, WRITE_EXTENSIONS, "writing points")
-    points = np.asarray(points, dtype=np.float64)
-    with atomic_output(path) as tmp:
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
         if ext == ".npy":
-            with open(tmp, "wb") as f:
-                np.save(f, points)
+            np.save(f, points)
+        elif ext == ".ply":
+            header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n" + "".join(f"property double {a}\n" for a in "xyz") + "end_header\n"
+            f.write(header.encode("ascii") + points.astype("<f8").tobytes())
+        elif ext == ".pcd":
+            n = len(points)
+            header = f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+            f.write(header.encode("ascii") + points.astype("<f4").tobytes())
         else:
-            o3d = _o3d()
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-            if ext == ".xyzn":  # the format has normals; estimate them from 30 neighbours
+            columns = points
+            if ext == ".xyzn":
+                o3d = _o3d()
+                cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
                 cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
-            if not o3d.io.write_point_cloud(str(tmp), cloud):
-                raise InputError(f"{path}: Open3D could not write this file")
+                columns = np.hstack([points, np.asarray(cloud.normals)])
+            np.savetxt(f, columns, fmt="%.10f", header=str(len(points)) if ext == ".pts" else "", comments="")
     return path
+
+
+def _sync(path: Path) -> None:
+    """Flush `path` to the disk, so that a write the disk could not hold fails here, before the
+    rename, rather than later."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def read_transform(path: PathLike) -> np.ndarray:

@@ -119,3 +119,63 @@ def test_unwritable_output_leaves_nothing(tmp_path, pts):
     with pytest.raises(UsageError, match="unknown extension"):
         write_points(tmp_path / "out.off", pts)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_write_the_disk_cuts_short_leaves_nothing(tmp_path):
+    """A file-size limit (RLIMIT_FSIZE) cuts every write short as a full disk does, in a child
+    process so that pytest's own files are not limited."""
+    import subprocess
+    import sys
+
+    script = f"""
+import resource, signal, sys
+import numpy as np
+from o3dsoft.errors import InputError
+from o3dsoft.io import write_points
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit then fails with EFBIG
+resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+points = np.random.default_rng(0).normal(size=(5000, 3))  # 120 kB as float64
+failed = 0
+for ext in (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy"):
+    try:
+        write_points({str(tmp_path)!r} + "/aligned" + ext, points)
+    except InputError as e:
+        failed += "cannot write" in str(e)
+sys.exit(0 if failed == 6 else 1)
+"""
+    assert subprocess.run([sys.executable, "-c", script]).returncode == 0
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_disk_that_cannot_hold_the_file_fails_before_the_rename(tmp_path, pts, monkeypatch):
+    import errno
+    import os
+
+    def no_space(fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", no_space)
+    for path in (tmp_path / "out.npy", tmp_path / "out.ply"):
+        with pytest.raises(InputError, match="No space left"):
+            write_points(path, pts)
+    with pytest.raises(InputError, match="No space left"):
+        write_transform(tmp_path / "T.txt", np.eye(4))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_tmpfs_leaves_nothing_under_the_final_name(tmp_path, pts):
+    import subprocess
+
+    mount = tmp_path / "full"
+    mount.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(mount)], capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    try:
+        (mount / "filler").write_bytes(b"\0" * 190_000)
+        big = np.random.default_rng(0).normal(size=(2000, 3))  # 48 kB of float64 and more: does not fit
+        for ext in (".ply", ".pcd", ".npy"):
+            with pytest.raises(InputError):
+                write_points(mount / f"aligned{ext}", big)
+        assert [p.name for p in mount.iterdir()] == ["filler"]
+    finally:
+        subprocess.run(["umount", "--lazy", str(mount)], check=True)
