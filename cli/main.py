@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 
 from .. import __version__
-from ..errors import O3dsoftError
+from ..errors import O3dsoftError, terminate_as_interrupt
 
 # The values of RegisterConfig.search.mode (o3dsoft.config.SEARCH_MODES) and the bench's methods
 # (o3dsoft.bench.METHODS), not imported here: that would load torch and Open3D before --help;
@@ -28,12 +28,14 @@ MAX_ROTATION_HELP = (
 
 
 def _friendly_errors(fn):
-    """Print o3dsoft's own errors as one line on stderr and exit 1 (failure) or 2 (usage)."""
+    """Print o3dsoft's own errors as one line on stderr and exit 1 (failure) or 2 (usage); Ctrl-C
+    and SIGTERM stop the command the same way (outputs not yet complete are not left behind)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
-            return fn(*args, **kwargs)
+            with terminate_as_interrupt():
+                return fn(*args, **kwargs)
         except O3dsoftError as e:
             click.echo(f"Error: {e}", err=True)
             sys.exit(e.exit_code)

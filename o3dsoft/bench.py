@@ -16,9 +16,7 @@ import os
 import platform
 import signal
 import subprocess
-import threading
 import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
@@ -29,8 +27,8 @@ from . import baselines
 from . import refine as refine_stage
 from .coarse import CoarseModel, sha256_of
 from .data import DEFAULT_POINTS_PER_SHAPE, get_protocol, load_pairs
-from .errors import InputError, O3dsoftError, UsageError
-from .io import atomic_output
+from .errors import InputError, O3dsoftError, UsageError, terminate_as_interrupt
+from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, modified_chamfer_distance, pair_errors, summarise, within
 from .pipeline import RegisterConfig, register
 from .preprocess import normalisation_for
@@ -585,10 +583,7 @@ def prepare_folder(out: Path, overwrite: bool) -> Path:
     out = Path(out)
     if out.exists() and not overwrite:
         raise UsageError(f"{out}: the output folder exists; choose another --out or pass --overwrite")
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"{out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    return out
+    return make_folder(out)
 
 
 class PairOutcome(NamedTuple):
@@ -615,7 +610,6 @@ _WORKER: Dict[str, object] = {}
 
 
 def _start_worker(config: BenchConfig, weights: Optional[str], search_weights: Optional[str], device: str, threads: int) -> None:
-    import signal
 
     import torch
 
@@ -664,26 +658,6 @@ def run_pairs(
         yield from pool.imap(_run_in_worker, pairs)
 
 
-@contextmanager
-def _terminate_as_interrupt() -> Iterator[None]:
-    """Within the block, SIGTERM (``kill``, a scheduler's time limit) stops the run as Ctrl-C
-    does. A run started in the background by a shell (``cmd &``) ignores SIGINT, so ``kill`` is
-    how it is stopped there. Only the main thread may set signal handlers; elsewhere nothing
-    changes."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    before = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, before)
-
-
 def run(
     pairs: Iterator[BenchPair],
     count: int,
@@ -713,7 +687,7 @@ def run(
     bar = tqdm(total=count, unit="pair", disable=None if progress else True, dynamic_ncols=True)  # None: only on a terminal
     failed: List[dict] = []
     try:
-        with _terminate_as_interrupt():
+        with terminate_as_interrupt():
             for outcome in run_pairs(pairs, config, model, search_model, jobs):
                 if outcome.error is not None:
                     failed.append({"protocol": outcome.protocol, "index": outcome.index, "error": outcome.error})
@@ -748,6 +722,7 @@ def run(
         tmp.write_text(json.dumps(summary_doc, indent=2))
     with atomic_output(out / "config.json") as tmp:
         tmp.write_text(json.dumps({**description, "bench": config.to_dict()}, indent=2))
-    (out / "table.txt").write_text(table + "\n")
+    with atomic_output(out / "table.txt") as tmp:
+        tmp.write_text(table + "\n")
     plot(out, rows, config)
     return BenchRun(summaries, out, interrupted, table)

@@ -22,7 +22,7 @@ import torch
 
 from ._open3d import open3d
 from .errors import InputError
-from .io import atomic_output
+from .io import atomic_output, make_folder
 from .model import NetConfig, SoftAlignNet, ball_query
 from .transforms import apply_transform, rigid
 
@@ -84,7 +84,7 @@ def export_torchscript(model: SoftAlignNet, config: NetConfig, path: Union[str, 
     with _quiet_jit():
         scripted = torch.jit.script(model.cpu())
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "net": config.to_dict(), "info": info or {}}
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_folder(path.parent)
     try:
         with atomic_output(path) as tmp, _quiet_jit():
             torch.jit.save(scripted, str(tmp), _extra_files={META_NAME: json.dumps(meta)})

@@ -130,6 +130,24 @@ def _read_npy_points(path: Path) -> np.ndarray:
     return arr.astype(np.float64)
 
 
+def make_folder(path: PathLike) -> Path:
+    """Create the folder `path` (and its parents) unless it exists.
+
+    Raises:
+        InputError: it cannot be created (a file in the way, a read-only disk, no permission).
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path}: cannot create this folder, a file of that name exists")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"{path}: cannot create this folder ({e.strerror or e})") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise InputError(f"{path}: cannot write in this folder (permission denied)")
+    return path
+
+
 @contextmanager
 def atomic_output(path: PathLike) -> Iterator[Path]:
     """Yield a temporary path beside `path`; rename it to `path` only if the block succeeds and

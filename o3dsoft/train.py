@@ -25,7 +25,7 @@ from .coarse import export_torchscript, sha256_of
 from .configfile import read_config, write_config
 from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_recipe, evaluation_protocol, load_pairs, training_parts
 from .errors import InputError, O3dsoftError
-from .io import atomic_output
+from .io import atomic_output, make_folder
 from .metrics import pair_errors, summarise
 from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss, virtual_point_loss
 from .preprocess import denormalise_transform, normalisation_for, normalise_pair, normalise_transform
@@ -382,7 +382,7 @@ def _splits(config: TrainConfig, protocol) -> Tuple[PairDataset, Optional[PairDa
 
 def _write_settings(out: Path, config: TrainConfig) -> None:
     """The settings actually used, as config.json and config.yaml in the run folder."""
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     with atomic_output(out / "config.json") as tmp:
         tmp.write_text(json.dumps(config.to_dict(), indent=2))
     with atomic_output(out / "config.yaml") as tmp:

@@ -442,3 +442,20 @@ def test_incongruent_pairs_share_no_point_and_the_oracle_shows_the_floor(modelne
         (result,) = bench.run_methods(p, config, None)
         e = bench.pair_errors(result.transform, p.transform)
         assert 0 < e.rotation_deg < 5  # ICP from the truth moves off it, but not far
+
+
+@pytest.mark.parametrize("command", ["bench", "train"])
+def test_an_output_folder_that_cannot_be_created_is_a_one_line_error(modelnet_root, tmp_path, command):
+    from o3dsoft.cli.main import main
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("in the way")
+    args = {
+        "bench": ["bench", "modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--overwrite"],
+        "train": ["train", "--data", str(modelnet_root), "--max-steps", "1", "--limit-train", "4", "--batch-size", "2", "--eval-pairs", "0"],
+    }[command]
+    for out in (blocker, blocker / "run"):
+        r = CliRunner().invoke(main, [*args, "--out", str(out)])
+        assert r.exit_code == 1, r.output
+        assert r.output.strip().startswith("Error:") and "cannot create this folder" in r.output and len(r.output.strip().splitlines()) == 1
+    assert blocker.read_text() == "in the way" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]

@@ -251,3 +251,18 @@ def test_register_and_the_bench_commands_take_the_same_pipeline_options():
         assert names <= set(values), command.name
         # given nothing, the command line's settings are the library's defaults
         assert cli._register_config(**{n: values[n] for n in names}) == RegisterConfig(), command.name
+
+
+def test_sigterm_while_writing_the_output_leaves_nothing(pair_files, monkeypatch):
+    import os
+    import signal
+
+    import o3dsoft.io as io_module
+
+    folder, _, _ = pair_files
+    before = sorted(p.name for p in folder.iterdir())
+    monkeypatch.setattr(io_module, "_sync", lambda path: os.kill(os.getpid(), signal.SIGTERM))  # the file written, not yet renamed
+    r = CliRunner().invoke(main, ["register", str(folder / "src.ply"), str(folder / "tgt.pcd"), "--out", str(folder / "aligned.ply")])
+    assert r.exit_code == 130 and "Interrupted" in r.output
+    assert sorted(p.name for p in folder.iterdir()) == before  # neither aligned.ply nor its hidden temporary
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handler is the command's only
