@@ -8,6 +8,7 @@ import json
 import shlex
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import click
@@ -50,6 +51,12 @@ def _friendly_errors(fn):
 @click.version_option(__version__, "--version", prog_name="o3dsoft")
 def main() -> None:
     """o3dsoft: rigid registration of 3D point clouds (learned coarse stage + Open3D ICP)."""
+    warnings.showwarning = _one_line_warning
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as one line on stderr, without Python's source location."""
+    click.echo(f"Warning: {message}", err=True)
 
 
 def _apply_options(options, fn):

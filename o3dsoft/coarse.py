@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import warnings
+import zipfile
 from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import resources
@@ -32,6 +33,14 @@ FORMAT = "o3dsoft-softalign"
 FORMAT_VERSION = 1
 META_NAME = "o3dsoft.json"
 CPU_BATCH = 2  # clouds per network call on the CPU (see CoarseModel.aligner)
+MAX_WEIGHT = 1e8  # larger parameter values are taken for a corrupted file: trained ones stay far below
+
+
+class UntrustedModelWarning(UserWarning):
+    """A model file that is not one of the shipped models was loaded: it is a program."""
+
+
+_WARNED: set = set()
 
 
 @contextmanager
@@ -56,6 +65,54 @@ def bundled_model_names() -> List[str]:
     """Names of the models shipped with the package, for ``load_model("paper")``."""
     folder = resources.files("o3dsoft.weights")
     return sorted(f.name[len("o3dsoft_") : -len(".pt")] for f in folder.iterdir() if f.name.startswith("o3dsoft_") and f.name.endswith(".pt"))
+
+
+def _shipped_card(path: Path) -> Optional[Dict[str, Any]]:
+    """The model card of a shipped model file (weights/o3dsoft_<name>.json), else None."""
+    for name in bundled_model_names():
+        shipped = bundled_weights_path(name)
+        if shipped.is_file() and path.resolve() == shipped.resolve():
+            card = shipped.with_suffix(".json")
+            return json.loads(card.read_text()) if card.is_file() else {}
+    return None
+
+
+def _check_origin(path: Path) -> None:
+    """A shipped model must match the sha256 of its card; any other file is a program from
+    elsewhere, said once per file."""
+    card = _shipped_card(path)
+    if card is None:
+        key = str(path.resolve())
+        if key not in _WARNED:
+            _WARNED.add(key)
+            warnings.warn(
+                f"{path}: a model file is a TorchScript program that runs when used; load only files from a trusted source",
+                UntrustedModelWarning,
+                stacklevel=3,
+            )
+    elif card.get("sha256") and sha256_of(path) != card["sha256"]:
+        raise InputError(f"{path}: the shipped model file does not match the sha256 of its card (modified or damaged); reinstall o3dsoft")
+
+
+def _check_archive(path: Path) -> None:
+    """Every member of the model's zip archive matches its CRC (TorchScript does not check)."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, OSError) as e:
+        raise InputError(f"{path}: not a readable TorchScript model file ({e})") from None
+    if bad is not None:
+        raise InputError(f"{path}: the model file is corrupted ({bad} fails its checksum)")
+
+
+def _check_values(module: torch.jit.ScriptModule, path: Path) -> None:
+    """Every parameter and buffer is finite and of a plausible size."""
+    for name, tensor in module.state_dict().items():
+        if tensor.is_floating_point() and tensor.numel():
+            if not bool(torch.isfinite(tensor).all()):
+                raise InputError(f"{path}: the model's {name} holds NaN or infinite values (a corrupted file)")
+            if float(tensor.abs().max()) > MAX_WEIGHT:
+                raise InputError(f"{path}: the model's {name} holds values above {MAX_WEIGHT:g} (a corrupted file)")
 
 
 def sha256_of(path: Union[str, Path]) -> str:
@@ -189,8 +246,13 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
     Args:
         path: a model file; the name of a shipped model ("default", "paper"); None: "default".
         device: where the network runs ("cpu", "cuda", "cuda:1").
+    A shipped model is checked against the sha256 of its card; any other file is a TorchScript
+    program, and loading it warns once (:class:`UntrustedModelWarning`). The archive's checksums
+    and the finiteness of every tensor are checked, so that a damaged file fails here.
+
     Raises:
-        InputError: the file is missing, is not a TorchScript archive, or is not an o3dsoft model.
+        InputError: the file is missing, damaged, is not a TorchScript archive, or is not an
+            o3dsoft model; a shipped model does not match its card.
     """
     if path is None:
         path = default_weights_path()
@@ -205,6 +267,8 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
         raise InputError(f"invalid device {device!r}: {e}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputError("device 'cuda' was asked for but this torch build sees no CUDA GPU")
+    _check_origin(path)
+    _check_archive(path)
     extra = {META_NAME: ""}
     try:
         with _quiet_jit():
@@ -220,6 +284,7 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
         raise InputError(f"{path}: a TorchScript file, but not an o3dsoft model (no {META_NAME} with format {FORMAT!r})")
     if meta.get("format_version", 0) > FORMAT_VERSION:
         raise InputError(f"{path}: model format version {meta['format_version']} is newer than this o3dsoft supports ({FORMAT_VERSION})")
+    _check_values(module, path)
     module.eval()
     return CoarseModel(module, meta, path, device)
 

@@ -118,3 +118,65 @@ def test_open3d_neighbourhoods_are_the_ball_query_sets(tiny_model_path, seed):
     assert fast.shape == reference.shape == (len(clouds), k)
     assert all(set(a.tolist()) == set(b.tolist()) for a, b in zip(fast, reference))
     assert (fast[:, 0] == torch.arange(len(clouds))).all()  # the point itself, always
+
+
+def _copy(src, dst):
+    dst.write_bytes(src.read_bytes())
+    return dst
+
+
+def test_a_model_file_damaged_in_its_tensor_data_is_refused(tiny_model_path, tmp_path):
+    import zipfile
+
+    path = _copy(tiny_model_path, tmp_path / "damaged.pt")
+    with zipfile.ZipFile(path) as archive:
+        member = next(i for i in archive.infolist() if "/data/" in i.filename and i.file_size > 64)
+    raw = bytearray(path.read_bytes())
+    name_length, extra_length = (int.from_bytes(raw[member.header_offset + k : member.header_offset + k + 2], "little") for k in (26, 28))
+    start = member.header_offset + 30 + name_length + extra_length  # after the local header (its own padding) comes the data
+    raw[start + 17] ^= 0x01  # one bit of one weight
+    path.write_bytes(bytes(raw))
+    with pytest.raises(InputError, match="damaged.pt: the model file is corrupted"):
+        load_model(path)
+
+
+@pytest.mark.parametrize("value, match", [(float("nan"), "NaN or infinite"), (1e30, "values above")])
+def test_a_model_whose_weights_are_not_plausible_numbers_is_refused(tmp_path, value, match):
+    import torch
+
+    from o3dsoft.coarse import export_torchscript
+    from o3dsoft.model import SoftAlignNet
+
+    from .conftest import TINY
+
+    net = SoftAlignNet(TINY)
+    with torch.no_grad():
+        max(net.parameters(), key=lambda p: p.numel()).view(-1)[3] = value
+    path = export_torchscript(net, TINY, tmp_path / "bad.pt")
+    with pytest.raises(InputError, match=match):
+        load_model(path)
+
+
+def test_shipped_models_are_checked_against_their_card_and_other_files_warn_once(tiny_model_path, tmp_path, monkeypatch):
+    import json
+
+    import o3dsoft.coarse as coarse
+    from o3dsoft.coarse import UntrustedModelWarning, sha256_of
+
+    shipped = _copy(tiny_model_path, tmp_path / "o3dsoft_tiny.pt")
+    monkeypatch.setattr(coarse, "bundled_model_names", lambda: ["tiny"])
+    monkeypatch.setattr(coarse, "bundled_weights_path", lambda name: tmp_path / f"o3dsoft_{name}.pt")
+    (tmp_path / "o3dsoft_tiny.json").write_text(json.dumps({"sha256": sha256_of(shipped)}))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a shipped model that matches its card: no warning
+        load_model("tiny")
+    (tmp_path / "o3dsoft_tiny.json").write_text(json.dumps({"sha256": "0" * 64}))
+    with pytest.raises(InputError, match="does not match the sha256 of its card"):
+        load_model("tiny")
+    other = _copy(tiny_model_path, tmp_path / "downloaded.pt")
+    with pytest.warns(UntrustedModelWarning, match="downloaded.pt: a model file is a TorchScript program") as caught:
+        load_model(other)
+        load_model(other)
+    assert len([w for w in caught if w.category is UntrustedModelWarning]) == 1
