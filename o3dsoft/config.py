@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Optional
 
 from .confidence import ConfidenceConfig
+from .degeneracy import DegeneracyConfig
 from .errors import InputError
 from .refine import ICPConfig
 from .search import FeatureMatchConfig
@@ -160,6 +161,7 @@ class RegisterConfig:
         icp: the fine stage.
         search: the global search.
         confidence: how results are scored and flagged.
+        degeneracy: when the geometry is taken not to determine the pose (the result flagged).
     """
 
     voxel: Optional[float] = None
@@ -174,6 +176,7 @@ class RegisterConfig:
     icp: ICPConfig = field(default_factory=ICPConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
     confidence: ConfidenceConfig = field(default_factory=ConfidenceConfig)
+    degeneracy: DegeneracyConfig = field(default_factory=DegeneracyConfig)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -211,3 +214,9 @@ class RegisterConfig:
             self.confidence.validate()
         except ValueError as e:
             raise InputError(f"confidence: {e}") from None
+        degeneracy = self.degeneracy
+        if not 0 <= degeneracy.min_constraint < 1 or degeneracy.neighbours < 3 or degeneracy.shared_below < 0:
+            raise InputError(
+                "degeneracy: min_constraint must be in [0, 1), neighbours at least 3 and shared_below not negative; "
+                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.shared_below}"
+            )

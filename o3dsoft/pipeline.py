@@ -19,6 +19,7 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 
 from . import coarse as coarse_stage
+from . import degeneracy as degeneracy_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
 from .pair import CloudLike, PreparedPair, as_points
@@ -64,6 +65,10 @@ class RegistrationResult:
             ICP; None when the network did not run (a feature match tried first was confident).
         points_used: points per cloud (source, target) at each stage: "network", "attempts"
             (the work clouds) and "final" (the registered clouds).
+        constraint: how firmly the geometry fixes the pose: smallest over largest eigenvalue of
+            the point-to-plane normal equations at the result (0-1, higher is better; below
+            ``degeneracy.min_constraint`` the result is flagged with confidence 0, unless the
+            clouds share their points).
     """
 
     transformation: np.ndarray
@@ -87,6 +92,7 @@ class RegistrationResult:
     removed: Dict[str, int]
     network_transformation: Optional[np.ndarray] = None
     points_used: Dict[str, Tuple[int, int]] = field(default_factory=dict)
+    constraint: float = 1.0
     failure_reason: Optional[str] = None
 
     def to_dict(self) -> dict:
@@ -162,8 +168,10 @@ def register(
         # Only the tight stages: the loose first one would pull the converged estimate towards
         # the parts with no partner (partial overlap) and cost the most.
         best = verifier.refine(best.fine.transformation, best.coarse, "full", config.icp.tight())
+    geometry = degeneracy_stage.assess(*pair.work, best.fine.transformation, pair.distance, pair.norm.scale, best.scored.spacing_ratio, config.degeneracy)
+    clock.lap("degeneracy")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
-    return _result(best, pair, verifier, network, searched, clock.timings_ms)
+    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms)
 
 
 def _select(verifier: Verifier) -> Attempt:
@@ -197,17 +205,26 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool) -> Op
     return why + ("; the global search found nothing better" if searched else "")
 
 
-def _result(best: Attempt, pair: PreparedPair, verifier: Verifier, network: NetworkPass, searched: bool, timings_ms: Dict[str, float]) -> RegistrationResult:
+def _result(
+    best: Attempt,
+    pair: PreparedPair,
+    verifier: Verifier,
+    network: NetworkPass,
+    searched: bool,
+    geometry: degeneracy_stage.Degeneracy,
+    timings_ms: Dict[str, float],
+) -> RegistrationResult:
     config = pair.config
     (src, tgt), (src_report, tgt_report) = pair.full, pair.cleaned
+    trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
     return RegistrationResult(
         transformation=best.fine.transformation,
         fitness=best.fine.fitness,
         inlier_rmse=best.fine.inlier_rmse,
         coarse_transformation=best.coarse,
-        confidence=best.trust,
-        likely_failed=best.trust < config.confidence.likely_failed_below,
-        failure_reason=_failure_reason(best, config, searched),
+        confidence=trust,
+        likely_failed=trust < config.confidence.likely_failed_below,
+        failure_reason=geometry.reason or _failure_reason(best, config, searched),
         fitness_tight=best.scored.fitness_tight,
         tight_distance=best.scored.tight_distance,
         consistency=best.scored.consistency,
@@ -222,6 +239,7 @@ def _result(best: Attempt, pair: PreparedPair, verifier: Verifier, network: Netw
         searched=searched,
         network_transformation=network.transformation,
         points_used={"network": (len(pair.net[0]), len(pair.net[1])), "attempts": (len(pair.work[0]), len(pair.work[1])), "final": (len(src), len(tgt))},
+        constraint=geometry.constraint,
         removed={
             "source_non_finite": src_report.non_finite,
             "source_duplicates": src_report.duplicates,

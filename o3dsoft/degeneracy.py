@@ -1,0 +1,99 @@
+"""Whether the geometry determines the pose: a registration of clouds that slide on themselves
+(planes, lines, spheres, cylinders) has no one answer, however well it fits, and is flagged
+rather than trusted.
+
+``constraint`` is the smallest over the largest eigenvalue of the point-to-plane normal equations
+  at the result, H = mean_i J_i^T J_i with J_i = [(c_i x n_i)^T, n_i^T], c_i a matched point
+relative to the matched points' centre over the pair's scale and n_i its partner's surface
+normal. A direction of motion (rotation or translation) that moves no point off the other
+cloud's surface has eigenvalue 0, as in degeneracy-aware ICP (Zhang, Kaess and Singh, ICRA 2016).
+Clouds that share their points (benchmark pairs cut from one point set) are not held to it:
+their points fix the pose where the surface alone does not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Optional
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import refine as refine_stage
+from ._open3d import open3d as o3d
+from .transforms import apply_transform
+
+
+@dataclass(frozen=True)
+class DegeneracyConfig:
+    """Settings of :func:`assess`.
+
+    Attributes:
+        min_constraint: results whose ``constraint`` is below this are flagged (0-1), unless
+            the two clouds share their points: then the points, not the surface, fix the pose.
+        shared_below: the clouds are taken to share points when the confidence's spacing ratio
+            (median distance to the nearest partner over the point spacing) is below this: 0
+            for identical points, about 1 for two samplings of one surface.
+        neighbours: points of a local plane (its normal).
+        max_points: the clouds are voxel-downsampled to about this many points first.
+    """
+
+    min_constraint: float = 2e-3
+    shared_below: float = 0.5
+    neighbours: int = 20
+    max_points: int = 5000
+
+
+class Degeneracy(NamedTuple):
+    """constraint: smallest / largest eigenvalue of the point-to-plane normal equations (0-1,
+    higher is better; 0: some motion leaves the fit unchanged); reason: why the pose is not
+    determined, in words, or None."""
+
+    constraint: float
+    reason: Optional[str]
+
+
+def normals(points: np.ndarray, neighbours: int) -> np.ndarray:
+    """(N, 3) unit normals (sign arbitrary) of an (N, 3) cloud: of the plane through each point's
+    `neighbours` nearest points."""
+    cloud = refine_stage.to_open3d(points)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
+    return np.asarray(cloud.normals)
+
+
+def assess(
+    source: np.ndarray,
+    target: np.ndarray,
+    transformation: np.ndarray,
+    distance: float,
+    scale: float,
+    spacing_ratio: float = 1.0,
+    config: DegeneracyConfig = DegeneracyConfig(),
+) -> Degeneracy:
+    """How well the geometry of the pair determines the pose `transformation`.
+
+    Args:
+        source: (N, 3); target: (M, 3); transformation: (4, 4) T_target_source.
+        distance: points farther than this (cloud units) from the other cloud are not matched.
+        scale: the pair's scale (cloud units), which makes rotations and translations comparable.
+        spacing_ratio: the confidence's spacing ratio at `transformation` (whether the clouds
+            share their points).
+        config: thresholds and sizes.
+    """
+    source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
+    target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
+    target_normals = normals(target, config.neighbours)
+    moved = apply_transform(transformation, source)
+    dist, j = cKDTree(target).query(moved, distance_upper_bound=distance)
+    matched = np.isfinite(dist)
+    constraint = 0.0
+    if matched.sum() >= 6:
+        c = (moved[matched] - moved[matched].mean(axis=0)) / scale
+        n = target_normals[j[matched]]
+        J = np.hstack([np.cross(c, n), n])  # (K, 6): d(residual) / d(rotation, translation)
+        eigenvalues = np.linalg.eigvalsh(J.T @ J / len(J))
+        constraint = float(max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300))
+    reason = None
+    if constraint < config.min_constraint and spacing_ratio >= config.shared_below:
+        reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g})"
+    return Degeneracy(constraint, reason)

@@ -1,0 +1,75 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import o3dsoft
+from o3dsoft import degeneracy
+from o3dsoft.config import SearchConfig
+from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid
+
+from .conftest import EXAMPLES, random_transform
+
+TURN = rigid(euler_to_matrix(np.array([0.0, 0.0, 15.0])), np.array([0.05, 0.0, 0.0]))
+
+
+def square(rng, n=1500):
+    return np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
+
+
+def sphere(rng, n=3000):  # below about 2,000 points, normal noise lifts a sphere's constraint above the threshold
+    u = rng.normal(size=(n, 3))
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def cylinder(rng, n=1500):
+    a = rng.uniform(0, 2 * np.pi, n)
+    return np.c_[np.cos(a), np.sin(a), rng.uniform(-1, 1, n)]
+
+
+def box_surface(rng, n=2000, half=(1.0, 0.6, 0.3)):
+    p = rng.uniform(-1, 1, (n, 3)) * half
+    axis, side = rng.integers(0, 3, n), rng.choice([-1.0, 1.0], n)
+    p[np.arange(n), axis] = side * np.asarray(half)[axis]
+    return p
+
+
+@pytest.mark.parametrize("shape", [square, sphere, cylinder])
+@pytest.mark.parametrize("moved", [False, True])
+def test_shapes_that_slide_on_themselves_come_back_flagged(shape, moved):
+    rng = np.random.default_rng(0)
+    source, target = shape(rng), shape(rng)  # two samplings, as scans are
+    if moved:
+        target = apply_transform(TURN, target)
+    r = o3dsoft.register(source, target, o3dsoft.RegisterConfig(search=SearchConfig(mode="off")))  # no search can help here
+    assert r.likely_failed and r.confidence == 0.0
+    assert "can slide on each other" in r.failure_reason and r.constraint < o3dsoft.RegisterConfig().degeneracy.min_constraint
+
+
+def test_shapes_that_fix_the_pose_pass():
+    rng = np.random.default_rng(1)
+    a, b = box_surface(rng), box_surface(rng)
+    box = degeneracy.assess(a, b, np.eye(4), 0.1, 1.2)
+    assert box.reason is None and box.constraint > 10 * degeneracy.DegeneracyConfig().min_constraint
+    r = o3dsoft.register(o3dsoft.read_points(EXAMPLES / "bun045.ply"), o3dsoft.read_points(EXAMPLES / "bun000.ply"))
+    assert not r.likely_failed and r.constraint > degeneracy.DegeneracyConfig().min_constraint
+
+
+@settings(max_examples=10, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**16))
+def test_the_constraint_does_not_depend_on_the_frame(seed):
+    rng = np.random.default_rng(seed)
+    a, b = box_surface(rng, 800), box_surface(rng, 800)
+    T = random_transform(rng, max_angle=180.0, max_t=5.0)
+    here = degeneracy.assess(a, b, np.eye(4), 0.1, 1.2)
+    there = degeneracy.assess(apply_transform(T, a), apply_transform(T, b), np.eye(4), 0.1, 1.2)
+    assert there.constraint == pytest.approx(here.constraint, rel=1e-6)
+
+
+def test_clouds_that_share_their_points_are_fixed_by_them_not_by_the_surface():
+    rng = np.random.default_rng(2)
+    ball = sphere(rng)
+    shared = degeneracy.assess(ball, ball, np.eye(4), 0.1, 1.0, spacing_ratio=0.0)
+    sampled = degeneracy.assess(ball, sphere(rng), np.eye(4), 0.1, 1.0, spacing_ratio=1.0)
+    assert shared.reason is None and "slide" in sampled.reason
+    assert shared.constraint < degeneracy.DegeneracyConfig().min_constraint  # measured all the same
