@@ -475,15 +475,17 @@ def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]
     return "\n".join(lines)
 
 
-def source_commit() -> Optional[str]:
-    """The git commit o3dsoft runs from, with "+changes" when tracked files differ from it;
-    None when it is not run from a git checkout (an installed wheel) or git is missing."""
-    here = Path(__file__).resolve().parent
+def source_commit(here: Optional[Path] = None) -> Optional[str]:
+    """The git commit o3dsoft (or the folder `here`) runs from, with "+changes" when tracked files
+    differ from it; None when it is not run from a git checkout (an installed wheel) or git is
+    missing. Read only: ``--no-optional-locks`` keeps ``git status`` from rewriting the index."""
+    here = here or Path(__file__).resolve().parent
+    git = ["git", "--no-optional-locks", "-C", str(here)]
     try:
-        head = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
         if head.returncode != 0:
             return None
-        dirty = subprocess.run(["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
         return None
     return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from ._open3d import open3d
-from .errors import InputError
+from .errors import InputError, UsageError
 from .io import atomic_output, make_folder
 from .model import NetConfig, SoftAlignNet, ball_query
 from .transforms import apply_transform, rigid
@@ -259,14 +259,16 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
     elif not Path(path).is_file() and str(path) in bundled_model_names():
         path = bundled_weights_path(str(path))
     path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"{path}: is a folder; expected a model file (.pt)")
     if not path.is_file():
-        raise InputError(f"{path}: weights file not found (shipped models, by name: {', '.join(bundled_model_names())})")
+        raise UsageError(f"{path}: weights file not found (shipped models, by name: {', '.join(bundled_model_names())})")
     try:
         device = torch.device(device)
     except RuntimeError as e:
-        raise InputError(f"invalid device {device!r}: {e}") from None
+        raise UsageError(f"invalid device {device!r}: {e}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("device 'cuda' was asked for but this torch build sees no CUDA GPU")
+        raise UsageError("device 'cuda' was asked for but this torch build sees no CUDA GPU")
     _check_origin(path)
     _check_archive(path)
     extra = {META_NAME: ""}

@@ -10,7 +10,7 @@ from typing import Optional
 
 from .confidence import ConfidenceConfig
 from .degeneracy import DegeneracyConfig
-from .errors import InputError
+from .errors import InputError, UsageError
 from .refine import ICPConfig
 from .search import FeatureMatchConfig
 
@@ -188,7 +188,7 @@ class RegisterConfig:
             raise InputError(f"search.mode={search.mode!r}; valid: {', '.join(SEARCH_MODES)}")
         for name, value in (("num_points", self.num_points), ("search.starts.points", search.starts.points), ("attempt_points", self.attempt_points)):
             if value < k:
-                raise InputError(f"{name}={value} is below the network's neighbourhood size K={k}")
+                raise UsageError(f"{name}={value} is below the network's neighbourhood size K={k}")
         if self.voxel is not None and not self.voxel > 0:
             raise InputError(f"voxel must be positive, got {self.voxel}")
         if search.features.candidates < 1:

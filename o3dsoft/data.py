@@ -18,7 +18,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, UsageError
 from .transforms import euler_to_matrix, random_rotation, rigid, rotation_angle_deg
 
 DATA_ENV = "O3DSOFT_DATA"
@@ -162,13 +162,13 @@ def get_protocol(name: str) -> Protocol:
     try:
         return PROTOCOLS[name]
     except KeyError:
-        raise InputError(f"unknown protocol {name!r}; valid: {', '.join(PROTOCOLS)}") from None
+        raise UsageError(f"unknown protocol {name!r}; valid: {', '.join(PROTOCOLS)}") from None
 
 
 def check_training_recipe(name: str) -> None:
     """InputError unless `name` is a protocol or a mixture."""
     if name not in PROTOCOLS and name not in MIXTURES:
-        raise InputError(f"unknown protocol {name!r}; valid: {', '.join(list(PROTOCOLS) + list(MIXTURES))}")
+        raise UsageError(f"unknown protocol {name!r}; valid: {', '.join(list(PROTOCOLS) + list(MIXTURES))}")
 
 
 def _crop(points: np.ndarray, keep: float, rng: np.random.Generator) -> np.ndarray:

@@ -11,6 +11,7 @@ leaves a half-written output.
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -87,7 +88,8 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         return _read_npy_points(path)
     o3d = _o3d()
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
-        mesh = o3d.io.read_triangle_mesh(str(path))
+        with _quiet_c_stderr():
+            mesh = o3d.io.read_triangle_mesh(str(path))
         vertices = np.asarray(mesh.vertices)
         faces = np.asarray(mesh.triangles)
         if len(faces) > 0:
@@ -100,11 +102,32 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
             if len(vertices) == 0:
                 raise InputError(f"{path}: could not read any vertex or face; is it a valid {ext[1:].upper()} file?")
             raise InputError(f"{path}: mesh has {len(vertices)} vertices but no faces; points are sampled on faces, so a mesh needs at least one")
-    cloud = o3d.io.read_point_cloud(str(path), format="auto")
+    with _quiet_c_stderr():
+        cloud = o3d.io.read_point_cloud(str(path), format="auto")
     points = np.asarray(cloud.points, dtype=np.float64)
     if len(points) == 0:
         raise InputError(f"{path}: parsed to 0 points; is it a valid {ext[1:].upper()} point cloud?")
     return points
+
+
+@contextmanager
+def _quiet_c_stderr() -> Iterator[None]:
+    """Silence what C code writes to the process's stderr (Open3D's PLY reader prints "RPly: ..."
+    lines for a bad file) within the block: o3dsoft reports the problem itself, in one line."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stderr (e.g. captured by a test runner)
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), fd)
+        yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
 
 
 def _vertices_without_faces(path: Path) -> np.ndarray:
@@ -112,10 +135,13 @@ def _vertices_without_faces(path: Path) -> np.ndarray:
     import trimesh
 
     try:
-        mesh = trimesh.load(str(path), process=False, force="mesh")
-        return np.asarray(mesh.vertices)
+        loaded = trimesh.load(str(path), process=False)  # vertices without faces load as a PointCloud
     except Exception:  # any parse failure means: no usable vertices
         return np.zeros((0, 3))
+    if isinstance(loaded, trimesh.Scene):
+        loaded = loaded.dump(concatenate=True) if loaded.geometry else None
+    vertices = getattr(loaded, "vertices", None)
+    return np.zeros((0, 3)) if vertices is None else np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
 
 
 def _read_npy_points(path: Path) -> np.ndarray:

@@ -24,7 +24,7 @@ import torch
 from .coarse import export_torchscript, sha256_of
 from .configfile import read_config, write_config
 from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_recipe, evaluation_protocol, load_pairs, training_parts
-from .errors import InputError, O3dsoftError
+from .errors import InputError, O3dsoftError, UsageError
 from .io import atomic_output, make_folder
 from .metrics import pair_errors, summarise
 from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss, virtual_point_loss
@@ -170,7 +170,7 @@ def _initial_weights(init: str) -> Tuple[dict, dict, dict]:
 
     path = Path(init)
     if not path.is_file() and init not in bundled_model_names():
-        raise InputError(f"{init}: no such checkpoint or model file (shipped models, by name: {', '.join(bundled_model_names())})")
+        raise UsageError(f"{init}: no such checkpoint or model file (shipped models, by name: {', '.join(bundled_model_names())})")
     if path.is_file() and _zipfile_has(path, "data.pkl") and not _zipfile_has(path, "code/"):
         ckpt = _load_checkpoint(path)
         record = {

@@ -181,7 +181,7 @@ def test_an_unusable_pair_is_reported_and_skipped(tmp_path, jobs):
 
 def test_bad_names_and_data(tmp_path, monkeypatch):
     r = _bench(["modelnet40", "--protocol", "dcpp"])
-    assert r.exit_code == 1 and "unknown protocol 'dcpp'; valid: paper, dcp" in r.output
+    assert r.exit_code == 2 and "unknown protocol 'dcpp'; valid: paper, dcp" in r.output
     r = _bench(["modelnet40", "--method", "ransac", "--data", str(tmp_path)])
     assert r.exit_code == 2 and "unknown method 'ransac'; valid: oracle, o3dsoft-coarse, o3dsoft, icp" in r.output
     r = _bench(["modelnet40", "--data", str(tmp_path), "--out", str(tmp_path / "o")])
@@ -459,3 +459,22 @@ def test_an_output_folder_that_cannot_be_created_is_a_one_line_error(modelnet_ro
         assert r.exit_code == 1, r.output
         assert r.output.strip().startswith("Error:") and "cannot create this folder" in r.output and len(r.output.strip().splitlines()) == 1
     assert blocker.read_text() == "in the way" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def test_the_source_commit_is_read_without_writing_to_the_checkout(tmp_path):
+    import subprocess
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args], check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "a.py").write_text("x = 1\n")
+    git("add", "a.py")
+    git("commit", "-q", "-m", "a")
+    index = tmp_path / ".git" / "index"
+    os.utime(tmp_path / "a.py", (1e9, 1e9))  # a stat change a plain `git status` would write into the index
+    before = (index.stat().st_mtime_ns, index.read_bytes())
+    assert bench.source_commit(tmp_path).endswith("+changes") is False
+    (tmp_path / "a.py").write_text("x = 2\n")
+    assert bench.source_commit(tmp_path).endswith("+changes")
+    assert (index.stat().st_mtime_ns, index.read_bytes()) == before and not (tmp_path / ".git" / "index.lock").exists()

@@ -133,6 +133,11 @@ def test_no_refine(pair_files, tiny_model_path):
         (None, ["src.ply", "tgt.pcd", "--out", "no_dir/out.ply"], 1, "folder no_dir does not exist"),
         (None, ["src.ply", "tgt.pcd", "--out", "out.off"], 2, "unknown extension '.off'"),
         (None, ["src.ply", "tgt.pcd", "--points", "0"], 2, "Invalid value for '--points'"),
+        (None, ["src.ply", "tgt.pcd", "--points", "4"], 2, "num_points=4 is below the network's neighbourhood size"),
+        (None, ["src.ply", "tgt.pcd", "--weights", "missing.pt"], 2, "missing.pt: weights file not found"),
+        (lambda d: (d / "wdir").mkdir(), ["src.ply", "tgt.pcd", "--weights", "wdir"], 2, "wdir: is a folder; expected a model file"),
+        (lambda d: (d / "v.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"), ["v.obj", "tgt.pcd"], 1, "v.obj: mesh has 4 vertices but no faces"),
+        (None, ["src.ply", "tgt.pcd", "--device", "tpu9"], 2, "invalid device 'tpu9'"),
         (None, ["src.ply", "tgt.pcd", "--max-rotation", "270"], 2, "Invalid value for '--max-rotation'"),
     ],
 )
@@ -266,3 +271,16 @@ def test_sigterm_while_writing_the_output_leaves_nothing(pair_files, monkeypatch
     assert r.exit_code == 130 and "Interrupted" in r.output
     assert sorted(p.name for p in folder.iterdir()) == before  # neither aligned.ply nor its hidden temporary
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handler is the command's only
+
+
+@pytest.mark.parametrize("content", [b"", b"ply\nformat ascii 1.0\nelement vertex 5\nproperty float x\nend_header\n1\n", b"\x00garbage\xff" * 50])
+def test_a_broken_ply_file_is_one_line_on_stderr(tmp_path, content):
+    """Open3D's PLY reader prints its own "RPly: ..." lines from C; only o3dsoft's line remains."""
+    import subprocess
+    import sys
+
+    (tmp_path / "bad.ply").write_bytes(content)
+    write_points(tmp_path / "good.ply", blob(np.random.default_rng(0), 100))
+    r = subprocess.run([sys.executable, "-m", "o3dsoft.cli.main", "register", "bad.ply", "good.ply"], cwd=tmp_path, capture_output=True, text=True)
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr.startswith("Error: bad.ply") and len(r.stderr.strip().splitlines()) == 1, r.stderr

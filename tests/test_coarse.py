@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from o3dsoft.coarse import load_model
-from o3dsoft.errors import InputError
+from o3dsoft.errors import InputError, UsageError
 from o3dsoft.metrics import rotation_error_deg
 from o3dsoft.transforms import rotation_angle_deg
 
@@ -20,7 +20,7 @@ def test_bad_weights(tmp_path):
     other.save(str(tmp_path / "other.pt"))
     with pytest.raises(InputError, match="other.pt: a TorchScript file, but not an o3dsoft model"):
         load_model(tmp_path / "other.pt")
-    with pytest.raises(InputError, match="weights file not found"):
+    with pytest.raises(UsageError, match="weights file not found"):
         load_model(tmp_path / "missing.pt")
 
 
@@ -31,7 +31,7 @@ def test_shipped_models_load_by_name(tmp_path, monkeypatch):
     paper = load_model("paper")
     assert paper.path.name == "o3dsoft_paper.pt" and paper.meta["info"]["protocol"] == "paper"
     assert load_model("default").meta["info"]["protocol"] == "wide45"
-    with pytest.raises(InputError, match="shipped models, by name: default, paper"):
+    with pytest.raises(UsageError, match="shipped models, by name: default, paper"):
         load_model("nonesuch")
     # A file of that name in the working folder wins over the shipped model.
     import shutil

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from o3dsoft.data import PROTOCOLS, get_protocol, load_modelnet40, load_pairs, make_pair, resolve_data_root
-from o3dsoft.errors import InputError
+from o3dsoft.errors import InputError, UsageError
 from o3dsoft.metrics import rotation_error_deg
 
 from .conftest import apply, blob
@@ -69,7 +69,7 @@ def test_protocol_rotation_ranges(shape):
 
 
 def test_unknown_protocol_lists_valid():
-    with pytest.raises(InputError, match="unknown protocol 'nope'; valid: paper, dcp"):
+    with pytest.raises(UsageError, match="unknown protocol 'nope'; valid: paper, dcp"):
         get_protocol("nope")
 
 
@@ -180,5 +180,5 @@ def test_mixture_parts_and_evaluation_protocol():
         assert any(p.disjoint_share > 0 for p, _ in parts) and any(p.disjoint_share == 0 for p, _ in parts)
         assert evaluation_protocol(name).name == mixture.evaluate
     assert training_parts("dcp") == ((get_protocol("dcp"), 1.0),)
-    with pytest.raises(InputError, match="incongruent-mix"):
+    with pytest.raises(UsageError, match="incongruent-mix"):
         check_training_recipe("nonsense")

@@ -5,7 +5,7 @@ import o3dsoft
 from o3dsoft.coarse import load_model
 from o3dsoft.confidence import ConfidenceConfig
 from o3dsoft.config import FeatureSearchConfig, RegisterConfig, RestartConfig, SearchConfig, StartsConfig
-from o3dsoft.errors import InputError
+from o3dsoft.errors import InputError, UsageError
 from o3dsoft.metrics import pair_errors, rotation_error_deg
 from o3dsoft.pipeline import register
 from o3dsoft.refine import ICPConfig
@@ -84,7 +84,7 @@ def test_bad_clouds(tiny_model_path, cloud, match):
 
 def test_num_points_below_k_rejected(tiny_model_path):
     src, tgt, _ = blob_pair()
-    with pytest.raises(InputError, match="num_points=4 is below the network's neighbourhood size K=8"):
+    with pytest.raises(UsageError, match="num_points=4 is below the network's neighbourhood size K=8"):
         register(src, tgt, RegisterConfig(weights=str(tiny_model_path), num_points=4))
 
 
@@ -176,9 +176,9 @@ def test_search_settings_are_checked():
     src = blob(np.random.default_rng(0), 200)
     with pytest.raises(InputError, match="search.mode='sometimes'; valid: auto, always, off"):
         register(src, src, RegisterConfig(search=SearchConfig(mode="sometimes")), model=model)
-    with pytest.raises(InputError, match="search.starts.points=4 is below the network's neighbourhood size K=8"):
+    with pytest.raises(UsageError, match="search.starts.points=4 is below the network's neighbourhood size K=8"):
         register(src, src, RegisterConfig(search=SearchConfig(starts=StartsConfig(points=4))), model=model)
-    with pytest.raises(InputError, match="attempt_points=4 is below the network's neighbourhood size K=8"):
+    with pytest.raises(UsageError, match="attempt_points=4 is below the network's neighbourhood size K=8"):
         register(src, src, RegisterConfig(attempt_points=4), model=model)
     with pytest.raises(InputError, match="search.features.candidates must be at least 1, got 0"):
         register(src, src, RegisterConfig(search=SearchConfig(features=FeatureSearchConfig(candidates=0))), model=model)

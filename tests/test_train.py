@@ -8,7 +8,7 @@ from click.testing import CliRunner
 
 from o3dsoft.cli.main import main
 from o3dsoft.coarse import load_model, sha256_of
-from o3dsoft.errors import InputError, O3dsoftError
+from o3dsoft.errors import InputError, O3dsoftError, UsageError
 from o3dsoft.model import NetConfig
 from o3dsoft.train import TrainConfig, train
 
@@ -66,7 +66,7 @@ def test_init_from_a_checkpoint(modelnet_root, tmp_path):
     train(_config(modelnet_root, tmp_path / "m", max_steps=1, eval_pairs=0, init=str(tmp_path / "a" / "model.pt")), log=lambda m: None)
     card = json.loads((tmp_path / "m" / "model_card.json").read_text())
     assert card["initialised_from"]["sha256"] == sha256_of(tmp_path / "a" / "model.pt")
-    with pytest.raises(InputError, match="no such checkpoint or model file"):
+    with pytest.raises(UsageError, match="no such checkpoint or model file"):
         train(_config(modelnet_root, tmp_path / "n", max_steps=1, init=str(tmp_path / "missing.pt")))
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(InputError, match="junk.pt"):
@@ -118,7 +118,7 @@ def test_train_cli_missing_data(tmp_path, monkeypatch):
     r = CliRunner().invoke(main, ["train", "--out", str(tmp_path / "o"), "--max-steps", "1"])
     assert r.exit_code == 1 and "O3DSOFT_DATA" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(main, ["train", "--protocol", "bogus"])
-    assert r.exit_code == 1 and "unknown protocol 'bogus'" in r.output
+    assert r.exit_code == 2 and "unknown protocol 'bogus'" in r.output
 
 
 def test_disk_full_while_checkpointing_keeps_the_last_good_checkpoint(modelnet_root, tmp_path, monkeypatch):
