@@ -177,6 +177,9 @@ def register(
             raise click.UsageError(f"{opt} {p}: give a file name with an extension")
     if out_path is not None:
         io.check_extension(out_path, io.WRITE_EXTENSIONS, "--out")
+    for p in (out_path, save_transform, render_path):  # before the work, which can take minutes
+        if p is not None:
+            io.check_writable(p)
     t0 = time.perf_counter()
     src = io.read_points(source, mesh_points=mesh_points)
     tgt = io.read_points(target, mesh_points=mesh_points)
@@ -190,18 +193,6 @@ def register(
     timings_ms = {"read": read_ms, "load_model": load_ms, **result.timings_ms}
     timings_ms["total"] += read_ms + load_ms
     result = dataclasses.replace(result, timings_ms=timings_ms)
-
-    if out_path is not None:
-        io.write_points(out_path, apply_transform(result.transformation, src))
-    if save_transform is not None:
-        io.write_transform(save_transform, result.transformation)
-    if render_path is not None:
-        from ..render import render_registration
-
-        panels = [("input", None), ("network", result.coarse_transformation)]
-        if config.refine:
-            panels.append(("network + ICP", result.transformation))
-        render_registration(render_path, src, tgt, panels)
 
     errors = None
     if T_gt is not None:
@@ -218,8 +209,20 @@ def register(
         click.echo(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: {result.failure_reason}). Check it visually (--render).", err=True
         )
-        if strict:
-            sys.exit(3)
+    # The outputs last, so that a failed write still leaves the result on screen.
+    if out_path is not None:
+        io.write_points(out_path, apply_transform(result.transformation, src))
+    if save_transform is not None:
+        io.write_transform(save_transform, result.transformation)
+    if render_path is not None:
+        from ..render import render_registration
+
+        panels = [("input", None), ("network", result.coarse_transformation)]
+        if config.refine:
+            panels.append(("network + ICP", result.transformation))
+        render_registration(render_path, src, tgt, panels)
+    if result.likely_failed and strict:
+        sys.exit(3)
 
 
 def _errors_dict(e) -> dict:
@@ -246,6 +249,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         f"  inlier RMSE  {result.inlier_rmse:.4g}   units, over those points (lower is better)",
         f"  confidence   {result.confidence:.4f}   estimated probability that the alignment is right (0-1, higher is better)"
         + ("  LIKELY FAILED" if result.likely_failed else ""),
+        f"  constraint   {result.constraint:.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below 0.002: not determined)",
     ]
     if result.searched:
         why = "the first result looked wrong" if search_mode == "auto" else "--search always"

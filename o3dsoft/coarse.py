@@ -288,7 +288,28 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
         raise InputError(f"{path}: model format version {meta['format_version']} is newer than this o3dsoft supports ({FORMAT_VERSION})")
     _check_values(module, path)
     module.eval()
-    return CoarseModel(module, meta, path, device)
+    model = CoarseModel(module, meta, path, device)
+    _check_contract(model)
+    return model
+
+
+def _check_contract(model: CoarseModel) -> None:
+    """Run the network once on two small random clouds and check what it returns, so that a
+    file whose o3dsoft.json describes another network fails here, in one line."""
+    try:
+        k = model.config.k
+        generator = torch.Generator().manual_seed(0)
+        source, target = torch.rand(1, k + 8, 3, generator=generator) - 0.5, torch.rand(1, k + 5, 3, generator=generator) - 0.5
+        with torch.jit.optimized_execution(False):  # a plain run: no profiling, no optimisation kept for these shapes
+            R, t, w = model.run(source, target)
+        ok = tuple(R.shape) == (1, 3, 3) and tuple(t.shape) == (1, 3) and tuple(w.shape) == (1, k + 8)
+    except Exception as e:  # whatever a foreign network raises
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise InputError(f"{model.path}: its network does not run as an o3dsoft model ({first})") from None
+    if not ok:
+        raise InputError(
+            f"{model.path}: its network returns {tuple(R.shape)}, {tuple(t.shape)}, {tuple(w.shape)}; an o3dsoft model returns R (B, 3, 3), t (B, 3), w (B, N)"
+        )
 
 
 class CoarseEstimate(NamedTuple):

@@ -64,7 +64,10 @@ def _read_mapping(path: Path, node, cls: type) -> Dict[str, Any]:
                 raise InputError(f"{path} line {line}: {key!r} must be a mapping")
             out[key] = expected(**_read_mapping(path, value_node, expected))
             continue
-        value = yaml.SafeLoader(" ").construct_object(value_node, deep=True)
+        try:
+            value = yaml.SafeLoader(" ").construct_object(value_node, deep=True)
+        except yaml.YAMLError as e:  # e.g. a !!python/... tag, which the safe loader refuses
+            raise InputError(f"{path} line {line}: {key!r}: {getattr(e, 'problem', None) or e}") from None
         out[key] = _check_type(path, line, key, value, expected)
     return out
 

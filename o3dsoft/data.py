@@ -327,6 +327,9 @@ def _load_hdf5(root: Path, split: str) -> Shapes:
             raise InputError(f"{f}: not a readable HDF5 file ({e})") from None
         if data.ndim != 3 or data.shape[2] < 3 or len(label) != len(data):
             raise InputError(f"{f}: 'data' must be (S, N, 3) with one label per shape, got {data.shape} and {label.shape}")
+        bad = np.flatnonzero(~np.isfinite(data[:, :, :3]).all(axis=(1, 2)))
+        if len(bad):
+            raise InputError(f"{f}: shape {bad[0]} (of {len(bad)} such) has NaN or infinite coordinates")
         if points and data.shape[1] != points[0].shape[1]:
             raise InputError(f"{f}: {data.shape[1]} points per shape, but {files[0].name} has {points[0].shape[1]}")
         points.append(data[:, :, :3])

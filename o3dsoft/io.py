@@ -15,7 +15,7 @@ import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Union
+from typing import Iterator, List, Union
 
 import numpy as np
 
@@ -172,6 +172,31 @@ def make_folder(path: PathLike) -> Path:
     if not os.access(path, os.W_OK | os.X_OK):
         raise InputError(f"{path}: cannot write in this folder (permission denied)")
     return path
+
+
+def check_writable(path: PathLike) -> None:
+    """Raise InputError unless a file can be written at `path`: its folder exists and is
+    writable, and `path` is not a folder (checked before long work, so that it fails at once)."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise InputError(f"{path}: cannot write, folder {folder} does not exist")
+    if path.is_dir():
+        raise InputError(f"{path}: cannot write, it is a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"{path}: cannot write in folder {folder} (permission denied)")
+
+
+def remove_stale_temporaries(folder: PathLike, names) -> List[Path]:
+    """Delete the temporary files :func:`atomic_output` leaves beside the files `names` of
+    `folder` when a process is killed outright (kill -9, a power cut) mid-write; returns them."""
+    stale = []
+    for name in names:
+        stem, suffix = Path(name).stem, Path(name).suffix
+        stale += [p for p in Path(folder).glob(f".{stem}.*{suffix}") if p.is_file()]
+    for p in stale:
+        p.unlink()
+    return stale
 
 
 @contextmanager

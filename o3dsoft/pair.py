@@ -28,11 +28,16 @@ def as_points(cloud: CloudLike, name: str) -> np.ndarray:
     """An Open3D PointCloud or an (N, 3) array-like -> (N, 3) float64 array."""
     if hasattr(cloud, "points") and not isinstance(cloud, np.ndarray):
         return np.asarray(cloud.points, dtype=np.float64)
-    arr = np.asarray(cloud)
+    if hasattr(cloud, "detach") and hasattr(cloud, "cpu"):  # a torch tensor, perhaps on a GPU or with a gradient
+        cloud = cloud.detach().cpu().numpy()
+    try:
+        arr = np.asarray(cloud)
+    except ValueError as e:  # ragged nested lists
+        raise InputError(f"{name}: expected points of shape (N, 3), got rows of different lengths ({e})") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError(f"{name}: expected points of shape (N, 3), got {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.number):
-        raise InputError(f"{name}: expected numeric points, got dtype {arr.dtype}")
+    if np.iscomplexobj(arr) or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise InputError(f"{name}: expected real numeric points, got dtype {arr.dtype}")
     return arr.astype(np.float64, copy=False)
 
 

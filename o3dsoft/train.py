@@ -14,9 +14,10 @@ import sys
 import time
 import traceback
 import warnings
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -25,11 +26,13 @@ from .coarse import export_torchscript, sha256_of
 from .configfile import read_config, write_config
 from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_recipe, evaluation_protocol, load_pairs, training_parts
 from .errors import InputError, O3dsoftError, UsageError
-from .io import atomic_output, make_folder
+from .io import atomic_output, make_folder, remove_stale_temporaries
 from .metrics import pair_errors, summarise
 from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss, virtual_point_loss
 from .preprocess import denormalise_transform, normalisation_for, normalise_pair, normalise_transform
 from .transforms import rigid
+
+RUN_FILES = ("checkpoint.pt", "model.pt", "model_card.json", "config.json", "config.yaml")  # what a run folder holds
 
 
 @dataclass
@@ -160,7 +163,28 @@ def _load_checkpoint(path: Path) -> dict:
         raise InputError(f"{path}: unreadable checkpoint ({e})") from None
     if not isinstance(ckpt, dict) or not {"model", "config", "state"} <= set(ckpt):
         raise InputError(f"{path}: not an o3dsoft training checkpoint (expected the checkpoint.pt of a run folder, not an exported model)")
+    with _damaged(path):
+        _check_finite(ckpt["model"], path)
     return ckpt
+
+
+@contextmanager
+def _damaged(path: Path) -> Iterator[None]:
+    """Errors from a checkpoint's contents (missing keys, wrong shapes, a bad RNG state) as one
+    InputError naming the file."""
+    try:
+        yield
+    except (KeyError, RuntimeError, ValueError, TypeError, IndexError) as e:
+        first = (str(e).strip().splitlines() or [""])[0]
+        raise InputError(f"{path}: damaged or incompatible checkpoint ({type(e).__name__}: {first})") from None
+
+
+def _check_finite(weights: dict, path: Path) -> None:
+    """Every floating tensor of a state dict is finite: NaN weights would fail only later, deep in
+    the training step."""
+    for name, tensor in weights.items():
+        if torch.is_tensor(tensor) and tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise InputError(f"{path}: the weights {name} hold NaN or infinite values")
 
 
 def _initial_weights(init: str) -> Tuple[dict, dict, dict]:
@@ -383,6 +407,7 @@ def _splits(config: TrainConfig, protocol) -> Tuple[PairDataset, Optional[PairDa
 def _write_settings(out: Path, config: TrainConfig) -> None:
     """The settings actually used, as config.json and config.yaml in the run folder."""
     make_folder(out)
+    remove_stale_temporaries(out, RUN_FILES)
     with atomic_output(out / "config.json") as tmp:
         tmp.write_text(json.dumps(config.to_dict(), indent=2))
     with atomic_output(out / "config.yaml") as tmp:
@@ -431,15 +456,20 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         # start from weights trained either way.
         if replace(NetConfig.from_dict(init_net), relative=config.net.relative) != config.net:
             raise InputError(f"{config.init}: its network settings differ from this run's ({init_net})")
-        model.load_state_dict(weights)
+        with _damaged(Path(config.init)):
+            model.load_state_dict(weights)
     state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "history": [], "seconds": 0.0}
     ckpt: dict = {}
     if resume:
         ckpt = _resume_checkpoint(ckpt_path, config, world)
-        model.load_state_dict(ckpt["model"])
-        state = ckpt["state"]
-        init_record = ckpt.get("init")
-        torch.set_rng_state(ckpt["torch_rng"])
+        with _damaged(ckpt_path):
+            model.load_state_dict(ckpt["model"])
+            missing = set(state) - set(ckpt["state"])
+            if missing:
+                raise KeyError(f"state lacks {', '.join(sorted(missing))}")
+            state = ckpt["state"]
+            init_record = ckpt.get("init")
+            torch.set_rng_state(ckpt["torch_rng"])
         log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
 
     train_pairs, test_pairs = _splits(config, protocol)
@@ -452,9 +482,10 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, _lr_factor(config, total_steps))
     if resume:
         # After the scheduler's construction, which resets the learning rate to the schedule's start.
-        optimiser.load_state_dict(ckpt["optimiser"])
-        if "scheduler" in ckpt:  # checkpoints of earlier versions had none (constant lr)
-            scheduler.load_state_dict(ckpt["scheduler"])
+        with _damaged(ckpt_path):
+            optimiser.load_state_dict(ckpt["optimiser"])
+            if "scheduler" in ckpt:  # checkpoints of earlier versions had none (constant lr)
+                scheduler.load_state_dict(ckpt["scheduler"])
     if lead:
         _write_settings(out, config)
     net = model

@@ -284,3 +284,27 @@ def test_a_broken_ply_file_is_one_line_on_stderr(tmp_path, content):
     r = subprocess.run([sys.executable, "-m", "o3dsoft.cli.main", "register", "bad.ply", "good.ply"], cwd=tmp_path, capture_output=True, text=True)
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr.startswith("Error: bad.ply") and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_outputs_are_checked_before_the_work_and_a_failed_write_keeps_the_result(pair_files, tiny_model_path, monkeypatch):
+    import o3dsoft.pipeline as pipeline_module
+
+    d, _, _ = pair_files
+    monkeypatch.chdir(d)
+    calls = []
+    real = pipeline_module.register
+    monkeypatch.setattr(pipeline_module, "register", lambda *a, **k: calls.append(1) or real(*a, **k))
+    base = ["register", "src.ply", "tgt.pcd", "--weights", str(tiny_model_path)]
+    r = CliRunner().invoke(main, [*base, "--out", "aligned.ply", "--save-transform", "no_dir/T.txt"])
+    assert r.exit_code == 1 and "no_dir/T.txt: cannot write, folder no_dir does not exist" in r.output
+    assert calls == [] and not (d / "aligned.ply").exists()  # no registration ran, nothing written
+
+    import o3dsoft.io as io_module
+    from o3dsoft.errors import InputError
+
+    def full(path, T):
+        raise InputError(f"{path}: cannot write (No space left on device)")
+
+    monkeypatch.setattr(io_module, "write_transform", full)
+    r = CliRunner().invoke(main, [*base, "--save-transform", "T.txt"])
+    assert r.exit_code == 1 and "T_target_source" in r.output and "No space left on device" in r.output  # the result was printed first

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+import torch
 
 from o3dsoft.coarse import load_model
 from o3dsoft.errors import InputError, UsageError
@@ -180,3 +181,21 @@ def test_shipped_models_are_checked_against_their_card_and_other_files_warn_once
         load_model(other)
         load_model(other)
     assert len([w for w in caught if w.category is UntrustedModelWarning]) == 1
+
+
+class _Echo(torch.nn.Module):
+    def forward(self, source: torch.Tensor, target: torch.Tensor):
+        return source, target, source
+
+
+@pytest.mark.parametrize("module, match", [(torch.nn.Linear(3, 3), "its network does not run as an o3dsoft model"), (_Echo(), "its network returns")])
+def test_a_file_whose_card_describes_another_network_is_refused(tmp_path, module, match):
+    import json
+
+    from o3dsoft.coarse import FORMAT, FORMAT_VERSION, META_NAME
+    from o3dsoft.model import NetConfig
+
+    meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "net": NetConfig().to_dict(), "info": {}}
+    torch.jit.script(module).save(str(tmp_path / "impostor.pt"), _extra_files={META_NAME: json.dumps(meta)})
+    with pytest.raises(InputError, match=f"impostor.pt: {match}"):
+        load_model(tmp_path / "impostor.pt")

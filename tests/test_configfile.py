@@ -41,6 +41,7 @@ def test_values_are_checked_and_converted(tmp_path):
         ("net: 3\n", r"line 1: expected a mapping of NetConfig settings"),
         ("- epochs\n", r"expected a mapping of TrainConfig settings"),
         ("epochs: [1\n", r"train.yaml line 2: not valid YAML"),
+        ('epochs: !!python/object/apply:os.system ["touch pwned"]\n', r"line 1: 'epochs': could not determine a constructor for the tag"),
     ],
 )
 def test_bad_config_files(tmp_path, text, message):

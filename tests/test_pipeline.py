@@ -292,3 +292,16 @@ def test_a_doubtful_result_is_searched_further_when_asked(modelnet_root):
     assert runs[False, 0.9].screened == 0 and 0.5 <= runs[False, 0.9].confidence < 0.9
     assert runs[True, 0.9].screened > 0 and runs[True, 0.9].attempts >= runs[False, 0.9].attempts
     assert runs[True, 0.9].confidence >= runs[False, 0.9].confidence  # the most trusted of more estimates
+
+
+def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
+    import torch
+
+    from o3dsoft.pair import as_points
+
+    grad = torch.rand(50, 3, requires_grad=True)
+    assert np.array_equal(as_points(grad, "source"), grad.detach().numpy().astype(np.float64))
+    with pytest.raises(InputError, match="source: expected points of shape \\(N, 3\\), got rows of different lengths"):
+        as_points([[1.0, 2.0, 3.0], [1.0, 2.0]], "source")
+    with pytest.raises(InputError, match="target: expected real numeric points, got dtype complex128"):
+        as_points(np.ones((50, 3), dtype=complex), "target")  # the imaginary part is not silently dropped

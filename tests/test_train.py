@@ -211,3 +211,53 @@ def test_the_point_loss_changes_the_training_and_is_recorded(modelnet_root, tmp_
     assert np.isfinite(losses).all() and losses[1] > losses[0]  # the same first pairs, a further term
     with pytest.raises(InputError, match="point_loss"):
         _config(modelnet_root, tmp_path / "bad", point_loss=-1.0).validate()
+
+
+def test_temporaries_left_by_a_killed_checkpoint_write_are_removed(modelnet_root, tmp_path):
+    tmp_path.mkdir(exist_ok=True)
+    stale = [tmp_path / ".checkpoint.abc123.pt", tmp_path / ".model.x9.pt"]
+    for p in stale:
+        p.write_bytes(b"half a checkpoint")  # what kill -9 during torch.save leaves
+    (tmp_path / ".keep.me.pt").write_bytes(b"not ours")
+    train(_config(modelnet_root, tmp_path, max_steps=1, eval_pairs=0), log=lambda m: None)
+    assert not any(p.exists() for p in stale) and (tmp_path / ".keep.me.pt").exists()
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda c: c.pop("optimiser"), "damaged or incompatible checkpoint \\(KeyError: 'optimiser'\\)"),
+        (lambda c: c["state"].pop("global_step"), "state lacks global_step"),
+        (lambda c: c.update(torch_rng=torch.zeros(3)), "damaged or incompatible checkpoint"),
+        (
+            lambda c: c["model"].update({k: v[:1] for k, v in c["model"].items() if v.dim() and len(v) > 1}),
+            "damaged or incompatible checkpoint \\(RuntimeError",
+        ),
+        (
+            lambda c: next(v for v in c["model"].values() if v.is_floating_point() and v.numel() > 1).view(-1).__setitem__(0, float("nan")),
+            "hold NaN or infinite values",
+        ),
+    ],
+)
+def test_a_damaged_checkpoint_is_one_error_naming_it(modelnet_root, tmp_path, damage, message):
+    train(_config(modelnet_root, tmp_path, max_steps=1, eval_pairs=0), log=lambda m: None)
+    path = tmp_path / "checkpoint.pt"
+    ckpt = torch.load(path, weights_only=True)
+    damage(ckpt)
+    torch.save(ckpt, path)
+    with pytest.raises(InputError, match=message):
+        train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
+
+
+def test_training_data_with_nan_coordinates_is_refused_by_name(tmp_path):
+    import h5py
+
+    from o3dsoft.data import get_protocol, load_pairs
+
+    points = np.random.default_rng(0).normal(size=(4, 32, 3)).astype(np.float32)
+    points[2, 5, 1] = np.nan
+    with h5py.File(tmp_path / "ply_data_train0.h5", "w") as h5:
+        h5["data"], h5["label"] = points, np.zeros((4, 1), dtype=np.int64)
+    (tmp_path / "shape_names.txt").write_text("thing\n")
+    with pytest.raises(InputError, match="ply_data_train0.h5: shape 2 \\(of 1 such\\) has NaN or infinite coordinates"):
+        load_pairs(tmp_path, "train", get_protocol("dcp"), 0)
