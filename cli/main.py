@@ -250,6 +250,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         f"  confidence   {result.confidence:.4f}   estimated probability that the alignment is right (0-1, higher is better)"
         + ("  LIKELY FAILED" if result.likely_failed else ""),
         f"  constraint   {result.constraint:.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below 0.002: not determined)",
+        f"  flatness     {result.flatness:.3f}   fit 30 degrees away over the result's (0-1, lower is better; from 0.85: not determined)",
     ]
     if result.searched:
         why = "the first result looked wrong" if search_mode == "auto" else "--search always"

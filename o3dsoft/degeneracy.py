@@ -1,27 +1,34 @@
 """Whether the geometry determines the pose: a registration of clouds that slide on themselves
-(planes, lines, spheres, cylinders) has no one answer, however well it fits, and is flagged
-rather than trusted.
+(planes, lines, spheres, cylinders) or that fill a volume has no one answer, however well it
+fits, and is flagged rather than trusted. Two measurements:
 
 ``constraint`` is the smallest over the largest eigenvalue of the point-to-plane normal equations
   at the result, H = mean_i J_i^T J_i with J_i = [(c_i x n_i)^T, n_i^T], c_i a matched point
 relative to the matched points' centre over the pair's scale and n_i its partner's surface
 normal. A direction of motion (rotation or translation) that moves no point off the other
 cloud's surface has eigenvalue 0, as in degeneracy-aware ICP (Zhang, Kaess and Singh, ICRA 2016).
-Clouds that share their points (benchmark pairs cut from one point set) are not held to it:
+
+``flatness`` is how well the clouds still fit with the source turned 30 degrees about its centre,
+about each axis either way: the best of those six consistencies (scaled down by any overlap
+lost) over the result's own. Points that fill a volume, or a ball, fit about as well at any
+turn (0.85-1.0); surfaces that fix the pose lose most of their fit (0.2-0.55 on real scans).
+
+Clouds that share their points (benchmark pairs cut from one point set) are held to neither:
 their points fix the pose where the surface alone does not.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from . import refine as refine_stage
 from ._open3d import open3d as o3d
-from .transforms import apply_transform
+from .confidence import Features, Scorer
+from .transforms import apply_transform, euler_to_matrix, rigid
 
 
 @dataclass(frozen=True)
@@ -31,6 +38,8 @@ class DegeneracyConfig:
     Attributes:
         min_constraint: results whose ``constraint`` is below this are flagged (0-1), unless
             the two clouds share their points: then the points, not the surface, fix the pose.
+        max_flatness: results whose ``flatness`` reaches this are flagged (0-1).
+        turn_deg: the turn of the source that ``flatness`` tries (degrees).
         shared_below: the clouds are taken to share points when the confidence's spacing ratio
             (median distance to the nearest partner over the point spacing) is below this: 0
             for identical points, about 1 for two samplings of one surface.
@@ -39,6 +48,8 @@ class DegeneracyConfig:
     """
 
     min_constraint: float = 2e-3
+    max_flatness: float = 0.85
+    turn_deg: float = 30.0
     shared_below: float = 0.5
     neighbours: int = 20
     max_points: int = 5000
@@ -46,10 +57,12 @@ class DegeneracyConfig:
 
 class Degeneracy(NamedTuple):
     """constraint: smallest / largest eigenvalue of the point-to-plane normal equations (0-1,
-    higher is better; 0: some motion leaves the fit unchanged); reason: why the pose is not
-    determined, in words, or None."""
+    higher is better; 0: some motion leaves the fit unchanged); flatness: the best fit 30 degrees
+    away over the result's (0-1, lower is better; about 1: any turn fits as well); reason: why the
+    pose is not determined, in words, or None."""
 
     constraint: float
+    flatness: float
     reason: Optional[str]
 
 
@@ -69,6 +82,7 @@ def assess(
     scale: float,
     spacing_ratio: float = 1.0,
     config: DegeneracyConfig = DegeneracyConfig(),
+    scorer: Optional[Callable[[np.ndarray], Features]] = None,
 ) -> Degeneracy:
     """How well the geometry of the pair determines the pose `transformation`.
 
@@ -79,6 +93,8 @@ def assess(
         spacing_ratio: the confidence's spacing ratio at `transformation` (whether the clouds
             share their points).
         config: thresholds and sizes.
+        scorer: the confidence's measurements of an alignment of these clouds (built here when
+            not given).
     """
     source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
     target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
@@ -93,7 +109,26 @@ def assess(
         J = np.hstack([np.cross(c, n), n])  # (K, 6): d(residual) / d(rotation, translation)
         eigenvalues = np.linalg.eigvalsh(J.T @ J / len(J))
         constraint = float(max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300))
+    flatness = _flatness(scorer or Scorer(source, target, distance), transformation, moved.mean(axis=0), config.turn_deg)
     reason = None
-    if constraint < config.min_constraint and spacing_ratio >= config.shared_below:
-        reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g})"
-    return Degeneracy(constraint, reason)
+    if spacing_ratio >= config.shared_below:
+        if constraint < config.min_constraint:
+            reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g})"
+        elif flatness >= config.max_flatness:
+            reason = f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): points that fill a volume or a ball do not determine the pose"
+    return Degeneracy(constraint, flatness, reason)
+
+
+def _flatness(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, centre: np.ndarray, turn_deg: float) -> float:
+    """The best consistency of the source turned by `turn_deg` about `centre` (3,), about each axis
+    either way, each scaled by the share of the result's overlap it keeps, over the result's."""
+    base = scorer(transformation)
+    if base.consistency <= 0:
+        return 0.0
+    best = 0.0
+    for axis in np.eye(3):
+        for sign in (1.0, -1.0):
+            R = euler_to_matrix(sign * turn_deg * axis)
+            turned = scorer(rigid(R, centre - R @ centre) @ transformation)
+            best = max(best, turned.consistency * min(1.0, turned.overlap / max(base.overlap, 1e-12)))
+    return best / base.consistency

@@ -69,6 +69,9 @@ class RegistrationResult:
             the point-to-plane normal equations at the result (0-1, higher is better; below
             ``degeneracy.min_constraint`` the result is flagged with confidence 0, unless the
             clouds share their points).
+        flatness: how well the clouds still fit with the source turned 30 degrees, over the
+            result's fit (0-1, lower is better; from ``degeneracy.max_flatness`` = 0.85 the result
+            is flagged with confidence 0, unless the clouds share their points).
     """
 
     transformation: np.ndarray
@@ -93,6 +96,7 @@ class RegistrationResult:
     network_transformation: Optional[np.ndarray] = None
     points_used: Dict[str, Tuple[int, int]] = field(default_factory=dict)
     constraint: float = 1.0
+    flatness: float = 0.0
     failure_reason: Optional[str] = None
 
     def to_dict(self) -> dict:
@@ -168,7 +172,10 @@ def register(
         # Only the tight stages: the loose first one would pull the converged estimate towards
         # the parts with no partner (partial overlap) and cost the most.
         best = verifier.refine(best.fine.transformation, best.coarse, "full", config.icp.tight())
-    geometry = degeneracy_stage.assess(*pair.work, best.fine.transformation, pair.distance, pair.norm.scale, best.scored.spacing_ratio, config.degeneracy)
+    # On the screen clouds (evenly spaced, at most search.screen.points): a test that can only flag.
+    geometry = degeneracy_stage.assess(
+        *pair.clouds("screen"), best.fine.transformation, pair.distance, pair.norm.scale, best.scored.spacing_ratio, config.degeneracy, pair.scorer("screen")
+    )
     clock.lap("degeneracy")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
     return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms)
@@ -240,6 +247,7 @@ def _result(
         network_transformation=network.transformation,
         points_used={"network": (len(pair.net[0]), len(pair.net[1])), "attempts": (len(pair.work[0]), len(pair.work[1])), "final": (len(src), len(tgt))},
         constraint=geometry.constraint,
+        flatness=geometry.flatness,
         removed={
             "source_non_finite": src_report.non_finite,
             "source_duplicates": src_report.duplicates,

@@ -43,16 +43,29 @@ def test_shapes_that_slide_on_themselves_come_back_flagged(shape, moved):
         target = apply_transform(TURN, target)
     r = o3dsoft.register(source, target, o3dsoft.RegisterConfig(search=SearchConfig(mode="off")))  # no search can help here
     assert r.likely_failed and r.confidence == 0.0
-    assert "can slide on each other" in r.failure_reason and r.constraint < o3dsoft.RegisterConfig().degeneracy.min_constraint
+    limits = o3dsoft.RegisterConfig().degeneracy
+    if shape is sphere:  # on the 1,024 screen points its normals are too noisy for the constraint; it fits as well turned
+        assert "fit about as well turned" in r.failure_reason and r.flatness >= limits.max_flatness
+    else:
+        assert "can slide on each other" in r.failure_reason and r.constraint < limits.min_constraint
+
+
+@pytest.mark.parametrize("cloud", ["volume", "sparse sphere"])
+def test_clouds_that_fit_as_well_at_any_turn_come_back_flagged(cloud):
+    rng = np.random.default_rng(3)
+    make = {"volume": lambda: rng.uniform(-1, 1, (3000, 3)), "sparse sphere": lambda: sphere(rng, 1000)}[cloud]
+    r = o3dsoft.register(make(), apply_transform(TURN, make()), o3dsoft.RegisterConfig(search=SearchConfig(mode="off")))
+    assert r.likely_failed and r.confidence == 0.0 and r.flatness >= 0.85
+    assert "fit about as well turned 30 degrees" in r.failure_reason or "can slide on each other" in r.failure_reason
 
 
 def test_shapes_that_fix_the_pose_pass():
     rng = np.random.default_rng(1)
     a, b = box_surface(rng), box_surface(rng)
     box = degeneracy.assess(a, b, np.eye(4), 0.1, 1.2)
-    assert box.reason is None and box.constraint > 10 * degeneracy.DegeneracyConfig().min_constraint
+    assert box.reason is None and box.constraint > 10 * degeneracy.DegeneracyConfig().min_constraint and box.flatness < 0.7
     r = o3dsoft.register(o3dsoft.read_points(EXAMPLES / "bun045.ply"), o3dsoft.read_points(EXAMPLES / "bun000.ply"))
-    assert not r.likely_failed and r.constraint > degeneracy.DegeneracyConfig().min_constraint
+    assert not r.likely_failed and r.constraint > degeneracy.DegeneracyConfig().min_constraint and r.flatness < 0.5
 
 
 @settings(max_examples=10, deadline=None, derandomize=True)
