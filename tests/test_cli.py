@@ -308,3 +308,11 @@ def test_outputs_are_checked_before_the_work_and_a_failed_write_keeps_the_result
     monkeypatch.setattr(io_module, "write_transform", full)
     r = CliRunner().invoke(main, [*base, "--save-transform", "T.txt"])
     assert r.exit_code == 1 and "T_target_source" in r.output and "No space left on device" in r.output  # the result was printed first
+
+
+def test_register_help_lists_only_the_formats_it_writes():
+    import re
+
+    text = CliRunner().invoke(main, ["register", "--help"]).output
+    listed = set(re.findall(r"\.(ply|pcd|xyzrgb|xyzn|xyz|pts|npy)\b", text.split("--out", 1)[1].split("--save-transform", 1)[0]))
+    assert listed == {"ply", "pcd", "xyz", "xyzn", "pts", "npy"}

@@ -261,3 +261,26 @@ def test_training_data_with_nan_coordinates_is_refused_by_name(tmp_path):
     (tmp_path / "shape_names.txt").write_text("thing\n")
     with pytest.raises(InputError, match="ply_data_train0.h5: shape 2 \\(of 1 such\\) has NaN or infinite coordinates"):
         load_pairs(tmp_path, "train", get_protocol("dcp"), 0)
+
+
+class _Payload:
+    """Pickles to a call that creates a file: what a crafted checkpoint would run on load."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_a_checkpoint_carrying_code_is_refused_without_running_it(modelnet_root, tmp_path):
+    train(_config(modelnet_root, tmp_path, max_steps=1, eval_pairs=0), log=lambda m: None)
+    marker = tmp_path / "ran"
+    ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    ckpt["state"]["payload"] = _Payload(marker)
+    torch.save(ckpt, tmp_path / "checkpoint.pt")
+    with pytest.raises(InputError, match="unreadable checkpoint"):
+        train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
+    with pytest.raises(InputError, match="unreadable checkpoint"):
+        train(_config(modelnet_root, tmp_path / "b", max_steps=1, eval_pairs=0, init=str(tmp_path / "checkpoint.pt")), log=lambda m: None)
+    assert not marker.exists()
