@@ -28,6 +28,7 @@ MESH_ONLY_EXTENSIONS = (".off", ".obj", ".stl", ".glb", ".gltf", ".fbx")
 READ_EXTENSIONS = POINT_EXTENSIONS + MESH_ONLY_EXTENSIONS + (".npy",)
 WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy")
 DEFAULT_MESH_POINTS = 20_000
+READ_TOLERANCE = 1e-3  # |R^T R - I| a transform file may have (rounded published ground truths)
 
 
 def _o3d():
@@ -281,10 +282,13 @@ def read_transform(path: PathLike) -> np.ndarray:
 
     A 3x4 [R | t] text is accepted too (the last row is implied).
 
+    Published ground truths are often rounded (3DMatch's are orthonormal to about 2e-4): a
+    rotation block within 1e-3 of orthonormal is accepted and replaced by the nearest rotation.
+
     Raises:
         UsageError: missing file.
         InputError: names the line and what was wrong: non-numeric value, wrong shape, or not a
-            rigid transform (R not orthonormal with det +1 within 1e-4, last row not 0 0 0 1).
+            rigid transform (R not orthonormal with det +1 within 1e-3, last row not 0 0 0 1).
     """
     path = Path(path)
     _check_readable(path)
@@ -302,7 +306,10 @@ def read_transform(path: PathLike) -> np.ndarray:
         T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
     if T.shape != (4, 4):
         raise InputError(f"{path}: expected a 4x4 transform (or 3x4 [R|t]), got shape {T.shape}")
-    check_rigid(T, str(path))
+    check_rigid(T, str(path), tol=READ_TOLERANCE)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    T = T.copy()
+    T[:3, :3] = U @ Vt  # the nearest rotation (det +1, as checked)
     return T
 
 

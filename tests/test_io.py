@@ -179,3 +179,29 @@ def test_a_full_tmpfs_leaves_nothing_under_the_final_name(tmp_path, pts):
         assert [p.name for p in mount.iterdir()] == ["filler"]
     finally:
         subprocess.run(["umount", "--lazy", str(mount)], check=True)
+
+
+def test_a_rounded_ground_truth_is_taken_as_the_nearest_rotation(tmp_path):
+    rng = np.random.default_rng(0)
+    from o3dsoft.transforms import euler_to_matrix
+
+    R = euler_to_matrix(np.array([10.0, -35.0, 120.0]))
+    rounded = np.round(R, 4)  # as published: about 1e-4 off orthonormal
+    (tmp_path / "gt.txt").write_text("\n".join(" ".join(f"{v:.4f}" for v in row) for row in np.c_[rounded, rng.normal(size=3)]) + "\n0 0 0 1\n")
+    T = read_transform(tmp_path / "gt.txt")
+    assert np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() < 1e-12 and np.linalg.det(T[:3, :3]) > 0
+    assert np.abs(T[:3, :3] - R).max() < 1e-4
+    (tmp_path / "off.txt").write_text("1.01 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")  # 2e-2 off: a wrong file, not rounding
+    with pytest.raises(InputError, match="off.txt: not a rigid transform"):
+        read_transform(tmp_path / "off.txt")
+
+
+def test_the_real_scans_ground_truths_read(tmp_path):
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_scans" / "3dmatch_redkitchen"
+    if not folder.is_dir():
+        pytest.skip("no shared real scans here")
+    for path in sorted(folder.glob("gt_*.txt")):
+        T = read_transform(path)
+        assert np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() < 1e-12
