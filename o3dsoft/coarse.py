@@ -105,14 +105,24 @@ def _check_archive(path: Path) -> None:
         raise InputError(f"{path}: the model file is corrupted ({bad} fails its checksum)")
 
 
+def non_finite_weight(weights: Dict[str, Any]) -> Optional[str]:
+    """The name of the first floating tensor of a state dict that holds NaN or infinite values;
+    None when there is none."""
+    for name, tensor in weights.items():
+        if torch.is_tensor(tensor) and tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            return name
+    return None
+
+
 def _check_values(module: torch.jit.ScriptModule, path: Path) -> None:
     """Every parameter and buffer is finite and of a plausible size."""
-    for name, tensor in module.state_dict().items():
-        if tensor.is_floating_point() and tensor.numel():
-            if not bool(torch.isfinite(tensor).all()):
-                raise InputError(f"{path}: the model's {name} holds NaN or infinite values (a corrupted file)")
-            if float(tensor.abs().max()) > MAX_WEIGHT:
-                raise InputError(f"{path}: the model's {name} holds values above {MAX_WEIGHT:g} (a corrupted file)")
+    weights = module.state_dict()
+    bad = non_finite_weight(weights)
+    if bad is not None:
+        raise InputError(f"{path}: the model's {bad} holds NaN or infinite values (a corrupted file)")
+    for name, tensor in weights.items():
+        if tensor.is_floating_point() and tensor.numel() and float(tensor.abs().max()) > MAX_WEIGHT:
+            raise InputError(f"{path}: the model's {name} holds values above {MAX_WEIGHT:g} (a corrupted file)")
 
 
 def sha256_of(path: Union[str, Path]) -> str:

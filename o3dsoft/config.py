@@ -218,5 +218,5 @@ class RegisterConfig:
         if not 0 <= degeneracy.min_constraint < 1 or degeneracy.neighbours < 3 or degeneracy.shared_below < 0 or not degeneracy.max_flatness > 0:
             raise InputError(
                 "degeneracy: min_constraint must be in [0, 1), neighbours at least 3, shared_below not negative and max_flatness positive; "
-                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.shared_below}"
+                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.shared_below}, {degeneracy.max_flatness}"
             )

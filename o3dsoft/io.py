@@ -15,7 +15,7 @@ import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, List, Union
+from typing import Iterator, List, Tuple, Union
 
 import numpy as np
 
@@ -193,8 +193,8 @@ def remove_stale_temporaries(folder: PathLike, names) -> List[Path]:
     `folder` when a process is killed outright (kill -9, a power cut) mid-write; returns them."""
     stale = []
     for name in names:
-        stem, suffix = Path(name).stem, Path(name).suffix
-        stale += [p for p in Path(folder).glob(f".{stem}.*{suffix}") if p.is_file()]
+        prefix, suffix = _temporary_affixes(Path(name))
+        stale += [p for p in Path(folder).glob(f"{prefix}*{suffix}") if p.is_file()]
     for p in stale:
         p.unlink()
     return stale
@@ -206,14 +206,13 @@ def atomic_output(path: PathLike) -> Iterator[Path]:
     the file reaches the disk.
 
     The temporary name keeps the extension, so writers that pick a format by extension work.
-    Raises InputError if the folder does not exist or is not writable.
+    Raises InputError if the file cannot be written there (:func:`check_writable`).
     """
     path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise InputError(f"{path}: cannot write, folder {folder} does not exist")
+    check_writable(path)
+    prefix, suffix = _temporary_affixes(path)
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=folder)
+        fd, tmp_name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     except OSError as e:
         raise InputError(f"{path}: cannot write ({e.strerror})") from None
     os.close(fd)
@@ -228,6 +227,12 @@ def atomic_output(path: PathLike) -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _temporary_affixes(path: Path) -> Tuple[str, str]:
+    """The prefix and suffix of :func:`atomic_output`'s temporary names for `path`: hidden, and
+    with the extension kept."""
+    return f".{path.stem}.", path.suffix
 
 
 def _umask() -> int:

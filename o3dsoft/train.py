@@ -22,7 +22,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tupl
 import numpy as np
 import torch
 
-from .coarse import export_torchscript, sha256_of
+from .coarse import export_torchscript, non_finite_weight, sha256_of
 from .configfile import read_config, write_config
 from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_recipe, evaluation_protocol, load_pairs, training_parts
 from .errors import InputError, O3dsoftError, UsageError
@@ -164,7 +164,9 @@ def _load_checkpoint(path: Path) -> dict:
     if not isinstance(ckpt, dict) or not {"model", "config", "state"} <= set(ckpt):
         raise InputError(f"{path}: not an o3dsoft training checkpoint (expected the checkpoint.pt of a run folder, not an exported model)")
     with _damaged(path):
-        _check_finite(ckpt["model"], path)
+        bad = non_finite_weight(ckpt["model"])  # NaN weights would fail only later, deep in a training step
+    if bad is not None:
+        raise InputError(f"{path}: the weights {bad} hold NaN or infinite values")
     return ckpt
 
 
@@ -177,14 +179,6 @@ def _damaged(path: Path) -> Iterator[None]:
     except (KeyError, RuntimeError, ValueError, TypeError, IndexError) as e:
         first = (str(e).strip().splitlines() or [""])[0]
         raise InputError(f"{path}: damaged or incompatible checkpoint ({type(e).__name__}: {first})") from None
-
-
-def _check_finite(weights: dict, path: Path) -> None:
-    """Every floating tensor of a state dict is finite: NaN weights would fail only later, deep in
-    the training step."""
-    for name, tensor in weights.items():
-        if torch.is_tensor(tensor) and tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
-            raise InputError(f"{path}: the weights {name} hold NaN or infinite values")
 
 
 def _initial_weights(init: str) -> Tuple[dict, dict, dict]:
