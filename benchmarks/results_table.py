@@ -26,6 +26,13 @@ from o3dsoft.bench import recall_keys
 from o3dsoft.data import PROTOCOLS
 
 
+def thresholds(doc: dict, protocol: str) -> List[dict]:
+    """The recall thresholds of `protocol` in a summary document: one list for every protocol,
+    or (runs with real scans of several kinds) one per protocol."""
+    recall = doc["recall_thresholds"]
+    return recall[protocol] if isinstance(recall, dict) else recall
+
+
 def compared(doc: dict, ours: str, theirs: str) -> list:
     """Lines of a short table, one row per protocol (all categories): recall at the first and the
     last threshold and median time of `ours` and `theirs`, the time ratio, and ours' confidence
@@ -35,7 +42,7 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
     if not all((p, m) in rows for p in protocols for m in (ours, theirs)):
         return []
     name = doc["methods"]
-    r1, r5 = doc["recall_thresholds"][0], doc["recall_thresholds"][-1]
+    r1, r5 = thresholds(doc, protocols[0])[0], thresholds(doc, protocols[0])[-1]
     lines = [
         "",
         f"{name[ours]} against {name[theirs]}, measured in the same run: recall within "
@@ -91,7 +98,8 @@ def merged(docs: Sequence[dict]) -> dict:
     order = {name: i for i, name in enumerate(PROTOCOLS)}
     summaries = [s for doc in docs for s in doc["summaries"]]
     summaries.sort(key=lambda s: order.get(s["protocol"], len(order)))  # stable: methods keep their order
-    return {"methods": docs[0]["methods"], "recall_thresholds": docs[0]["recall_thresholds"], "summaries": summaries}
+    recall = {s["protocol"]: thresholds(doc, s["protocol"]) for doc in docs for s in doc["summaries"]}
+    return {"methods": docs[0]["methods"], "recall_thresholds": recall, "summaries": summaries}
 
 
 def summary_of(run: Path) -> dict:
@@ -103,7 +111,7 @@ def summary_of(run: Path) -> dict:
 def markdown(runs: Union[Path, Sequence[Path]], short: bool = False) -> str:
     docs = [summary_of(run) for run in ([runs] if isinstance(runs, Path) else runs)]
     doc = merged(docs)
-    recall = doc["recall_thresholds"]
+    recall = thresholds(doc, doc["summaries"][0]["protocol"])
     r1, r5 = recall[0], recall[-1]
     lines: List[str] = []
     for d in docs:

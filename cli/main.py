@@ -20,7 +20,7 @@ from ..errors import O3dsoftError, terminate_as_interrupt
 # (o3dsoft.bench.METHODS), not imported here: that would load torch and Open3D before --help;
 # a test keeps them equal.
 SEARCH_MODES = ("auto", "always", "off")
-METHOD_NAMES = ("oracle", "o3dsoft-coarse", "o3dsoft", "icp", "fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp")
+METHOD_NAMES = ("oracle", "o3dsoft-coarse", "o3dsoft", "icp", "fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp", "kiss-matcher", "kiss-matcher+gicp")
 WEIGHTS_HELP = "TorchScript model file, or a shipped model by name: default, paper, partial (default: default; partial is the search network, trained on cropped, noisy clouds)."
 MAX_ROTATION_HELP = (
     "The clouds are given within this many degrees of their true relative rotation (e.g. from odometry): "
@@ -380,7 +380,12 @@ def _bench_options(fn):
     """Options shared by every bench command."""
 
     options = [
-        click.option("--method", "methods", multiple=True, help=f"Methods to run (repeat the option; default all): {', '.join(METHOD_NAMES)}."),
+        click.option(
+            "--method",
+            "methods",
+            multiple=True,
+            help=f"Methods to run (repeat the option; default all but the KISS-Matcher peers on ModelNet40): {', '.join(METHOD_NAMES)}.",
+        ),
         click.option(
             "--seed",
             type=int,
@@ -402,15 +407,15 @@ def _bench_options(fn):
     return _pipeline_options(_apply_options(options, fn))
 
 
-def _run_bench(name, pairs, count, description, recall=None, *, methods, seed, out, overwrite, no_progress, jobs, **pipeline):
+def _run_bench(name, pairs, count, description, recall=None, titles=None, *, methods, seed, out, overwrite, no_progress, jobs, **pipeline):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
     from ..coarse import load_model
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed, register=_register_config(**pipeline))
-    if recall is not None:
-        config = replace(config, recall=recall)
+    if recall is not None:  # thresholds per protocol (folder of scans)
+        config = replace(config, recall_by_protocol=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
     device = config.register.device
     model = load_model(config.register.weights, device) if needs_model else None
@@ -419,7 +424,17 @@ def _run_bench(name, pairs, count, description, recall=None, *, methods, seed, o
     description = {"command": shlex.join(["o3dsoft", *sys.argv[1:]]), **description, "jobs": jobs}
     folder = prepare_folder(out or Path("runs") / f"bench-{name}-{time.strftime('%Y%m%d-%H%M%S')}", overwrite)
     result = run(
-        pairs, count, config, model, folder, description, progress=not no_progress, log=lambda m: click.echo(m, err=True), search_model=search_model, jobs=jobs
+        pairs,
+        count,
+        config,
+        model,
+        folder,
+        description,
+        progress=not no_progress,
+        log=lambda m: click.echo(m, err=True),
+        search_model=search_model,
+        jobs=jobs,
+        titles=titles,
     )
     click.echo(result.table)
     click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
@@ -477,6 +492,34 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
     _run_bench("modelnet40", iterator, count, description, **common)
 
 
+@bench.command("scans")
+@click.argument("folders", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "--kind",
+    type=click.Choice(["auto", "rgbd", "lidar", "object"]),
+    default="auto",
+    show_default=True,
+    help="What the scans are, which sets the success thresholds: rgbd 2 deg / 5 cm and 15 deg / 30 cm; lidar 1 deg / 30 cm and 5 deg / 2 m; "
+    "object 1 deg / 1 % and 5 deg / 5 % of the size. auto: per folder from the size of its first scan (in metres: under 1 m an object, under 30 m RGB-D).",
+)
+@click.option(
+    "--min-overlap",
+    type=click.FloatRange(0, 1),
+    default=0.3,
+    show_default=True,
+    help="Folders with a .conf: keep ordered scan pairs with at least this ground-truth overlap (a pairs.txt's pairs are all kept).",
+)
+@_bench_options
+@_friendly_errors
+def bench_scans(folders, kind, min_overlap, **common):
+    """Every method on the pairs of each folder of real scans: those its pairs.txt lists, or every
+    overlapping pair of a Stanford .conf. Table, CSV, JSON, plots; the peers KISS-Matcher +
+    small_gicp too when installed (pip install 'o3dsoft[peers]')."""
+    from ..bench import scan_folder
+
+    _run_scan_bench([scan_folder(folder, min_overlap, kind) for folder in folders], min_overlap, common)
+
+
 @bench.command("bunny")
 @click.option(
     "--data", type=click.Path(path_type=Path), default=None, help="Folder with scans and their .conf (default ../shared/data/stanford_bunny or $O3DSOFT_SCANS)."
@@ -494,27 +537,45 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
 @_bench_options
 @_friendly_errors
 def bench_bunny(data, min_overlap, recall_translation, **common):
-    """Every method on every overlapping pair of real scans (Stanford .conf ground truth)."""
+    """Every method on every overlapping pair of the Stanford bunny scans (bench scans on one folder,
+    thresholds 1 deg / 2 mm and 5 deg / 1 cm)."""
     import os
 
-    from ..bench import check_methods, scan_pairs
+    from ..bench import scan_folder
     from ..errors import UsageError
 
-    check_methods(common["methods"])
     folder = data or (Path(os.environ["O3DSOFT_SCANS"]) if "O3DSOFT_SCANS" in os.environ else Path("../shared/data/stanford_bunny"))
     if not folder.is_dir():
         raise UsageError(f"{folder}: no such folder of scans; pass --data FOLDER (scans + a Stanford .conf)")
-    pairs, table = scan_pairs(folder, min_overlap)
-    kept = sum(r["kept"] for r in table)
-    click.echo(
-        f"{kept} of {len(table)} ordered scan pairs have a ground-truth overlap of at least {min_overlap:.0%} (share of source points within 1 % of the scale of a target point)",
-        err=True,
-    )
-    if not pairs:
-        raise UsageError(f"no scan pair in {folder} reaches --min-overlap {min_overlap}")
-    description = {"benchmark": "scans", "folder": str(folder), "min_overlap": min_overlap, "pairs": table}
-    recall = ((1.0, recall_translation), (5.0, 5 * recall_translation))
-    _run_bench("scans", iter(pairs), len(pairs), description, recall, **common)
+    scans = scan_folder(folder, min_overlap, "object")._replace(recall=((1.0, recall_translation), (5.0, 5 * recall_translation)))
+    _run_scan_bench([scans], min_overlap, common)
+
+
+def _run_scan_bench(folders, min_overlap, common):
+    """Run the bench on the pairs of every folder (each folder a protocol with its own thresholds)."""
+    from ..bench import check_methods, peers_installed
+    from ..errors import UsageError
+
+    if common["methods"]:
+        check_methods(common["methods"])
+    else:  # the peers users compare with, where installed
+        common["methods"] = ("o3dsoft", "fpfh-ransac+icp") + (("kiss-matcher+gicp",) if peers_installed() else ())
+        if not peers_installed():
+            click.echo("Note: KISS-Matcher + small_gicp left out: pip install 'o3dsoft[peers]'", err=True)
+    titles, recall, description = {}, {}, []
+    for scans in folders:
+        name = scans.name
+        click.echo(f"{name}: {len(scans.pairs)} of {len(scans.table)} pairs ({scans.kind})", err=True)
+        if not scans.pairs:
+            raise UsageError(f"{name}: no scan pair reaches --min-overlap {min_overlap}")
+        thresholds = " and ".join(f"{d:g} deg / {t:.3g}" for d, t in scans.recall)
+        titles[name] = f"{name} ({scans.kind}: success within {thresholds})"
+        recall[name] = scans.recall
+        description.append({"folder": name, "kind": scans.kind, "recall": [list(r) for r in scans.recall], "pairs": scans.table})
+    pairs = [p for scans in folders for p in scans.pairs]
+    if len(recall) < len(folders):
+        raise UsageError("two folders have the same name; give folders of different names")
+    _run_bench("scans", iter(pairs), len(pairs), {"benchmark": "scans", "min_overlap": min_overlap, "folders": description}, recall, titles, **common)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -43,7 +43,12 @@ METHODS: Dict[str, str] = {
     "fpfh-ransac+icp": "Open3D FPFH + RANSAC + ICP",
     "fgr": "Open3D FPFH + FGR",
     "fgr+icp": "Open3D FPFH + FGR + ICP",
+    "kiss-matcher": "KISS-Matcher",
+    "kiss-matcher+gicp": "KISS-Matcher + small_gicp GICP",
 }
+# Methods from optional packages (pip install 'o3dsoft[peers]'), left out unless asked for.
+PEER_METHODS = ("kiss-matcher", "kiss-matcher+gicp")
+CORE_METHODS = tuple(m for m in METHODS if m not in PEER_METHODS)
 # ModelNet40 categories whose shapes are (nearly) rotationally symmetric, where a rotation error
 # about the axis is meaningless; excluded in the second row of each protocol, as OMNet does.
 SYMMETRIC_CATEGORIES = ("bottle", "bowl", "cone", "cup", "flower_pot", "lamp", "tent", "vase")
@@ -61,7 +66,7 @@ BENCH_PROTOCOLS = (
     "incongruent-crop",
     "incongruent-so3",
 )
-STAGES = ("features", "coarse", "search", "ransac", "fgr", "icp", "total")
+STAGES = ("features", "coarse", "search", "ransac", "fgr", "kiss", "icp", "total")
 PAIRS_FORMAT = "o3dsoft-pairs"
 
 
@@ -75,27 +80,45 @@ class BenchConfig:
         identity_icp: Open3D ICP from the identity: correspondence distance, relative to the
             pair's scale, refined over the same schedule.
         global_: FPFH + RANSAC / FGR settings.
+        kiss: KISS-Matcher + small_gicp settings.
         seed: seed of the pairs and of RANSAC.
-        recall: (degrees, distance in cloud units) thresholds of the recall columns.
+        recall: (degrees, distance in cloud units) thresholds of the recall columns, tightest
+            first; the last is the test of success for the confidence's ROC AUC and false alarms.
+        recall_by_protocol: other thresholds for some protocols (real scans of each kind).
     """
 
-    methods: Tuple[str, ...] = tuple(METHODS)
+    methods: Tuple[str, ...] = CORE_METHODS
     register: RegisterConfig = field(default_factory=RegisterConfig)
     identity_icp: refine_stage.ICPConfig = field(default_factory=lambda: refine_stage.ICPConfig(distance=0.2))
     global_: baselines.GlobalConfig = field(default_factory=baselines.GlobalConfig)
+    kiss: baselines.KissConfig = field(default_factory=baselines.KissConfig)
     seed: int = 0
     recall: Tuple[Tuple[float, float], ...] = MODELNET_RECALL
+    recall_by_protocol: Dict[str, Tuple[Tuple[float, float], ...]] = field(default_factory=dict)
+
+    def recall_for(self, protocol: str) -> Tuple[Tuple[float, float], ...]:
+        return self.recall_by_protocol.get(protocol, self.recall)
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 def check_methods(names: Sequence[str]) -> Tuple[str, ...]:
-    """The names, checked; UsageError listing the valid ones otherwise."""
+    """The names, checked; UsageError listing the valid ones, or naming the missing package of a
+    peer's method, otherwise."""
     bad = [n for n in names if n not in METHODS]
     if bad:
         raise UsageError(f"unknown method {bad[0]!r}; valid: {', '.join(METHODS)}")
+    if set(names) & set(PEER_METHODS) and not peers_installed():
+        raise UsageError("the KISS-Matcher methods need the packages kiss-matcher and small-gicp: pip install 'o3dsoft[peers]'")
     return tuple(dict.fromkeys(names))
+
+
+def peers_installed() -> bool:
+    """Whether the optional packages of :data:`PEER_METHODS` can be imported."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(name) is not None for name in ("kiss_matcher", "small_gicp"))
 
 
 class BenchPair(NamedTuple):
@@ -143,47 +166,72 @@ def modelnet_pairs(
     return sum(n for _, _, n in datasets), generate()
 
 
-def scan_pairs(folder: Path, min_overlap: float) -> Tuple[List[BenchPair], List[dict]]:
-    """Every ordered pair of scans of `folder` whose ground-truth overlap is >= `min_overlap`.
+class ScanFolder(NamedTuple):
+    """The pairs of one folder of real scans and how they are judged.
 
-    The folder holds one ``.conf`` file (Stanford format, :mod:`o3dsoft.scans`) and the scans it
-    names. Overlap = share of the source's points within 0.01 x scale (1 mm on the bunny) of a
-    target point once placed by the ground truth.
+    name: the folder's name. pairs: every pair to run (protocol: the name). kind: a name of
+    :data:`o3dsoft.scans.KINDS`. recall: its thresholds in the scans' units. table: every
+    candidate pair, with its ground-truth overlap and whether it was kept.
+    """
 
-    Returns:
-        (pairs, table of every ordered pair with its overlap and whether it was kept).
+    name: str
+    pairs: List[BenchPair]
+    kind: str
+    recall: Tuple[Tuple[float, float], ...]
+    table: List[dict]
+
+
+def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> ScanFolder:
+    """The pairs of a folder of real scans: those its ``pairs.txt`` lists, or, with a Stanford
+    ``.conf`` instead, every ordered pair whose ground-truth overlap is at least `min_overlap`.
+
+    Overlap = share of the source's points within 0.01 x scale (1 mm on the bunny) of a target
+    point once placed by the ground truth. `kind` "auto": from the size of the first scan
+    (:func:`o3dsoft.scans.guess_kind`).
     """
     from scipy.spatial import cKDTree
 
-    from .io import read_points
-    from .scans import read_conf, relative_pose
+    from .io import read_points, read_transform
+    from .scans import guess_kind, read_conf, read_pairs_file, recall_thresholds, relative_pose, scene_size
 
     folder = Path(folder)
-    confs = sorted(folder.glob("*.conf"))
-    if len(confs) != 1:
-        raise InputError(f"{folder}: expected one .conf file of scan poses, found {len(confs)}")
-    poses = read_conf(confs[0])
-    clouds = {}
-    for name in poses:
-        path = folder / name if Path(name).suffix else folder / f"{name}.ply"
-        if not path.is_file():
-            raise InputError(f"{confs[0]}: scan {name!r} has no file {path.name} in {folder}")
-        clouds[name] = read_points(path)
-    trees = {name: cKDTree(points) for name, points in clouds.items()}
+    if not folder.is_dir():
+        raise UsageError(f"{folder}: no such folder of scans")
+    name = folder.resolve().name
+    listed = folder / "pairs.txt"
+    if listed.is_file():
+        clouds: Dict[Path, np.ndarray] = {}
+        candidates = []
+        for entry in read_pairs_file(listed):
+            for path in (entry.source, entry.target):
+                if path not in clouds:
+                    clouds[path] = read_points(path)
+            candidates.append((entry.source, entry.target, read_transform(entry.transform)))
+    else:
+        confs = sorted(folder.glob("*.conf"))
+        if len(confs) != 1:
+            raise InputError(f"{folder}: expected a pairs.txt or one .conf file of scan poses, found {len(confs)} .conf files")
+        poses = read_conf(confs[0])
+        clouds, names = {}, {}
+        for scan in poses:
+            path = folder / scan if Path(scan).suffix else folder / f"{scan}.ply"
+            if not path.is_file():
+                raise InputError(f"{confs[0]}: scan {scan!r} has no file {path.name} in {folder}")
+            clouds[path], names[scan] = read_points(path), path
+        candidates = [(names[s], names[t], relative_pose(poses, s, t)) for s in poses for t in poses if s != t]
+    trees = {path: cKDTree(points) for path, points in clouds.items()}
     pairs, table = [], []
-    for s in poses:
-        for t in poses:
-            if s == t:
-                continue
-            T = relative_pose(poses, s, t)
-            scale = normalisation_for(clouds[s], clouds[t]).scale
-            d, _ = trees[t].query(apply_transform(T, clouds[s]), distance_upper_bound=0.01 * scale)
-            overlap = float(np.mean(np.isfinite(d)))
-            keep = overlap >= min_overlap
-            table.append({"source": s, "target": t, "overlap": overlap, "kept": keep})
-            if keep:
-                pairs.append(BenchPair("scans", len(pairs), clouds[s], clouds[t], T, f"{s}->{t}"))
-    return pairs, table
+    for s, t, T in candidates:
+        scale = normalisation_for(clouds[s], clouds[t]).scale
+        d, _ = trees[t].query(apply_transform(T, clouds[s]), distance_upper_bound=0.01 * scale)
+        overlap = float(np.mean(np.isfinite(d)))
+        keep = listed.is_file() or overlap >= min_overlap
+        table.append({"source": s.stem, "target": t.stem, "overlap": overlap, "kept": keep})
+        if keep:
+            pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{s.stem}->{t.stem}"))
+    first = next(iter(clouds.values()))
+    kind = guess_kind(first) if kind == "auto" else kind
+    return ScanFolder(name, pairs, kind, recall_thresholds(kind, scene_size(first)), table)
 
 
 def export_pairs(path: Path, pairs: Sequence[BenchPair]) -> None:
@@ -349,6 +397,19 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
                 out[f"{name}+icp"] = MethodResult(
                     f"{name}+icp", T_fine, {"features": features_ms, stage: solve_ms, "icp": icp_ms, "total": features_ms + solve_ms + icp_ms}
                 )
+    if set(PEER_METHODS) & set(methods):
+        from .scans import scene_size
+
+        voxel = config.kiss.voxel * max(scene_size(src), scene_size(tgt))
+        t0 = clock()
+        T = baselines.kiss_matcher(src, tgt, voxel)
+        kiss_ms = clock() - t0
+        out["kiss-matcher"] = MethodResult("kiss-matcher", T, {"kiss": kiss_ms, "total": kiss_ms})
+        if "kiss-matcher+gicp" in methods:
+            t0 = clock()
+            T_fine = baselines.small_gicp(src, tgt, T, voxel, config.kiss)
+            gicp_ms = clock() - t0
+            out["kiss-matcher+gicp"] = MethodResult("kiss-matcher+gicp", T_fine, {"kiss": kiss_ms, "icp": gicp_ms, "total": kiss_ms + gicp_ms})
     return [out[m] for m in methods]
 
 
@@ -401,13 +462,15 @@ def summarise_rows(rows: Sequence[dict], errors: Sequence[PairErrors], config: B
                 if not sel:
                     continue
                 total = np.array([rows[i]["time_total_ms"] for i in sel], dtype=float)
-                summary = {"protocol": protocol, "subset": subset, "method": method, **summarise([errors[i] for i in sel], config.recall)}
+                recall = config.recall_for(protocol)
+                summary = {"protocol": protocol, "subset": subset, "method": method, "recall_thresholds": [list(r) for r in recall]}
+                summary.update(summarise([errors[i] for i in sel], recall))
                 summary["chamfer_mean"] = float(np.mean([rows[i]["chamfer"] for i in sel]))
                 summary["time_ms_median"] = float(np.median(total))
                 summary["time_ms_p90"] = float(np.percentile(total, 90))
                 scores = [rows[i]["confidence"] for i in sel if rows[i]["confidence"] != ""]
                 if len(scores) == len(sel):
-                    success = within([errors[i].rotation_deg for i in sel], [errors[i].translation for i in sel], config.recall[-1])
+                    success = within([errors[i].rotation_deg for i in sel], [errors[i].translation for i in sel], recall[-1])
                     summary["confidence_auc"] = roc_auc(np.array(scores), success)
                     summary["likely_failed_share"] = float(np.mean(np.array(scores) < config.register.confidence.likely_failed_below))
                     # False alarms: right alignments flagged likely failed (share of the right ones).
@@ -436,35 +499,37 @@ def roc_auc(score: np.ndarray, success: np.ndarray) -> Optional[float]:
 
 def recall_keys(summary: dict) -> List[str]:
     """The recall entries of one summary row, in the order of their thresholds."""
-    return [k for k in summary if k.startswith("recall_")]
+    return [k for k in summary if k.startswith("recall_") and k != "recall_thresholds"]
 
 
-def format_table(summaries: Sequence[dict], recall: Sequence[Tuple[float, float]]) -> str:
-    """The table a person reads: one block per protocol and subset, one row per method."""
-    d5, t5 = recall[-1]
-    head = (
-        f"{'method':18s} {'pairs':>5s} {'rot mean':>9s} {'rot med':>9s} {'trans mean':>10s} {'Euler RMSE':>10s} "
-        + "".join(f" {f'recall {d:g}d/{t:g}':>14s}" for d, t in recall)
-        + f" {'ms median':>9s} {'ms p90':>8s}"
-    )
-    units = f"{'':18s} {'':>5s} {'deg':>9s} {'deg':>9s} {'units':>10s} {'deg':>10s}" + "".join(f" {'%':>14s}" for _ in recall) + f" {'':>9s} {'':>8s}"
+def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = None) -> str:
+    """The table a person reads: one block per protocol and subset, one row per method, with the
+    recall columns of that protocol's thresholds (``recall_thresholds`` of each summary).
+    `titles`: a longer title for some protocols (a folder of scans and its kind)."""
     lines = ["Errors and times: lower is better; recall: higher is better. Translation in the clouds' units."]
     block = None
     for s in summaries:
+        recall = [tuple(r) for r in s["recall_thresholds"]]
         if (s["protocol"], s["subset"]) != block:
             block = (s["protocol"], s["subset"])
-            title = s["protocol"]
+            title = (titles or {}).get(s["protocol"], s["protocol"])
             if s["subset"] != "all":
                 title += " (without symmetric categories: " + ", ".join(SYMMETRIC_CATEGORIES) + ")"
+            head = (
+                f"{'method':18s} {'pairs':>5s} {'rot mean':>9s} {'rot med':>9s} {'trans mean':>10s} {'Euler RMSE':>10s} "
+                + "".join(f" {f'recall {d:g}d/{t:.3g}':>14s}" for d, t in recall)
+                + f" {'ms median':>9s} {'ms p90':>8s}"
+            )
+            units = f"{'':18s} {'':>5s} {'deg':>9s} {'deg':>9s} {'units':>10s} {'deg':>10s}" + "".join(f" {'%':>14s}" for _ in recall) + f" {'':>9s} {'':>8s}"
             lines += ["", title, head, units]
-        rk = recall_keys(s)
         lines.append(
             f"{s['method']:18s} {int(s['pairs']):>5d} {s['rotation_deg_mean']:>9.3g} {s['rotation_deg_median']:>9.3g} "
             f"{s['translation_mean']:>10.3g} {s['euler_rmse_deg']:>10.3g}"
-            + "".join(f" {100 * s[k]:>14.1f}" for k in rk)
+            + "".join(f" {100 * s[k]:>14.1f}" for k in recall_keys(s))
             + f" {s['time_ms_median']:>9.1f} {s['time_ms_p90']:>8.1f}"
         )
         if "confidence_auc" in s:
+            d5, t5 = recall[-1]
             auc = "n/a (no failures or no successes)" if s["confidence_auc"] is None else f"{s['confidence_auc']:.3f}"
             alarms = "n/a" if s.get("false_alarm_share") is None else f"{100 * s['false_alarm_share']:.1f} %"
             lines.append(
@@ -531,7 +596,6 @@ def plot(folder: Path, rows: Sequence[dict], config: BenchConfig) -> List[Path]:
     protocols = list(dict.fromkeys(r["protocol"] for r in rows))
     if not protocols:
         return []
-    deg, dist = config.recall[0]
     paths = []
     for kind in ("cdf_rotation_error", "recall_vs_angle"):
         fig, axes = plt.subplots(1, len(protocols), figsize=(4.5 * len(protocols), 3.8), squeeze=False)
@@ -548,7 +612,8 @@ def plot(folder: Path, rows: Sequence[dict], config: BenchConfig) -> List[Path]:
                     ax.set_ylabel("share of pairs with at most this error")
                 else:
                     angle = np.array([r["initial_angle_deg"] for r in sel])
-                    ok = within([r["rotation_deg"] for r in sel], [r["translation"] for r in sel], config.recall[0])
+                    deg, dist = config.recall_for(protocol)[0]
+                    ok = within([r["rotation_deg"] for r in sel], [r["translation"] for r in sel], (deg, dist))
                     edges = np.linspace(0, max(180.0 if angle.max() > 90 else 90.0, angle.max() + 1e-9), 10)
                     which = np.clip(np.digitize(angle, edges) - 1, 0, len(edges) - 2)
                     centres, recall = [], []
@@ -671,9 +736,11 @@ def run(
     log: Callable[[str], None] = print,
     search_model: Optional[CoarseModel] = None,
     jobs: int = 1,
+    titles: Optional[Dict[str, str]] = None,
 ) -> BenchRun:
     """Run the methods of `config` on every pair and write the run folder `out` (already created).
 
+    titles: a longer title for some protocols in the table.
     jobs: pairs run at once, in as many processes (:func:`run_pairs`). Each method's time is
     then measured with that process's share of the CPU, the same for every method.
     On Ctrl-C or SIGTERM, the pairs finished so far are summarised and written, and
@@ -704,7 +771,7 @@ def run(
     finally:
         bar.close()
     summaries = summarise_rows(rows, errors, config)
-    table = format_table(summaries, config.recall)
+    table = format_table(summaries, titles)
     write_csv(out / "pairs.csv", rows)
     summary_doc = {
         "description": description,
@@ -716,7 +783,7 @@ def run(
         "weights": {"path": str(model.path), "sha256": sha256_of(model.path)} if model is not None else None,
         "search_weights": {"path": str(search_model.path), "sha256": sha256_of(search_model.path)} if search_model is not None else None,
         "versions": ran_with,
-        "recall_thresholds": [{"rotation_deg": d, "translation": t} for d, t in config.recall],
+        "recall_thresholds": {p: [{"rotation_deg": d, "translation": t} for d, t in config.recall_for(p)] for p in dict.fromkeys(r["protocol"] for r in rows)},
         "methods": {m: METHODS[m] for m in config.methods},
         "summaries": summaries,
     }

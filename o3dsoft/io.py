@@ -89,7 +89,7 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         return _read_npy_points(path)
     o3d = _o3d()
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
-        with _quiet_c_stderr():
+        with quiet_c_output():
             mesh = o3d.io.read_triangle_mesh(str(path))
         vertices = np.asarray(mesh.vertices)
         faces = np.asarray(mesh.triangles)
@@ -103,7 +103,7 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
             if len(vertices) == 0:
                 raise InputError(f"{path}: could not read any vertex or face; is it a valid {ext[1:].upper()} file?")
             raise InputError(f"{path}: mesh has {len(vertices)} vertices but no faces; points are sampled on faces, so a mesh needs at least one")
-    with _quiet_c_stderr():
+    with quiet_c_output():
         cloud = o3d.io.read_point_cloud(str(path), format="auto")
     points = np.asarray(cloud.points, dtype=np.float64)
     if len(points) == 0:
@@ -112,15 +112,17 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
 
 
 @contextmanager
-def _quiet_c_stderr() -> Iterator[None]:
-    """Silence what C code writes to the process's stderr (Open3D's PLY reader prints "RPly: ..."
-    lines for a bad file) within the block: o3dsoft reports the problem itself, in one line."""
+def quiet_c_output(name: str = "stderr") -> Iterator[None]:
+    """Silence what C code writes to the process's stderr or stdout (`name`) within the block:
+    Open3D's PLY reader prints "RPly: ..." lines for a bad file, KISS-Matcher its warnings;
+    o3dsoft reports problems itself, in one line."""
+    stream = getattr(sys, name)
     try:
-        fd = sys.stderr.fileno()
-    except (AttributeError, OSError, ValueError):  # no real stderr (e.g. captured by a test runner)
+        fd = stream.fileno()
+    except (AttributeError, OSError, ValueError):  # no real stream (e.g. captured by a test runner)
         yield
         return
-    sys.stderr.flush()
+    stream.flush()
     saved = os.dup(fd)
     try:
         with open(os.devnull, "w") as devnull:

@@ -1,19 +1,108 @@
-"""Real scans with ground-truth poses in the Stanford ``.conf`` format.
+"""Real scans with reference poses, and what counts as success on them.
 
-A line ``bmesh NAME tx ty tz qx qy qz qw`` places scan NAME in a common world frame:
-p_world = R(q)^T p_scan + t, with R(q) the rotation of the unit quaternion (qx, qy, qz, qw).
-Other lines (``camera``...) are ignored.
+Two ways a folder lists its pairs:
+
+- a Stanford ``.conf``: a line ``bmesh NAME tx ty tz qx qy qz qw`` places scan NAME in a common
+  world frame, p_world = R(q)^T p_scan + t, with R(q) the rotation of the unit quaternion
+  (qx, qy, qz, qw); other lines (``camera``...) are ignored;
+- a ``pairs.txt``: one pair per line, ``source target transform`` (paths relative to the folder,
+  the transform a 4x4 text T_target_source as :func:`o3dsoft.io.read_transform` reads; ``#``
+  starts a comment).
+
+A scan's *kind* (RGB-D fragment, LiDAR scene, object) sets the thresholds of success that its
+field uses (:data:`KINDS`).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Union
+from typing import Dict, List, NamedTuple, Tuple, Union
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, UsageError
 from .transforms import quaternion_to_matrix, rigid
+
+
+class Kind(NamedTuple):
+    """The success thresholds of one kind of scan.
+
+    recall: (degrees, distance) pairs, tightest first (the last is the test of success); a distance is in the scans' units (metres),
+        or a share of the scene's size when ``relative``.
+    about: what the kind is, in words.
+    """
+
+    recall: Tuple[Tuple[float, float], ...]
+    relative: bool
+    about: str
+
+
+# The field's usual tests: for RGB-D a tight one and 3DMatch's registration recall (15 deg / 0.3 m);
+# for LiDAR a fine one and KITTI's (5 deg / 2 m); for objects 1 deg / 1 % of the size and 5 / 5 %.
+KINDS: Dict[str, Kind] = {
+    "rgbd": Kind(((2.0, 0.05), (15.0, 0.3)), False, "indoor RGB-D fragments, metres"),
+    "lidar": Kind(((1.0, 0.3), (5.0, 2.0)), False, "outdoor LiDAR scans, metres"),
+    "object": Kind(((1.0, 0.01), (5.0, 0.05)), True, "object scans (structured light, turntable), any unit"),
+}
+
+
+def scene_size(points: np.ndarray) -> float:
+    """Diagonal of the box holding the central 98 % of the points along each axis (cloud units;
+    a few stray far points do not change it)."""
+    lo, hi = np.percentile(points, [1, 99], axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def guess_kind(points: np.ndarray) -> str:
+    """The kind of a scan in metres, from its size: under 1 m an object, under 30 m an indoor
+    RGB-D scene, else an outdoor LiDAR scene."""
+    size = scene_size(points)
+    return "object" if size < 1.0 else "rgbd" if size < 30.0 else "lidar"
+
+
+def recall_thresholds(kind: str, size: float) -> Tuple[Tuple[float, float], ...]:
+    """(degrees, distance in cloud units) of `kind`'s tests, for scans of the given size."""
+    if kind not in KINDS:
+        raise UsageError(f"unknown scan kind {kind!r}; valid: {', '.join(KINDS)}")
+    k = KINDS[kind]
+    return tuple((deg, dist * size if k.relative else dist) for deg, dist in k.recall)
+
+
+class PairEntry(NamedTuple):
+    """One line of a ``pairs.txt``: the two scans and the file of T_target_source."""
+
+    source: Path
+    target: Path
+    transform: Path
+    line: int
+
+
+def read_pairs_file(path: Union[str, Path]) -> List[PairEntry]:
+    """The pairs a ``pairs.txt`` lists, with paths resolved against its folder.
+
+    Raises:
+        UsageError: no such file.
+        InputError: a line without three fields, or naming a file that does not exist (names the
+            line); no pair at all.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UsageError(f"{path}: no such pairs file")
+    entries = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        if len(fields) != 3:
+            raise InputError(f"{path}, line {lineno}: expected 'source target transform', got {len(fields)} field(s)")
+        files = [path.parent / f for f in fields]
+        for f in files:
+            if not f.is_file():
+                raise InputError(f"{path}, line {lineno}: no file {f.name} in {path.parent}")
+        entries.append(PairEntry(*files, lineno))
+    if not entries:
+        raise InputError(f"{path}: no pairs (expected lines 'source target transform')")
+    return entries
 
 
 def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:

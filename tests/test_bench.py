@@ -42,12 +42,12 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     assert r.exit_code == 0, r.output
     assert "fpfh-ransac+icp" in r.output and "recall 1d/0.01" in r.output and "lower is better" in r.output
     rows = list(csv.DictReader(open(out / "pairs.csv")))
-    assert len(rows) == 2 * len(bench.METHODS)
-    assert {r["method"] for r in rows} == set(bench.METHODS)
+    assert len(rows) == 2 * len(bench.CORE_METHODS)
+    assert {r["method"] for r in rows} == set(bench.CORE_METHODS)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["pairs_completed"] == 2 and not summary["interrupted"]
     assert len(summary["weights"]["sha256"]) == 64 and "open3d" in summary["versions"]
-    assert {s["method"] for s in summary["summaries"]} == set(bench.METHODS)
+    assert {s["method"] for s in summary["summaries"]} == set(bench.CORE_METHODS)
     # ICP from the truth stays there on a pair of identical point sets.
     assert all(float(r["rotation_deg"]) < 1e-3 for r in rows if r["method"] == "oracle")
     ours = next(s for s in summary["summaries"] if s["method"] == "o3dsoft")
@@ -236,14 +236,80 @@ def two_scans(tmp_path):
 
 
 def test_scan_pairs_from_a_conf(two_scans):
-    pairs, table = bench.scan_pairs(two_scans, 0.3)
-    assert [p.category for p in pairs] == ["bun000.ply->bun045.ply", "bun045.ply->bun000.ply"]
-    assert all(0.3 <= row["overlap"] <= 1 for row in table)
-    assert pairs[0].initial_angle == pytest.approx(pairs[1].initial_angle)
-    assert bench.scan_pairs(two_scans, 1.0)[0] == []
+    scans = bench.scan_folder(two_scans, 0.3)
+    assert [p.category for p in scans.pairs] == ["bun000->bun045", "bun045->bun000"]
+    assert all(0.3 <= row["overlap"] <= 1 for row in scans.table)
+    assert scans.pairs[0].initial_angle == pytest.approx(scans.pairs[1].initial_angle)
+    # A 20 cm object: 1 deg / 1 % of its size, and 5 deg / 5 %.
+    assert scans.kind == "object" and scans.recall[0][0] == 1.0 and 0.0015 < scans.recall[0][1] < 0.003
+    assert bench.scan_folder(two_scans, 1.0).pairs == []
     (two_scans / "bun045.ply").unlink()
     with pytest.raises(InputError, match="scan 'bun045.ply' has no file"):
-        bench.scan_pairs(two_scans, 0.3)
+        bench.scan_folder(two_scans, 0.3)
+
+
+@pytest.fixture
+def listed_scans(tmp_path):
+    """A folder in the pairs.txt layout of real scans: one pair, in metres magnified to a room."""
+    folder = tmp_path / "room"
+    folder.mkdir()
+    from o3dsoft.io import read_points, read_transform, write_points
+
+    T = read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    for name in ("bun000", "bun045"):
+        write_points(folder / f"{name}.ply", 20.0 * read_points(EXAMPLES / f"{name}.ply"))
+    T[:3, 3] *= 20.0
+    np.savetxt(folder / "gt.txt", T)
+    (folder / "pairs.txt").write_text("# source target T_target_source\nbun045.ply bun000.ply gt.txt  # the bunny, 20 times\n")
+    return folder
+
+
+def test_scan_pairs_from_a_pairs_file(listed_scans):
+    scans = bench.scan_folder(listed_scans)
+    assert scans.name == "room" and [p.category for p in scans.pairs] == ["bun045->bun000"]
+    assert scans.kind == "rgbd" and scans.recall == ((2.0, 0.05), (15.0, 0.3))  # a 4 m scene, in metres
+    assert bench.scan_folder(listed_scans, kind="lidar").recall == ((1.0, 0.3), (5.0, 2.0))
+    assert pair_errors(scans.pairs[0].transform, np.loadtxt(listed_scans / "gt.txt")).rotation_deg < 1e-6
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("a.ply b.ply\n", "line 1: expected 'source target transform', got 2 field"),
+        ("# nothing\n\n", "no pairs"),
+        ("bun045.ply missing.ply gt.txt\n", "line 1: no file missing.ply"),
+    ],
+)
+def test_a_bad_pairs_file_is_named_with_its_line(listed_scans, text, message):
+    (listed_scans / "pairs.txt").write_text(text)
+    with pytest.raises(InputError, match=message):
+        bench.scan_folder(listed_scans)
+    r = _bench(["scans", str(listed_scans), "--method", "icp"])
+    assert r.exit_code == 1 and message.split(":")[-1].strip() in r.output and "Traceback" not in r.output
+
+
+def test_bench_scans_command(listed_scans, two_scans, tmp_path):
+    methods = ["--method", "icp", "--method", "fpfh-ransac+icp"] + (["--method", "kiss-matcher+gicp"] if bench.peers_installed() else [])
+    r = _bench(["scans", str(listed_scans), str(two_scans), *methods, "--out", str(tmp_path / "s"), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert "room (rgbd: success within 2 deg / 0.05 and 15 deg / 0.3)" in r.output and "recall 15d/0.3" in r.output
+    assert "scans (object: success within 1 deg / 0.0022" in r.output
+    summary = json.loads((tmp_path / "s" / "summary.json").read_text())
+    assert summary["recall_thresholds"]["room"] == [{"rotation_deg": 2.0, "translation": 0.05}, {"rotation_deg": 15.0, "translation": 0.3}]
+    rows = {(s["protocol"], s["method"]): s for s in summary["summaries"]}
+    assert "recall_15deg" in rows["room", "icp"] and "recall_5deg" in rows["scans", "icp"]
+    assert rows["scans", "fpfh-ransac+icp"]["pairs"] == 2
+    if bench.peers_installed():  # KISS-Matcher + GICP registers the bunny, magnified or not
+        assert rows["room", "kiss-matcher+gicp"]["recall_15deg"] == 1.0 and rows["scans", "kiss-matcher+gicp"]["recall_5deg"] == 1.0
+    r = _bench(["scans", str(tmp_path / "nowhere")])
+    assert r.exit_code == 2 and "no such folder of scans" in r.output
+
+
+def test_peer_methods_name_their_package_when_missing(monkeypatch):
+    monkeypatch.setattr(bench, "peers_installed", lambda: False)
+    with pytest.raises(UsageError, match=r"pip install 'o3dsoft\[peers\]'"):
+        bench.check_methods(["o3dsoft", "kiss-matcher+gicp"])
+    assert bench.check_methods(["o3dsoft", "icp"]) == ("o3dsoft", "icp")
 
 
 def test_bench_bunny_command(two_scans, tmp_path):
@@ -270,7 +336,7 @@ def test_bench_bunny_command(two_scans, tmp_path):
     assert (
         register_config["voxel"] == 0.002 and register_config["search"]["restart"]["enabled"] is True and register_config["search"]["features"]["stop"] == 0.9
     )
-    assert "2 of 2 ordered scan pairs" in r.output and "recall 1d/0.002" in r.output
+    assert "scans: 2 of 2 pairs (object)" in r.output and "recall 1d/0.002" in r.output
     summary = json.loads((tmp_path / "b" / "summary.json").read_text())
     o3d_row = [s for s in summary["summaries"] if s["method"] == "o3dsoft"][0]
     assert o3d_row["rotation_deg_median"] < 2.0  # the shipped model + ICP on real scans 45 degrees apart
