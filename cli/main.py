@@ -75,9 +75,9 @@ def _pipeline_options(fn):
             click.option("--device", default="cpu", show_default=True, help="Torch device of the network: cpu, cuda, cuda:1..."),
             click.option(
                 "--voxel",
-                type=click.FloatRange(min=0, min_open=True),
+                type=click.FloatRange(min=0),
                 default=None,
-                help="Downsample both clouds on a voxel grid of this size (their units) first: for scans (see the README's Real scans).",
+                help="Register both clouds on a voxel grid of this size (their units); default: 1 % of the scene's size where the clouds are denser; 0: every point.",
             ),
             click.option(
                 "--coarse-iterations",
@@ -151,6 +151,13 @@ def _register_config(*, weights, device, voxel, coarse_iterations, search, searc
     help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.",
 )
 @click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
+@click.option(
+    "--icp-method",
+    type=click.Choice(["auto", "point", "plane"]),
+    default="auto",
+    show_default=True,
+    help="ICP's error: point-to-point, point-to-plane, or auto (point-to-plane for clouds registered on a voxel grid).",
+)
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
@@ -158,7 +165,21 @@ def _register_config(*, weights, device, voxel, coarse_iterations, search, searc
 @_pipeline_options
 @_friendly_errors
 def register(
-    source, target, gt_path, out_path, save_transform, as_json, no_refine, icp_distance, icp_absolute, num_points, mesh_points, render_path, strict, **pipeline
+    source,
+    target,
+    gt_path,
+    out_path,
+    save_transform,
+    as_json,
+    no_refine,
+    icp_distance,
+    icp_absolute,
+    icp_method,
+    num_points,
+    mesh_points,
+    render_path,
+    strict,
+    **pipeline,
 ):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
@@ -185,7 +206,9 @@ def register(
     tgt = io.read_points(target, mesh_points=mesh_points)
     T_gt = io.read_transform(gt_path) if gt_path is not None else None
     read_ms = (time.perf_counter() - t0) * 1000.0
-    config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(distance=icp_distance, absolute=icp_absolute))
+    config = _register_config(
+        **pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(distance=icp_distance, absolute=icp_absolute, method=icp_method)
+    )
     t0 = time.perf_counter()
     model = load_model(config.weights, config.device)
     load_ms = (time.perf_counter() - t0) * 1000.0
@@ -234,11 +257,11 @@ def _errors_dict(e) -> dict:
 
 def _format_result(source, target, result, errors, model_info, config) -> str:
     refined, search_mode = config.refine, config.search.mode
-    grid = f" and the {config.voxel:g} voxel grid" if config.voxel is not None else ""
+    grid = f" and a {result.voxel:.3g}-unit voxel grid" if result.voxel is not None else ""
     T = result.transformation
     lines = [
         f"o3dsoft register  {source} -> {target}",
-        f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}); scale {result.scale:.4g} units",
+        f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
         f"  model:  {model_info['path']}",
         "",

@@ -192,7 +192,8 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> S
     from scipy.spatial import cKDTree
 
     from .io import read_points, read_transform
-    from .scans import guess_kind, read_conf, read_pairs_file, recall_thresholds, relative_pose, scene_size
+    from .preprocess import scene_size
+    from .scans import guess_kind, read_conf, read_pairs_file, recall_thresholds, relative_pose
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -398,7 +399,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
                     f"{name}+icp", T_fine, {"features": features_ms, stage: solve_ms, "icp": icp_ms, "total": features_ms + solve_ms + icp_ms}
                 )
     if set(PEER_METHODS) & set(methods):
-        from .scans import scene_size
+        from .preprocess import scene_size
 
         voxel = config.kiss.voxel * max(scene_size(src), scene_size(tgt))
         t0 = clock()

@@ -104,10 +104,18 @@ class ScreenConfig:
             estimates (and the restart's starts) are refined and scored there first (default 1024).
         min_trust: ... and on the work clouds only when the screen trusts it more than every
             estimate before it and at least this much, or confidently (default 1e-3).
+        max_iterations: the screen ranks estimates with a cheaper ICP (:meth:`ICPConfig.quick`:
+            without the last stage, the noise rounds and the polish), each stage at most this
+            many iterations (default 20); 0: the full ICP.
+        budget: at most this many estimates are screened per pair; the search's later estimates
+            are dropped (default 20; 0: no limit). On real scans the right estimate, when the
+            search finds one, is among its first few (docs/scans.md).
     """
 
     points: int = 1024
     min_trust: float = 1e-3
+    max_iterations: int = 20
+    budget: int = 20
 
 
 @dataclass(frozen=True)
@@ -142,8 +150,14 @@ class RegisterConfig:
     """Settings of :func:`o3dsoft.register` (dumped next to every result).
 
     Attributes:
-        voxel: downsample both clouds on a voxel grid of this size (cloud units) after cleaning;
-            None: keep every point (default).
+        voxel: register both clouds on a voxel grid of this size (cloud units), after cleaning;
+            None: from the data (default, :func:`o3dsoft.preprocess.data_grids`); 0: keep every
+            point.
+        data_voxel: the grid from the data, as a share of the scene's size (the diagonal of the
+            box holding 98 % of the points), where the clouds are denser than that: 0.005, i.e.
+            2 cm on a 4 m room, 37 cm on a 75 m street, 1 mm on a 20 cm object (default); the
+            estimates are tried on a grid twice as coarse. Only for clouds of more than
+            `attempt_points`. 0: keep every point unless `voxel` is given.
         num_points: points sampled from each cloud for the network (default 1024).
         coarse_iterations: network passes, each on the source moved by the estimate so far
             (default 1).
@@ -157,7 +171,8 @@ class RegisterConfig:
         weights: TorchScript model file, or a shipped model's name; None: the shipped default.
         device: torch device of the network ("cpu", "cuda", "cuda:1"...; default "cpu").
         seed: seed of the point sampling and of the search's RANSAC: the same input and seed
-            give the same result (default 0).
+            give the same result (default 0); to the bit with point-to-point ICP, to about 1e-15
+            with point-to-plane (Open3D sums it in threads).
         icp: the fine stage.
         search: the global search.
         confidence: how results are scored and flagged.
@@ -165,6 +180,7 @@ class RegisterConfig:
     """
 
     voxel: Optional[float] = None
+    data_voxel: float = 0.005
     num_points: int = 1024
     coarse_iterations: int = 1
     attempt_points: int = 5_000
@@ -189,8 +205,12 @@ class RegisterConfig:
         for name, value in (("num_points", self.num_points), ("search.starts.points", search.starts.points), ("attempt_points", self.attempt_points)):
             if value < k:
                 raise UsageError(f"{name}={value} is below the network's neighbourhood size K={k}")
-        if self.voxel is not None and not self.voxel > 0:
-            raise InputError(f"voxel must be positive, got {self.voxel}")
+        if self.icp.method not in ("auto", "point", "plane"):
+            raise InputError(f"icp.method={self.icp.method!r}; valid: auto, point, plane")
+        if self.voxel is not None and not self.voxel >= 0:
+            raise InputError(f"voxel must be positive (or 0: keep every point), got {self.voxel}")
+        if not 0 <= self.data_voxel < 1:
+            raise InputError(f"data_voxel must be in [0, 1), got {self.data_voxel}")
         if search.features.candidates < 1:
             raise InputError(f"search.features.candidates must be at least 1, got {search.features.candidates}")
         if self.max_rotation is not None and not 0 < self.max_rotation <= 180:

@@ -4,6 +4,7 @@ scorers, the FPFH features)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import cached_property
 from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union
 
@@ -14,7 +15,7 @@ from . import refine as refine_stage
 from .clock import StageClock
 from .config import RegisterConfig
 from .errors import InputError
-from .preprocess import clean_points, normalisation_for, normalise_pair, same_profile_pvalue, sample_points, voxel_downsample
+from .preprocess import DataGrids, clean_points, data_grids, normalisation_for, normalise_pair, same_profile_pvalue, sample_points, voxel_downsample
 from .search import FeatureMatch
 
 if TYPE_CHECKING:
@@ -44,15 +45,19 @@ def as_points(cloud: CloudLike, name: str) -> np.ndarray:
 class PreparedPair:
     """Both clouds at every resolution the pipeline uses, in their original frames:
 
-    - ``full``: cleaned (no NaN/inf, no duplicates) and on ``config.voxel``'s grid: what is
-      registered, and where the kept estimate is refined last;
-    - ``work``: ``full`` voxel-downsampled to at most ``config.attempt_points`` each, where every
-      estimate is refined and scored;
+    - ``full``: cleaned (no NaN/inf, no duplicates) and on the voxel grid ``voxel`` (the
+      config's, or one from the data, :func:`o3dsoft.preprocess.data_grids`; None: none): what
+      is registered, and where the kept estimate is refined and scored last;
+    - ``work``: ``full`` on the data's coarser grid (when no voxel is given) and voxel-downsampled
+      to at most ``config.attempt_points`` each, where every estimate is refined and scored;
     - ``screen``: ``work`` on a grid of at most ``config.search.screen.points`` each (an even
       spacing, which the confidence relies on; smaller clouds whole, shuffled), where the
       search's estimates are tried first on large clouds;
     - ``net``: ``config.num_points`` random samples of ``full`` for the network, and
       ``net_normalised`` the same centred on their own centroids and divided by one scale.
+
+    ``config`` is the pipeline's settings with ICP's method decided for this pair (``"auto"``:
+    point-to-plane on clouds registered on a voxel grid).
 
     Args:
         source: (N, 3) array or Open3D PointCloud; target: (M, 3), in the same units.
@@ -74,15 +79,22 @@ class PreparedPair:
         clock: Optional[StageClock] = None,
     ) -> None:
         clock = clock or StageClock()
-        self.config = config
         # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds; even out the density.
         self.cleaned = (clean_points(as_points(source, names[0]), names[0], min_points=k), clean_points(as_points(target, names[1]), names[1], min_points=k))
         self.full: Clouds = (self.cleaned[0].points, self.cleaned[1].points)
         if config.voxel is not None:
-            self.full = (
-                voxel_downsample(self.full[0], config.voxel, names[0], min_points=k),
-                voxel_downsample(self.full[1], config.voxel, names[1], min_points=k),
-            )
+            grids = DataGrids(config.voxel or None, None)
+        elif max(map(len, self.full)) > config.attempt_points:  # clouds small enough are tried whole
+            grids = data_grids(*self.full, config.data_voxel)
+        else:
+            grids = DataGrids(None, None)
+        self.voxel = grids.result
+        if grids.result is not None:
+            self.full = self._grid(self.full, grids.result, names, k)
+        work = self.full if grids.work is None else self._grid(self.full, grids.work, names, k)
+        if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest
+            config = replace(config, icp=replace(config.icp, method="point" if self.voxel is None else "plane"))
+        self.config = config
         clock.lap("clean")
         # The network's samples, normalised together (own centroids, one common scale).
         self.norm = normalisation_for(*self.full)
@@ -94,8 +106,12 @@ class PreparedPair:
         src_norm, tgt_norm, _ = normalise_pair(*self.net, self.norm)
         self.net_normalised: Clouds = (src_norm, tgt_norm)
         clock.lap("sample_normalise")
-        self.work: Clouds = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
+        self.work: Clouds = (refine_stage.downsample(work[0], config.attempt_points), refine_stage.downsample(work[1], config.attempt_points))
         self._scorers: Dict[str, confidence_stage.Scorer] = {}
+
+    @staticmethod
+    def _grid(clouds: Clouds, voxel: float, names: Tuple[str, str], k: int) -> Clouds:
+        return (voxel_downsample(clouds[0], voxel, names[0], min_points=k), voxel_downsample(clouds[1], voxel, names[1], min_points=k))
 
     @property
     def reduced(self) -> bool:

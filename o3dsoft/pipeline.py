@@ -57,6 +57,9 @@ class RegistrationResult:
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
         num_source, num_target: points registered (after cleaning and the voxel grid).
+        voxel: the voxel grid the clouds were registered on (cloud units): the config's, or one
+            from the data (:func:`o3dsoft.preprocess.data_grids`); None: every point.
+        icp_method: "point" (point-to-point) or "plane" (point-to-plane), as ICP ran.
         attempts: estimates refined and scored on the work clouds.
         screened: estimates refined and scored on the screen clouds first.
         searched: whether the global search ran.
@@ -98,6 +101,8 @@ class RegistrationResult:
     constraint: float = 1.0
     flatness: float = 0.0
     failure_reason: Optional[str] = None
+    voxel: Optional[float] = None
+    icp_method: str = "point"
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
@@ -157,21 +162,18 @@ def register(
 
     # Search while nothing is confident: feature match, networks from many starts, votes, restart.
     searched = features_first or search.mode == "always" or (search.mode == "auto" and not verifier.confident())
-    if searched and features and not features_first:
-        FeatureMatchProposals().propose(pair, verifier)
-    if searched and not verifier.confident():
-        NetworkStarts(model, search_model).propose(pair, verifier)
-    if searched and features and not verifier.confident():
-        TranslationVotes().propose(pair, verifier)
-    if searched and config.refine and search.restart.enabled and not verifier.settled():
-        Restart().propose(pair, verifier)
+    if searched:
+        _search(pair, verifier, model, search_model, features_done=features_first)
 
-    # Select the most trusted, then refine it at full resolution.
-    best = _select(verifier)
-    if pair.reduced:
-        # Only the tight stages: the loose first one would pull the converged estimate towards
-        # the parts with no partner (partial overlap) and cost the most.
-        best = verifier.refine(best.fine.transformation, best.coarse, "full", config.icp.tight())
+    # Select the most trusted, then refine it at full resolution, where it is trusted or not.
+    chosen = _select(verifier)
+    best = _refine_full(pair, verifier, chosen)
+    if search.mode == "auto" and not searched and best.trust < config.confidence.likely_failed_below:
+        # Trusted on the work clouds, not on the clouds it is the answer for: search after all.
+        verifier.distrust(chosen, best.trust)
+        searched = True
+        _search(pair, verifier, model, search_model, features_done=False)
+        best = _refine_full(pair, verifier, _select(verifier))
     # On the screen clouds (evenly spaced, at most search.screen.points): a test that can only flag.
     geometry = degeneracy_stage.assess(
         *pair.clouds("screen"), best.fine.transformation, pair.distance, pair.norm.scale, best.scored.spacing_ratio, config.degeneracy, pair.scorer("screen")
@@ -179,6 +181,30 @@ def register(
     clock.lap("degeneracy")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
     return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms)
+
+
+def _search(pair: PreparedPair, verifier: Verifier, model, search_model, features_done: bool) -> None:
+    """The global search's strategies in turn, each while nothing is confident: the feature match
+    (unless done), the networks from many starts, translation votes, and the optional restart."""
+    config = pair.config
+    features = config.search.mode != "off" and config.search.features.enabled
+    if features and not features_done:
+        FeatureMatchProposals().propose(pair, verifier)
+    if not verifier.confident():
+        NetworkStarts(model, search_model).propose(pair, verifier)
+    if features and not verifier.confident():
+        TranslationVotes().propose(pair, verifier)
+    if config.refine and config.search.restart.enabled and not verifier.settled():
+        Restart().propose(pair, verifier)
+
+
+def _refine_full(pair: PreparedPair, verifier: Verifier, best: Attempt) -> Attempt:
+    """The kept estimate refined at full resolution, with only ICP's tight stages (the loose first
+    one would pull the converged estimate towards the parts with no partner, and cost the most),
+    and scored there; as it is when the work clouds are the full ones."""
+    if not pair.reduced:
+        return best
+    return verifier.refine(best.fine.transformation, best.coarse, "full", pair.config.icp.tight())
 
 
 def _select(verifier: Verifier) -> Attempt:
@@ -248,6 +274,8 @@ def _result(
         points_used={"network": (len(pair.net[0]), len(pair.net[1])), "attempts": (len(pair.work[0]), len(pair.work[1])), "final": (len(src), len(tgt))},
         constraint=geometry.constraint,
         flatness=geometry.flatness,
+        voxel=pair.voxel,
+        icp_method=pair.config.icp.method,
         removed={
             "source_non_finite": src_report.non_finite,
             "source_duplicates": src_report.duplicates,

@@ -87,6 +87,53 @@ def voxel_downsample(points: np.ndarray, voxel: float, name: str = "cloud", min_
     return down
 
 
+def scene_size(points: np.ndarray) -> float:
+    """Diagonal of the box holding the central 98 % of the (N, 3) points along each axis (cloud
+    units): a few stray far points do not change it."""
+    lo, hi = np.percentile(points, [1, 99], axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def point_spacing(points: np.ndarray, sample: int = 2000, seed: int = 0) -> float:
+    """Median distance from a point to its nearest neighbour (cloud units), over at most `sample`
+    of the (N, 3) points."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(sample_points(points, sample, seed), k=2)
+    return float(np.median(d[:, 1]))
+
+
+class DataGrids(NamedTuple):
+    """The voxel grids a pair is registered on when none is given (cloud units; None: none).
+
+    result: where the result is refined and scored last. work: twice as coarse, where every
+    estimate is tried.
+    """
+
+    result: Optional[float]
+    work: Optional[float]
+
+
+def data_grids(source: np.ndarray, target: np.ndarray, share: float) -> DataGrids:
+    """Grids of `share` (result) and 2 x `share` (work) of the larger scene's size
+    (:func:`scene_size`), each used only where one of the clouds is denser than half of it (its
+    :func:`point_spacing`); where only the work grid is, the result is refined on it too. Clouds
+    sparser than that are registered as they are.
+
+    So millimetre-spaced RGB-D fragments, LiDAR sweeps and dense object scans come down to a few
+    thousand points each, in whatever unit, and sparse clouds (the network's 1,024-point shapes)
+    keep every point.
+    """
+    if share <= 0:
+        return DataGrids(None, None)
+    size = max(scene_size(source), scene_size(target))
+    spacing = min(point_spacing(source), point_spacing(target))
+    result, work = share * size, 2 * share * size
+    if spacing >= 0.5 * work:
+        return DataGrids(None, None)
+    return DataGrids(result if spacing < 0.5 * result else work, work)
+
+
 def sample_points(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """A random subset of n points (all of them, shuffled, when there are fewer than n).
 

@@ -21,6 +21,7 @@ from typing import Dict, List, NamedTuple, Tuple, Union
 import numpy as np
 
 from .errors import InputError, UsageError
+from .preprocess import scene_size
 from .transforms import quaternion_to_matrix, rigid
 
 
@@ -44,13 +45,6 @@ KINDS: Dict[str, Kind] = {
     "lidar": Kind(((1.0, 0.3), (5.0, 2.0)), False, "outdoor LiDAR scans, metres"),
     "object": Kind(((1.0, 0.01), (5.0, 0.05)), True, "object scans (structured light, turntable), any unit"),
 }
-
-
-def scene_size(points: np.ndarray) -> float:
-    """Diagonal of the box holding the central 98 % of the points along each axis (cloud units;
-    a few stray far points do not change it)."""
-    lo, hi = np.percentile(points, [1, 99], axis=0)
-    return float(np.linalg.norm(hi - lo))
 
 
 def guess_kind(points: np.ndarray) -> str:

@@ -26,7 +26,7 @@ from . import confidence as confidence_stage
 from . import refine as refine_stage
 from .coarse import CoarseModel
 from .procrustes import weighted_procrustes
-from .transforms import first_of_each_pose, near_poses, rigid
+from .transforms import axis_angle_to_matrix, first_of_each_pose, near_poses, rigid
 
 
 def cube_rotations() -> np.ndarray:
@@ -45,13 +45,8 @@ def local_rotations(angle_deg: float = 45.0) -> np.ndarray:
     """The identity and the 14 rotations by `angle_deg` about the axes through a cube's 6 faces
     and 8 corners: starts around the pose the clouds are given in, (15, 3, 3) float64."""
     axes = [np.array(a, dtype=np.float64) for a in itertools.product((-1.0, 0.0, 1.0), repeat=3) if np.count_nonzero(a) in (1, 3)]
-    rotations = [np.eye(3)]
-    for axis in axes:
-        k = axis / np.linalg.norm(axis)
-        K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-        a = np.radians(angle_deg)
-        rotations.append(np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * K @ K)  # Rodrigues
-    return np.stack(rotations)
+    turns = [axis_angle_to_matrix(np.radians(angle_deg) * axis / np.linalg.norm(axis)) for axis in axes]
+    return np.stack([np.eye(3), *turns])
 
 
 def half_turns(points: np.ndarray) -> np.ndarray:

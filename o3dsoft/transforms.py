@@ -19,6 +19,17 @@ def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def axis_angle_to_matrix(omega: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation by |omega| radians about omega (3,) (Rodrigues); the identity for 0."""
+    omega = np.asarray(omega, dtype=np.float64)
+    angle = float(np.linalg.norm(omega))
+    if angle == 0.0:
+        return np.eye(3)
+    k = omega / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
 def apply_transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(N, 3) points mapped by a (4, 4) transform."""
     return points @ T[:3, :3].T + T[:3, 3]

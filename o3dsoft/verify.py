@@ -94,6 +94,12 @@ class Verifier:
         self.attempts.append(attempt)
         return attempt
 
+    def distrust(self, attempt: Attempt, trust: float) -> None:
+        """Lower a kept attempt's trust to what the full clouds gave it (no-op for one not kept)."""
+        for i, a in enumerate(self.attempts):
+            if a is attempt:
+                self.attempts[i] = a._replace(trust=min(a.trust, trust))
+
     def promote(self, screened: Attempt) -> Attempt:
         """An estimate converged on the screen clouds, refined (tight ICP stages, from where the
         screen left it) and scored on the work clouds, and kept among the attempts."""
@@ -108,7 +114,11 @@ class Verifier:
         if not self.pair.screening:
             self.add(start, start, icp)
             return
-        s = self.refine(start, start, "screen", icp)
+        budget = self.config.search.screen.budget
+        if budget and len(self.screened) >= budget:
+            return
+        quick = self.config.search.screen.max_iterations
+        s = self.refine(start, start, "screen", icp.quick(quick) if quick else icp)
         record = max((a.trust for a in self.screened), default=0.0)
         self.screened.append(s)
         if (s.trust > record and s.trust >= self.config.search.screen.min_trust) or s.trust >= self.config.confidence.likely_failed_below:

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -63,9 +65,15 @@ def test_deterministic(tiny_model_path):
     assert np.array_equal(register(src, tgt, cfg).transformation, register(src, tgt, cfg).transformation)
     # the search too: its RANSAC draws from a seeded generator
     src, tgt = o3dsoft.read_points(EXAMPLES / "bun045.ply"), o3dsoft.read_points(EXAMPLES / "bun000.ply")
-    cfg = RegisterConfig(weights=str(tiny_model_path), voxel=0.004, search=SearchConfig(mode="always", starts=StartsConfig(weights=None)))
+    cfg = RegisterConfig(
+        weights=str(tiny_model_path), voxel=0.004, icp=ICPConfig(method="point"), search=SearchConfig(mode="always", starts=StartsConfig(weights=None))
+    )
     first, again = register(src, tgt, cfg), register(src, tgt, cfg)
     assert first.attempts > 1 and np.array_equal(first.transformation, again.transformation)
+    # Point-to-plane (the default on a voxel grid): Open3D's threaded sums repeat to about 1e-15.
+    cfg = replace(cfg, icp=ICPConfig(method="auto"))
+    first, again = register(src, tgt, cfg), register(src, tgt, cfg)
+    assert first.icp_method == "plane" and first.attempts == again.attempts and np.allclose(first.transformation, again.transformation, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize(
@@ -103,7 +111,8 @@ def test_clouds_of_very_different_sizes_say_how_many_points_each_stage_used(tiny
     res = register(dense, sparse, RegisterConfig(weights=str(tiny_model_path), search=SearchConfig(mode="off")))
     assert res.points_used["network"] == (1024, 100)  # each cloud at the network's sample size, or all of it
     assert res.points_used["attempts"][1] == 100 and res.points_used["attempts"][0] <= 5_000
-    assert res.points_used["final"] == (20_000, 100) == (res.num_source, res.num_target)
+    # The dense cloud comes down to a grid of 0.5 % of the scene's size; the sparse one keeps its points.
+    assert 0.005 < res.voxel < 0.025 and res.points_used["final"] == (res.num_source, 100) and 1_000 < res.num_source < 20_000
     assert pair_errors(res.transformation, T).rotation_deg < 5  # a sparse sample of the same surface
 
 
@@ -113,13 +122,19 @@ def test_large_clouds_are_downsampled_for_icp_and_still_exact(tiny_model_path):
     src = d / np.linalg.norm(d, axis=1, keepdims=True) * [1.0, 0.6, 0.3] * 500.0  # an ellipsoid, in mm
     T = random_transform(rng, max_angle=5.0, max_t=0.1)
     T[:3, 3] *= 500.0
-    cfg = RegisterConfig(weights=str(tiny_model_path), icp=ICPConfig(distance=0.3, max_points=30_000))
+    cfg = RegisterConfig(weights=str(tiny_model_path), voxel=0, icp=ICPConfig(distance=0.3, max_points=30_000))
     res = register(src, apply(T, src), cfg)
     e = pair_errors(res.transformation, T)
-    # Both clouds are voxel-downsampled to <= 30,000 points (voxels of ~7 mm on this 1 m surface);
-    # ICP must still land far below the voxel size.
+    # Every point kept (voxel 0): ICP voxel-downsamples both to <= 30,000 points (voxels of ~7 mm
+    # on this 1 m surface) and must still land far below the voxel size.
     assert e.rotation_deg < 0.5 and e.translation < 1.0
-    assert res.num_source == 300_000
+    assert res.num_source == 300_000 and res.voxel is None
+    # By default the pair is registered on a grid of 0.5 % of the scene's size (6 mm here), to
+    # within a fraction of it.
+    res = register(src, apply(T, src), replace(cfg, voxel=None))
+    e = pair_errors(res.transformation, T)
+    assert res.voxel == pytest.approx(6.0, rel=0.1) and e.rotation_deg < 0.5 and e.translation < 0.5 * res.voxel
+    assert res.num_source < 100_000
 
 
 def test_unrelated_clouds_are_flagged(tiny_model_path):
@@ -305,3 +320,34 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         as_points([[1.0, 2.0, 3.0], [1.0, 2.0]], "source")
     with pytest.raises(InputError, match="target: expected real numeric points, got dtype complex128"):
         as_points(np.ones((50, 3), dtype=complex), "target")  # the imaginary part is not silently dropped
+
+
+def test_a_result_the_full_clouds_reject_sends_the_pair_to_the_search(monkeypatch):
+    from o3dsoft import pipeline
+
+    src = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = random_transform(np.random.default_rng(2), 20.0, 0.01)
+    config = RegisterConfig(attempt_points=1_000)  # the work clouds are reduced: the result is refined again on all points
+    first = register(src, apply(T, src), config)
+    assert not first.searched and not first.likely_failed and first.points_used["attempts"][0] < first.num_source
+    real, calls = pipeline._refine_full, []
+
+    def rejected_at_first(pair, verifier, best):  # the full clouds do not trust the first pick
+        refined = real(pair, verifier, best)
+        calls.append(refined)
+        return refined._replace(trust=0.0) if len(calls) == 1 else refined
+
+    monkeypatch.setattr(pipeline, "_refine_full", rejected_at_first)
+    res = register(src, apply(T, src), config)
+    assert len(calls) == 2 and res.searched and res.attempts > first.attempts
+    assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1.0
+
+
+def test_the_screen_tries_at_most_its_budget_of_estimates():
+    from o3dsoft.config import ScreenConfig
+
+    src = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = random_transform(np.random.default_rng(4), 150.0, 0.05)
+    search = SearchConfig(mode="always", screen=ScreenConfig(points=512, budget=3))
+    res = register(src, apply(T, src), RegisterConfig(attempt_points=2_000, search=search))
+    assert res.searched and 1 <= res.screened <= 3

@@ -6,12 +6,15 @@ from hypothesis import strategies as st
 from o3dsoft.errors import InputError
 from o3dsoft.preprocess import (
     clean_points,
+    data_grids,
     denormalise_transform,
     normalisation_for,
     normalise_pair,
     normalise_transform,
+    point_spacing,
     same_profile_pvalue,
     sample_points,
+    scene_size,
 )
 
 from .conftest import apply, blob, random_transform
@@ -83,3 +86,38 @@ def test_profiles_tell_a_partial_overlap_from_two_samplings_of_one_shape():
     assert same_profile_pvalue(a, moved) == pytest.approx(same_profile_pvalue(a, b), abs=1e-9)  # rigid motions change nothing
     part = shape[2000:][shape[2000:, 0] < np.quantile(shape[2000:, 0], 0.7)]  # 70 % of another sampling, cut by a plane
     assert same_profile_pvalue(a, part) < 0.01
+
+
+def _surface(rng, n, radii=(1.0, 0.6, 0.3)):
+    d = rng.normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True) * radii
+
+
+def test_dense_scans_get_a_grid_of_their_own_size_and_sparse_clouds_none():
+    rng = np.random.default_rng(0)
+    dense, sparse = _surface(rng, 40_000), _surface(rng, 1_024)
+    size = scene_size(dense)
+    grids = data_grids(dense, dense[::2], 0.005)
+    assert grids.result == pytest.approx(0.005 * size) and grids.work == pytest.approx(0.01 * size)
+    assert data_grids(sparse, sparse, 0.005) == (None, None)  # ModelNet40-like: every point kept
+    assert data_grids(dense, dense, 0.0) == (None, None)
+    # Dense enough for the work grid only: the result is refined on it too.
+    middle = _surface(rng, 12_000)
+    assert point_spacing(middle) < 0.5 * 0.01 * scene_size(middle) < point_spacing(middle) * 2
+    grids = data_grids(middle, middle, 0.005)
+    assert grids.result == grids.work == pytest.approx(0.01 * scene_size(middle))
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.floats(1e-3, 1e3), st.integers(0, 2**16))
+def test_the_grid_follows_the_units(units, seed):
+    rng = np.random.default_rng(seed)
+    cloud = _surface(rng, 40_000)
+    metres, other = data_grids(cloud, cloud, 0.005), data_grids(units * cloud, units * cloud, 0.005)
+    assert other.result == pytest.approx(units * metres.result) and other.work == pytest.approx(units * metres.work)
+
+
+def test_a_stray_far_point_does_not_change_the_scene_size():
+    rng = np.random.default_rng(1)
+    cloud = _surface(rng, 5_000)
+    assert scene_size(np.vstack([cloud, [[1000.0, 0.0, 0.0]]])) == pytest.approx(scene_size(cloud), rel=0.01)

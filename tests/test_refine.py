@@ -114,3 +114,9 @@ def test_a_schedule_starts_where_the_estimate_is_known_to_be():
     assert config.starting_at(0.75).schedule == (0.75, 0.3, 0.1)
     assert config.starting_at(0.2).schedule == (0.2, 0.1)
     assert config.starting_at(1.5) is config  # never looser than the schedule's own start
+
+
+def test_the_quick_icp_ranks_with_the_loose_stages_only():
+    quick = ICPConfig().quick(20)
+    assert quick.schedule == (1.0, 0.3) and not quick.polish and quick.noise_factor == 0 and quick.max_iterations == 20
+    assert ICPConfig(schedule=(0.5,)).quick(5).schedule == (0.5,)
