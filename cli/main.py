@@ -160,7 +160,12 @@ def _register_config(*, weights, device, voxel, coarse_iterations, search, searc
 )
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
-@click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the pair: input, after the network, after ICP.")
+@click.option(
+    "--render",
+    "render_path",
+    type=click.Path(path_type=Path),
+    help="Write a PNG of the pair (input, after the network, after ICP), seen onto its principal plane, the source coloured by its distance to the target.",
+)
 @click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
 @_pipeline_options
 @_friendly_errors
@@ -240,10 +245,17 @@ def register(
     if render_path is not None:
         from ..render import render_registration
 
-        panels = [("input", None), ("network", result.coarse_transformation)]
+        panels = [("input", None), ("coarse estimate", result.coarse_transformation)]
         if config.refine:
-            panels.append(("network + ICP", result.transformation))
-        render_registration(render_path, src, tgt, panels)
+            panels.append(("after ICP", result.transformation))
+        caption = f"Confidence {result.confidence:.2f} (0-1, higher is better){', LIKELY FAILED' if result.likely_failed else ''}."
+        if errors is not None:
+            e = errors["final"]
+            caption += f" Error against the ground truth: {e.rotation_deg:.3g} deg, {e.translation:.3g} units (lower is better)."
+        # Colours up to three grid cells (scans), or the confidence's tight distance.
+        scale = 3 * result.voxel if result.voxel is not None else result.tight_distance
+        render_registration(render_path, src, tgt, panels, scale, caption)
+        click.echo(f"Picture: {render_path}", err=as_json)
     if result.likely_failed and strict:
         sys.exit(3)
 

@@ -1,7 +1,10 @@
-"""Before / after pictures of a registration, like the paper's figures (a), (b), (c).
+"""Before / after pictures of a registration that a person can judge it by.
 
-Rendered with Matplotlib's Agg canvas (no display needed): three 3-D scatter panels sharing one
-view: the input pair, the source after the coarse stage, and after ICP.
+Each panel is an orthographic view onto the target's principal plane (the plane of its two
+largest principal axes: top-down for an outdoor scan, the main wall or floor of an indoor
+fragment, the broad side of an object), drawn with Matplotlib's Agg canvas (no display needed).
+The target is grey; the source is coloured by its distance to the target, so the overlap (dark)
+and where it misfits (bright) show at a glance, whatever the scene's size.
 """
 
 from __future__ import annotations
@@ -10,11 +13,19 @@ from pathlib import Path
 from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .io import atomic_output
 from .transforms import apply_transform
 
-_MAX_DRAWN = 4000  # points per cloud and panel; more only slows the drawing down
+_MAX_DRAWN = 20_000  # points per cloud and panel; more only slows the drawing down
+
+
+def principal_plane(points: np.ndarray) -> np.ndarray:
+    """(3, 2) the two largest principal axes of (N, 3) points, as columns (the view's x and y)."""
+    centred = points - points.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)  # columns by increasing variance
+    return axes[:, [2, 1]]
 
 
 def render_registration(
@@ -22,14 +33,22 @@ def render_registration(
     source: np.ndarray,
     target: np.ndarray,
     panels: Sequence[Tuple[str, Optional[np.ndarray]]],
+    distance: float,
+    caption: str = "",
     dpi: int = 110,
 ) -> Path:
     """Write a PNG with one panel per (title, T_target_source) entry; None means the identity.
 
     Args:
         path: output .png path (written atomically).
-        source: (N, 3); target: (M, 3).
-        panels: e.g. [("input", None), ("coarse", T_coarse), ("coarse + ICP", T_final)].
+        source: (N, 3); target: (M, 3), in the same units.
+        panels: e.g. [("input", None), ("network", T_coarse), ("network + ICP", T_final)].
+        distance: the colour scale's top, in cloud units: source points this far from the target
+            or farther are drawn in the brightest colour (e.g. three cells of the voxel grid);
+            each panel's title gives the share of the source within a third of it.
+        caption: a line under the panels (errors, confidence).
+    Returns:
+        The path written.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -37,27 +56,32 @@ def render_registration(
     rng = np.random.default_rng(0)
     src = source[rng.choice(len(source), min(len(source), _MAX_DRAWN), replace=False)]
     tgt = target[rng.choice(len(target), min(len(target), _MAX_DRAWN), replace=False)]
-    moved = [(title, src if T is None else apply_transform(T, src)) for title, T in panels]
-    allpts = np.vstack([tgt] + [m for _, m in moved])
-    centre = (allpts.max(0) + allpts.min(0)) / 2
-    half = (allpts.max(0) - allpts.min(0)).max() / 2
+    tree = cKDTree(target)
+    axes = principal_plane(tgt)
+    origin = tgt.mean(axis=0)
+    flat_tgt = (tgt - origin) @ axes
 
-    fig = Figure(figsize=(4.2 * len(panels), 4.4))
+    fig = Figure(figsize=(4.2 * len(panels) + 0.8, 4.6))
     FigureCanvasAgg(fig)
-    for i, (title, pts) in enumerate(moved, start=1):
-        ax = fig.add_subplot(1, len(panels), i, projection="3d")
-        ax.scatter(*tgt.T, s=0.6, c="black", alpha=0.55, label="target", depthshade=False)
-        ax.scatter(*pts.T, s=0.6, c="tab:orange", alpha=0.55, label="source", depthshade=False)
-        ax.set_xlim(centre[0] - half, centre[0] + half)
-        ax.set_ylim(centre[1] - half, centre[1] + half)
-        ax.set_zlim(centre[2] - half, centre[2] + half)
-        ax.set_box_aspect((1, 1, 1))
-        ax.view_init(elev=20, azim=-60)
-        ax.set_title(f"({chr(96 + i)}) {title}")
+    shown = None
+    for i, (title, T) in enumerate(panels, start=1):
+        moved = src if T is None else apply_transform(T, src)
+        near, _ = tree.query(moved)
+        flat = (moved - origin) @ axes
+        ax = fig.add_subplot(1, len(panels), i)
+        ax.scatter(*flat_tgt.T, s=0.5, c="0.75", linewidths=0, label="target")
+        shown = ax.scatter(*flat.T, s=0.7, c=np.minimum(near, distance), cmap="plasma", vmin=0.0, vmax=distance, linewidths=0, label="source")
+        ax.set_aspect("equal")
+        share = 100.0 * float(np.mean(near < distance / 3))
+        ax.set_title(f"({chr(96 + i)}) {title}: {share:.0f} % of the source within {distance / 3:.3g}", fontsize=8)
         ax.tick_params(labelsize=6)
         if i == 1:
             ax.legend(loc="upper left", fontsize=7, markerscale=8)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.04, right=0.9, bottom=0.1, top=0.92, wspace=0.15)
+    cbar = fig.colorbar(shown, ax=fig.axes, shrink=0.8, pad=0.01)
+    cbar.set_label("source point's distance to the target (cloud units, lower is better)", fontsize=7)
+    cbar.ax.tick_params(labelsize=6)
+    fig.text(0.01, 0.01, "View: the target's principal plane. " + caption, fontsize=7)
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
     return Path(path)

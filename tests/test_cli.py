@@ -58,7 +58,7 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert "network + ICP" in r.output and "deg" in r.output
     assert np.allclose(read_transform(d / "T.txt"), T, atol=1e-5)
     assert np.allclose(read_points(d / "aligned.xyz"), apply(T, src), atol=1e-4)
-    assert (d / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (d / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"Picture: {d / 'fig.png'}" in r.output
 
 
 def test_register_json(pair_files, tiny_model_path):
