@@ -1,6 +1,7 @@
 """Write the README's "Results" section from bench run folders (never typed by hand).
 
     python -m benchmarks.results_table RUN [RUN ...] [--readme README.md] [--marker results] [--short]
+    python -m benchmarks.results_table --scans SCANS_RUN          # the real-scans table (marker: scans)
 
 Each RUN is a bench run folder or a copy of its summary.json; the README's table is made from
 the copies in benchmarks/results/ (``python -m benchmarks.results_table benchmarks/results/*.json``),
@@ -147,20 +148,58 @@ def markdown(runs: Union[Path, Sequence[Path]], short: bool = False) -> str:
     return "\n".join(lines)
 
 
+def scans_markdown(run: Path) -> str:
+    """The README's real-scans table from one ``bench scans`` run: per folder (its kind and
+    thresholds), each method's recall at both thresholds and median time, and o3dsoft's
+    confidence ROC AUC and false alarms."""
+    doc = summary_of(run)
+    desc, names = doc["description"], doc["methods"]
+    lines = run_lines(doc)[1:]
+    lines[0:0] = [f"Command: `{desc.get('command', 'o3dsoft bench scans')}`; {doc['pairs_completed']} pairs in {doc['seconds'] / 60:.1f} min."]
+    lines += [
+        "",
+        "Recall: share of pairs within each kind's tight / loose test (higher is better); time: median per pair, "
+        "measured in the same run (lower is better); false alarms: right results flagged (lower is better).",
+        "",
+        "| scans | test (tight / loose) | method | recall | time (ms) | confidence ROC AUC, false alarms |",
+        "|---|---|---|---|---|---|",
+    ]
+    kinds = {f["folder"]: f["kind"] for f in desc.get("folders", [])}
+    for s in doc["summaries"]:
+        if s["subset"] != "all":
+            continue
+        tight, loose = thresholds(doc, s["protocol"])[0], thresholds(doc, s["protocol"])[-1]
+        test = f"{tight['rotation_deg']:g} deg / {tight['translation']:.3g}, {loose['rotation_deg']:g} deg / {loose['translation']:.3g}"
+        keys = recall_keys(s)
+        trust = ""
+        if "confidence_auc" in s:
+            auc = "-" if s["confidence_auc"] is None else f"{s['confidence_auc']:.2f}"
+            alarms = "-" if s.get("false_alarm_share") is None else f"{100 * s['false_alarm_share']:.0f} %"
+            trust = f"{auc}, {alarms}"
+        lines.append(
+            f"| {s['protocol']} ({kinds.get(s['protocol'], '')}, {int(s['pairs'])} pairs) | {test} | {names[s['method']]} | "
+            f"{100 * s[keys[0]]:.0f} / {100 * s[keys[-1]]:.0f} % | {s['time_ms_median']:.0f} | {trust} |"
+        )
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", type=Path, nargs="+", help="bench run folders or summary.json files (each protocol from one of them)")
     ap.add_argument("--readme", type=Path, default=Path(__file__).resolve().parents[1] / "README.md")
     ap.add_argument("--marker", default="results", help="the README section's marker name")
     ap.add_argument("--short", action="store_true", help="only the runs and the short table, not one table per protocol")
+    ap.add_argument("--scans", action="store_true", help="one `bench scans` run: the real-scans table (marker `scans` unless told)")
     args = ap.parse_args()
-    START, END = f"<!-- {args.marker}:start -->", f"<!-- {args.marker}:end -->"
+    marker = "scans" if args.scans and args.marker == "results" else args.marker
+    START, END = f"<!-- {marker}:start -->", f"<!-- {marker}:end -->"
     text = args.readme.read_text()
     if START not in text or END not in text:
         raise SystemExit(f"{args.readme}: no {START} ... {END} markers")
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
-    args.readme.write_text(head + START + "\n" + markdown(args.runs, args.short) + "\n" + END + tail)
+    table = scans_markdown(args.runs[0]) if args.scans else markdown(args.runs, args.short)
+    args.readme.write_text(head + START + "\n" + table + "\n" + END + tail)
     print(f"updated {args.readme} from {', '.join(map(str, args.runs))}")
 
 

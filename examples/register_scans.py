@@ -1,62 +1,75 @@
-"""Register two real scans (LiDAR, RGB-D, structured light): the README's recipe in code.
+"""Register real scans (RGB-D fragments, LiDAR sweeps, structured-light views) with the defaults.
 
-    python examples/register_scans.py                                  # the bundled bunny scans
-    python examples/register_scans.py SRC TGT --voxel 0.05 --icp-distance 0.5 [--gt T.txt]
+    python examples/register_scans.py                          # the shared real scans, else the bundled bunny pair
+    python examples/register_scans.py FOLDER [FOLDER ...]      # every pair of each folder's pairs.txt
+    python examples/register_scans.py SRC.ply TGT.ply [--gt T.txt]
+    ... --render DIR                                           # one picture per pair
 
-The recipe, for scans in metres of up to a few million points:
-1. Voxel-downsample both scans to a common spacing (`--voxel`): it evens out the density of
-   near and far regions, which ICP and the confidence otherwise weigh unevenly, and bounds the
-   time. A few times the sensor noise: 2-5 mm for RGB-D or structured light, 5-10 cm for LiDAR.
-2. Give ICP an absolute correspondence distance (`--icp-distance`, metres): about the size of the
-   error you expect from the coarse stage, here 10 x the voxel. ICP then runs at 1, 0.3 and 0.1 of
-   it, so the last stage keeps only pairs closer than about one voxel.
-3. Keep the global search's FPFH feature match (`search.features.enabled`, on by default): scans overlap
-   partly and can be turned any way, where a coarse stage trained on whole objects is least reliable.
-4. Read the confidence: below 0.5 the result is flagged as likely failed; scans that share less
-   than ~80 % of their surface can be flagged although right, so look at them (`--render`).
+No setting depends on the scans' units or size: o3dsoft registers dense scans on a voxel grid of
+0.5 % of the scene's size (tries its estimates on 1 %), refines with point-to-plane ICP, and
+decides whether to trust the result on the clouds it is the answer for. A pairs.txt lists one
+pair per line, ``source target transform`` (paths relative to its folder, the transform a 4x4
+T_target_source); see ../shared/data/real_scans/README.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
-
-import numpy as np
+from typing import Iterator, Optional, Tuple
 
 import o3dsoft
+from o3dsoft.scans import read_pairs_file
 
-DATA = Path(__file__).resolve().parent / "data"
+HERE = Path(__file__).resolve().parent
+SHARED = HERE.parent.parent / "shared" / "data" / "real_scans"
+BUNDLED = (HERE / "data" / "bun045.ply", HERE / "data" / "bun000.ply", HERE / "data" / "bun045_to_bun000.txt")
+
+
+def pairs(args: argparse.Namespace) -> Iterator[Tuple[Path, Path, Optional[Path]]]:
+    """(source, target, ground truth or None) for every pair asked for."""
+    if len(args.inputs) == 2 and all(p.is_file() for p in args.inputs):
+        yield args.inputs[0], args.inputs[1], args.gt
+        return
+    folders = args.inputs or sorted(p for p in SHARED.glob("*") if (p / "pairs.txt").is_file())
+    if not folders:  # no shared data: the bundled pair
+        yield BUNDLED
+        return
+    for folder in folders:
+        for entry in read_pairs_file(folder / "pairs.txt"):
+            yield entry.source, entry.target, entry.transform
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("source", nargs="?", type=Path, default=DATA / "bun045.ply")
-    ap.add_argument("target", nargs="?", type=Path, default=DATA / "bun000.ply")
-    ap.add_argument("--gt", type=Path, help="ground-truth T_target_source (default: the bundled pair's)")
-    ap.add_argument("--voxel", type=float, default=0.002, help="voxel size in the scans' units (default 0.002: 2 mm)")
-    ap.add_argument("--icp-distance", type=float, default=None, help="ICP distance in the scans' units (default 10 x voxel)")
+    ap.add_argument("inputs", nargs="*", type=Path, help="folders with a pairs.txt, or two scans")
+    ap.add_argument("--gt", type=Path, help="ground-truth T_target_source of two scans")
+    ap.add_argument("--render", type=Path, help="folder for one picture per pair")
     args = ap.parse_args()
-    gt = args.gt or (DATA / "bun045_to_bun000.txt" if args.source == DATA / "bun045.ply" else None)
+    model = o3dsoft.load_model()  # once, for every pair
+    for source_path, target_path, gt in pairs(args):
+        source, target = o3dsoft.read_points(source_path), o3dsoft.read_points(target_path)
+        start = time.perf_counter()
+        result = o3dsoft.register(source, target, model=model)
+        seconds = time.perf_counter() - start
+        grid = f"{result.voxel:.3g}-unit grid" if result.voxel is not None else "every point"
+        print(f"{source_path.name} -> {target_path.name}: {len(source)} and {len(target)} points, registered on {grid}, ICP point-to-{result.icp_method}")
+        print(
+            f"  confidence {result.confidence:.3f} (0-1, higher is better){'  LIKELY FAILED: ' + str(result.failure_reason) if result.likely_failed else ''}; "
+            f"time {1000 * seconds:.0f} ms (lower is better)"
+        )
+        if gt is not None:
+            e = o3dsoft.pair_errors(result.transformation, o3dsoft.read_transform(gt))
+            print(f"  error against the ground truth: rotation {e.rotation_deg:.3f} deg, translation {e.translation:.4g} units (lower is better)")
+        if args.render is not None:
+            from o3dsoft.render import render_registration
 
-    source, target = o3dsoft.read_points(args.source), o3dsoft.read_points(args.target)
-    config = o3dsoft.RegisterConfig(
-        voxel=args.voxel,  # step 1
-        icp=o3dsoft.ICPConfig(distance=args.icp_distance or 10 * args.voxel, absolute=True),  # step 2
-    )  # step 3: the search's feature match is on by default
-    result = o3dsoft.register(source, target, config)
-    print(
-        f"{args.source.name}: {len(source)} points, {args.target.name}: {len(target)} points; "
-        f"{result.num_source} and {result.num_target} on the {args.voxel:g} voxel grid"
-    )
-    print("T_target_source:\n" + np.array2string(result.transformation, precision=6, suppress_small=True))
-    print(
-        f"confidence {result.confidence:.3f} (0-1, higher is better){'  LIKELY FAILED' if result.likely_failed else ''}; "
-        f"fitness {result.fitness:.3f} (higher is better); inlier RMSE {result.inlier_rmse:.4g} units (lower is better)"
-    )
-    print(f"search ran: {result.searched}; time {result.timings_ms['total']:.0f} ms (lower is better)")
-    if gt is not None:
-        e = o3dsoft.pair_errors(result.transformation, o3dsoft.read_transform(gt))
-        print(f"error against the ground truth: rotation {e.rotation_deg:.3f} deg, translation {e.translation:.4g} units (lower is better)")
+            args.render.mkdir(parents=True, exist_ok=True)
+            picture = args.render / f"{source_path.stem}_to_{target_path.stem}.png"
+            scale = 3 * result.voxel if result.voxel is not None else result.tight_distance
+            render_registration(picture, source, target, [("input", None), ("result", result.transformation)], scale, f"Confidence {result.confidence:.2f}.")
+            print(f"  picture: {picture}")
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ from . import refine as refine_stage
 from .clock import StageClock
 from .config import RegisterConfig
 from .errors import InputError
-from .preprocess import DataGrids, clean_points, data_grids, normalisation_for, normalise_pair, same_profile_pvalue, sample_points, voxel_downsample
+from .preprocess import DataGrids, clean_points, data_grids, normalisation_for, normalise_pair, same_profile_pvalue, sample_points, scene_size, voxel_downsample
 from .search import FeatureMatch
 
 if TYPE_CHECKING:
@@ -95,6 +95,8 @@ class PreparedPair:
         if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest
             config = replace(config, icp=replace(config.icp, method="point" if self.voxel is None else "plane"))
         self.config = config
+        sizes = [scene_size(c) for c in self.full]
+        self.size_ratio = max(sizes) / max(min(sizes), 1e-300)  # far from 1: different units, or unrelated clouds
         clock.lap("clean")
         # The network's samples, normalised together (own centroids, one common scale).
         self.norm = normalisation_for(*self.full)

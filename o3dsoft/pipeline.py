@@ -27,6 +27,10 @@ from .strategies import FeatureMatchProposals, NetworkPass, NetworkStarts, Resta
 from .transforms import rotation_angle_deg
 from .verify import Attempt, Verifier
 
+# Scenes whose sizes differ more than this are named in the failure reason: most often one is in
+# millimetres and the other in metres.
+SIZE_RATIO_NOTE = 20.0
+
 __all__ = ["register", "RegisterConfig", "RegistrationResult", "SEARCH_MODES", "as_points"]
 
 
@@ -250,6 +254,9 @@ def _result(
     config = pair.config
     (src, tgt), (src_report, tgt_report) = pair.full, pair.cleaned
     trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
+    reason = geometry.reason or _failure_reason(best, config, searched)
+    if reason and pair.size_ratio > SIZE_RATIO_NOTE:
+        reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units?); {reason}"
     return RegistrationResult(
         transformation=best.fine.transformation,
         fitness=best.fine.fitness,
@@ -257,7 +264,7 @@ def _result(
         coarse_transformation=best.coarse,
         confidence=trust,
         likely_failed=trust < config.confidence.likely_failed_below,
-        failure_reason=geometry.reason or _failure_reason(best, config, searched),
+        failure_reason=reason,
         fitness_tight=best.scored.fitness_tight,
         tight_distance=best.scored.tight_distance,
         consistency=best.scored.consistency,

@@ -115,7 +115,7 @@ class DataGrids(NamedTuple):
 
 
 def data_grids(source: np.ndarray, target: np.ndarray, share: float) -> DataGrids:
-    """Grids of `share` (result) and 2 x `share` (work) of the larger scene's size
+    """Grids of `share` (result) and 2 x `share` (work) of the smaller scene's size
     (:func:`scene_size`), each used only where one of the clouds is denser than half of it (its
     :func:`point_spacing`); where only the work grid is, the result is refined on it too. Clouds
     sparser than that are registered as they are.
@@ -126,7 +126,7 @@ def data_grids(source: np.ndarray, target: np.ndarray, share: float) -> DataGrid
     """
     if share <= 0:
         return DataGrids(None, None)
-    size = max(scene_size(source), scene_size(target))
+    size = min(scene_size(source), scene_size(target))  # clouds in different units: the grid leaves both whole
     spacing = min(point_spacing(source), point_spacing(target))
     result, work = share * size, 2 * share * size
     if spacing >= 0.5 * work:
@@ -159,11 +159,18 @@ class Normalisation(NamedTuple):
 
 
 def normalisation_for(source: np.ndarray, target: np.ndarray) -> Normalisation:
-    """Centroids of both clouds and one common scale: the larger of their radii about the centroid."""
+    """Centroids of both clouds and one common scale: the larger of their radii about the centroid,
+    where a cloud's radius is at most twice the distance within which 99 % of its points lie
+    (so that a few stray far points do not shrink the scene)."""
     cs = source.mean(axis=0)
     ct = target.mean(axis=0)
-    radius = max(np.linalg.norm(source - cs, axis=1).max(), np.linalg.norm(target - ct, axis=1).max())
+    radius = max(_radius(source - cs), _radius(target - ct))
     return Normalisation(cs.astype(np.float64), ct.astype(np.float64), float(max(radius, 1e-12)))
+
+
+def _radius(centred: np.ndarray) -> float:
+    r = np.linalg.norm(centred, axis=1)
+    return float(min(r.max(), 2.0 * np.percentile(r, 99)))
 
 
 def normalise_pair(source: np.ndarray, target: np.ndarray, norm: Optional[Normalisation] = None) -> Tuple[np.ndarray, np.ndarray, Normalisation]:

@@ -110,7 +110,7 @@ def downsample(points: np.ndarray, max_points: int) -> np.ndarray:
     if len(points) <= max_points:
         return points
     cloud = to_open3d(points)
-    extent = points.max(axis=0) - points.min(axis=0)
+    extent = np.subtract(*np.percentile(points, [99, 1], axis=0))  # stray far points aside
     # Surface-like data: the count falls with the square of the voxel size. Start from the voxel
     # that a surface filling the bounding box's largest face would need, then grow until it fits.
     dims = np.sort(extent)[1:]

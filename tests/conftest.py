@@ -15,6 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("O3DSOFT_SHARED_DATA", REPO.parent / "shared" / "data"))
 MODELNET = SHARED_DATA / "modelnet40_ply_hdf5_1024"
 BUNNY = SHARED_DATA / "stanford_bunny"
+REAL_SCANS = SHARED_DATA / "real_scans"
 EXAMPLES = REPO / "examples" / "data"
 
 TINY = NetConfig(k=8, radius=0.3, channels=(8, 16, 16, 16, 32))
@@ -32,6 +33,13 @@ def bunny_root() -> Path:
     if not (BUNNY / "bun.conf").is_file():
         pytest.skip(f"Stanford Bunny scans not found at {BUNNY}")
     return BUNNY
+
+
+@pytest.fixture(scope="session")
+def real_scans_root() -> Path:
+    if not (REAL_SCANS / "outdoor_laser_car" / "pairs.txt").is_file():
+        pytest.skip(f"real scans not found at {REAL_SCANS}")
+    return REAL_SCANS
 
 
 @pytest.fixture(scope="session")

@@ -41,12 +41,22 @@ def test_examples_run_without_arguments(script):
     assert "rotation error" in r.stdout
 
 
-def test_scan_recipe_example_aligns_the_bundled_scans():
-    r = subprocess.run([sys.executable, str(REPO / "examples" / "register_scans.py")], capture_output=True, text=True, timeout=300)
+def _scan_errors(*args):
+    r = subprocess.run([sys.executable, str(REPO / "examples" / "register_scans.py"), *map(str, args)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
-    line = next(l for l in r.stdout.splitlines() if l.startswith("error against the ground truth"))
-    rotation_deg, translation = float(line.split()[6]), float(line.split()[9])
-    assert rotation_deg < 1.0 and translation < 0.002  # 1 degree, 2 mm
+    lines = [l.split() for l in r.stdout.splitlines() if l.strip().startswith("error against the ground truth")]
+    return [(float(l[6]), float(l[9])) for l in lines], r.stdout
+
+
+def test_scan_example_aligns_the_bundled_scans():
+    errors, _ = _scan_errors(EXAMPLES / "bun045.ply", EXAMPLES / "bun000.ply", "--gt", EXAMPLES / "bun045_to_bun000.txt")
+    assert len(errors) == 1 and errors[0][0] < 1.0 and errors[0][1] < 0.002  # 1 degree, 2 mm
+
+
+def test_scan_example_runs_on_the_shared_laser_scans(real_scans_root, tmp_path):
+    errors, out = _scan_errors(real_scans_root / "outdoor_laser_car", "--render", tmp_path)
+    assert len(errors) == 1 and errors[0][0] < 1.0 and errors[0][1] < 0.3  # LiDAR's fine test: 1 degree, 30 cm
+    assert "point-to-plane" in out and len(list(tmp_path.glob("*.png"))) == 1
 
 
 def test_register_arrays_example_recovers_its_transform():

@@ -351,3 +351,23 @@ def test_the_screen_tries_at_most_its_budget_of_estimates():
     search = SearchConfig(mode="always", screen=ScreenConfig(points=512, budget=3))
     res = register(src, apply(T, src), RegisterConfig(attempt_points=2_000, search=search))
     assert res.searched and 1 <= res.screened <= 3
+
+
+def test_scans_with_a_stray_far_point_or_in_other_units_are_right_or_flagged():
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    stray = np.vstack([src, src.mean(axis=0) + [1000.0, 0.0, 0.0]])  # one point 1 km away from a 20 cm scan
+    res = register(stray, tgt)
+    assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1.0
+    assert res.scale < 1.0  # the scene's scale, not the stray point's
+    res = register(1000.0 * src, tgt)  # millimetres against metres: no rigid transform fits
+    assert res.likely_failed and "-fold (are they in the same units?)" in res.failure_reason
+
+
+def test_clouds_that_do_not_overlap_are_flagged():
+    rng = np.random.default_rng(6)
+    bunny = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    floor = np.c_[rng.uniform(-5, 5, size=(20_000, 2)), rng.normal(scale=0.002, size=20_000)]  # a 10 m floor
+    res = register(bunny, floor)
+    assert res.likely_failed and res.failure_reason

@@ -98,7 +98,7 @@ def test_dense_scans_get_a_grid_of_their_own_size_and_sparse_clouds_none():
     dense, sparse = _surface(rng, 40_000), _surface(rng, 1_024)
     size = scene_size(dense)
     grids = data_grids(dense, dense[::2], 0.005)
-    assert grids.result == pytest.approx(0.005 * size) and grids.work == pytest.approx(0.01 * size)
+    assert grids.result == pytest.approx(0.005 * size, rel=0.02) and grids.work == pytest.approx(0.01 * size, rel=0.02)
     assert data_grids(sparse, sparse, 0.005) == (None, None)  # ModelNet40-like: every point kept
     assert data_grids(dense, dense, 0.0) == (None, None)
     # Dense enough for the work grid only: the result is refined on it too.
