@@ -83,7 +83,7 @@ def run_lines(doc: dict) -> List[str]:
         + (" (interrupted)" if doc["interrupted"] else "")
         + ".",
         f"Machine: {v['machine']}; o3dsoft {v['o3dsoft']}{commit}, torch {v['torch']}, Open3D {v['open3d']}. "
-        f"Weights sha256 `{(doc['weights']['sha256'] or '-')[:12]}`.",
+        f"Weights sha256 `{((doc.get('weights') or {}).get('sha256') or '-')[:12]}`.",
     ]
 
 

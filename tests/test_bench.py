@@ -301,6 +301,10 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     assert rows["scans", "fpfh-ransac+icp"]["pairs"] == 2
     if bench.peers_installed():  # KISS-Matcher + GICP registers the bunny, magnified or not
         assert rows["room", "kiss-matcher+gicp"]["recall_15deg"] == 1.0 and rows["scans", "kiss-matcher+gicp"]["recall_5deg"] == 1.0
+    from benchmarks.results_table import scans_markdown
+
+    table = scans_markdown(tmp_path / "s")  # the README's real-scans table
+    assert "| room (rgbd, 1 pairs) | 2 deg / 0.05, 15 deg / 0.3 | Open3D ICP from the identity |" in table
     r = _bench(["scans", str(tmp_path / "nowhere")])
     assert r.exit_code == 2 and "no such folder of scans" in r.output
 

@@ -16,11 +16,14 @@ def test_readme_python_snippets_run(monkeypatch):
     assert result.transformation.shape == (4, 4) and 0.0 <= result.confidence <= 1.0
 
 
-def test_readme_results_table_is_the_generated_one():
-    from benchmarks.results_table import markdown
+def test_readme_results_tables_are_the_generated_ones():
+    from benchmarks.results_table import markdown, scans_markdown
 
     text = (REPO / "README.md").read_text()
-    command = re.search(r"Made by `python -m benchmarks.results_table ([^`]*)`", text.replace("\n", " ")).group(1).split()
-    runs = [REPO / arg for arg in command if not arg.startswith("--")]
-    block = text.split("<!-- results:start -->\n", 1)[1].split("\n<!-- results:end -->", 1)[0]
-    assert block == markdown(runs, short="--short" in command)
+    commands = [c.split() for c in re.findall(r"Made by `python -m benchmarks.results_table ([^`]*)`", text.replace("\n", " "))]
+    assert len(commands) == 2
+    for command in commands:
+        runs = [REPO / arg for arg in command if not arg.startswith("--")]
+        marker = "scans" if "--scans" in command else "results"
+        block = text.split(f"<!-- {marker}:start -->\n", 1)[1].split(f"\n<!-- {marker}:end -->", 1)[0]
+        assert block == (scans_markdown(runs[0]) if marker == "scans" else markdown(runs, short="--short" in command))
