@@ -527,6 +527,15 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
     _run_bench("modelnet40", iterator, count, description, **common)
 
 
+_MIN_OVERLAP = click.option(
+    "--min-overlap",
+    type=click.FloatRange(0, 1),
+    default=0.3,
+    show_default=True,
+    help="Folders with a .conf: keep ordered scan pairs with at least this ground-truth overlap (a pairs.txt's pairs are all kept).",
+)
+
+
 @bench.command("scans")
 @click.argument("folders", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option(
@@ -537,13 +546,7 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
     help="What the scans are, which sets the success thresholds: rgbd 2 deg / 5 cm and 15 deg / 30 cm; lidar 1 deg / 30 cm and 5 deg / 2 m; "
     "object 1 deg / 1 % and 5 deg / 5 % of the size. auto: per folder from the size of its first scan (in metres: under 1 m an object, under 30 m RGB-D).",
 )
-@click.option(
-    "--min-overlap",
-    type=click.FloatRange(0, 1),
-    default=0.3,
-    show_default=True,
-    help="Folders with a .conf: keep ordered scan pairs with at least this ground-truth overlap (a pairs.txt's pairs are all kept).",
-)
+@_MIN_OVERLAP
 @_bench_options
 @_friendly_errors
 def bench_scans(folders, kind, min_overlap, **common):
@@ -559,9 +562,7 @@ def bench_scans(folders, kind, min_overlap, **common):
 @click.option(
     "--data", type=click.Path(path_type=Path), default=None, help="Folder with scans and their .conf (default ../shared/data/stanford_bunny or $O3DSOFT_SCANS)."
 )
-@click.option(
-    "--min-overlap", type=click.FloatRange(0, 1), default=0.3, show_default=True, help="Keep ordered scan pairs with at least this ground-truth overlap."
-)
+@_MIN_OVERLAP
 @click.option(
     "--recall-translation",
     type=click.FloatRange(min=0, min_open=True),
