@@ -110,6 +110,7 @@ class PreparedPair:
         clock.lap("sample_normalise")
         self.work: Clouds = (refine_stage.downsample(work[0], config.attempt_points), refine_stage.downsample(work[1], config.attempt_points))
         self._scorers: Dict[str, confidence_stage.Scorer] = {}
+        self._normals: Dict[str, np.ndarray] = {}
 
     @staticmethod
     def _grid(clouds: Clouds, voxel: float, names: Tuple[str, str], k: int) -> Clouds:
@@ -139,6 +140,15 @@ class PreparedPair:
         if level not in ("full", "work", "screen"):
             raise ValueError(f"level must be full, work or screen, got {level!r}")
         return getattr(self, level)
+
+    def target_normals(self, level: str) -> Optional[np.ndarray]:
+        """(M, 3) normals of the target at `level` for point-to-plane ICP, estimated once; None
+        when ICP is point-to-point."""
+        if self.config.icp.method != "plane":
+            return None
+        if level not in self._normals:
+            self._normals[level] = refine_stage.target_normals(self.clouds(level)[1], self.config.icp)
+        return self._normals[level]
 
     def scorer(self, level: str) -> confidence_stage.Scorer:
         """The confidence's scorer of the clouds at `level`, built once."""

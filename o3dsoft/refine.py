@@ -123,13 +123,26 @@ def downsample(points: np.ndarray, max_points: int) -> np.ndarray:
     return down
 
 
-def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: float, config: ICPConfig = ICPConfig()) -> ICPResult:
-    """Point-to-point ICP from `init`, over the distance schedule of `config`.
+def target_normals(target: np.ndarray, config: ICPConfig = ICPConfig()) -> np.ndarray:
+    """(M, 3) unit normals of the (M, 3) target for point-to-plane ICP, from its
+    ``normal_neighbours`` nearest points (estimate once, pass to :func:`icp` many times)."""
+    cloud = to_open3d(target)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(config.normal_neighbours))
+    return np.asarray(cloud.normals).copy()
+
+
+def icp(
+    source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: float, config: ICPConfig = ICPConfig(), normals: Optional[np.ndarray] = None
+) -> ICPResult:
+    """ICP from `init`, point-to-point or point-to-plane (``config.method``), over the distance
+    schedule of `config`.
 
     Args:
         source: (N, 3); target: (M, 3) in their original frames.
         init: (4, 4) initial T_target_source.
         distance: max correspondence distance in cloud units (the schedule's multipliers apply).
+        normals: (M, 3) the target's :func:`target_normals`, when point-to-plane ICP runs on it
+            often (estimated here otherwise, and when the target is downsampled first).
     Returns:
         ICPResult with the refined transform, and the fitness and inlier RMSE at `distance`.
     """
@@ -145,7 +158,8 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: floa
 
     plane = config.method == "plane"
     if plane:
-        tgt.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(config.normal_neighbours))
+        given = normals is not None and len(normals) == len(target) and len(target) <= config.max_points
+        tgt.normals = o3d.utility.Vector3dVector(normals if given else target_normals(tgt_points, config))
     estimation = reg.TransformationEstimationPointToPlane() if plane else reg.TransformationEstimationPointToPoint()
 
     def run(T: np.ndarray, stage_distance: float, criteria) -> np.ndarray:

@@ -133,9 +133,9 @@ def record_icp(monkeypatch) -> list:
     calls = []
     real_icp = refine.icp
 
-    def recording_icp(source, target, init, distance, config=refine.ICPConfig()):
+    def recording_icp(source, target, init, distance, config=refine.ICPConfig(), normals=None):
         calls.append((len(source), config.schedule))
-        return real_icp(source, target, init, distance, config)
+        return real_icp(source, target, init, distance, config, normals)
 
     monkeypatch.setattr(refine, "icp", recording_icp)
     return calls

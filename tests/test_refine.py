@@ -120,3 +120,17 @@ def test_the_quick_icp_ranks_with_the_loose_stages_only():
     quick = ICPConfig().quick(20)
     assert quick.schedule == (1.0, 0.3) and not quick.polish and quick.noise_factor == 0 and quick.max_iterations == 20
     assert ICPConfig(schedule=(0.5,)).quick(5).schedule == (0.5,)
+
+
+def test_point_to_plane_with_the_normals_given_once_is_the_same_icp():
+    from o3dsoft.refine import icp, target_normals
+
+    rng = np.random.default_rng(9)
+    src = blob(rng, 3_000)
+    T = random_transform(rng, 5.0, 0.05)
+    tgt = src @ T[:3, :3].T + T[:3, 3]
+    config = ICPConfig(method="plane")
+    inside = icp(src, tgt, np.eye(4), 0.3, config)
+    given = icp(src, tgt, np.eye(4), 0.3, config, target_normals(tgt, config))
+    assert np.allclose(inside.transformation, given.transformation, rtol=0, atol=1e-12)
+    assert rotation_error_deg(given.transformation[:3, :3], T[:3, :3]) < 0.01
