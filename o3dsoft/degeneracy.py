@@ -26,7 +26,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import refine as refine_stage
-from ._open3d import open3d as o3d
 from .confidence import Features, Scorer
 from .transforms import apply_transform, euler_to_matrix, rigid
 
@@ -66,14 +65,6 @@ class Degeneracy(NamedTuple):
     reason: Optional[str]
 
 
-def normals(points: np.ndarray, neighbours: int) -> np.ndarray:
-    """(N, 3) unit normals (sign arbitrary) of an (N, 3) cloud: of the plane through each point's
-    `neighbours` nearest points."""
-    cloud = refine_stage.to_open3d(points)
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
-    return np.asarray(cloud.normals)
-
-
 def assess(
     source: np.ndarray,
     target: np.ndarray,
@@ -98,7 +89,7 @@ def assess(
     """
     source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
     target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
-    target_normals = normals(target, config.neighbours)
+    target_normals = refine_stage.normals(target, config.neighbours)
     moved = apply_transform(transformation, source)
     dist, j = cKDTree(target).query(moved, distance_upper_bound=distance)
     matched = np.isfinite(dist)

@@ -147,7 +147,7 @@ class PreparedPair:
         if self.config.icp.method != "plane":
             return None
         if level not in self._normals:
-            self._normals[level] = refine_stage.target_normals(self.clouds(level)[1], self.config.icp)
+            self._normals[level] = refine_stage.normals(self.clouds(level)[1], self.config.icp.normal_neighbours)
         return self._normals[level]
 
     def scorer(self, level: str) -> confidence_stage.Scorer:

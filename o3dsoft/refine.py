@@ -123,16 +123,21 @@ def downsample(points: np.ndarray, max_points: int) -> np.ndarray:
     return down
 
 
-def target_normals(target: np.ndarray, config: ICPConfig = ICPConfig()) -> np.ndarray:
-    """(M, 3) unit normals of the (M, 3) target for point-to-plane ICP, from its
-    ``normal_neighbours`` nearest points (estimate once, pass to :func:`icp` many times)."""
-    cloud = to_open3d(target)
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(config.normal_neighbours))
+def normals(points: np.ndarray, neighbours: int) -> np.ndarray:
+    """(N, 3) unit normals (sign arbitrary) of an (N, 3) cloud: of the plane through each point's
+    `neighbours` nearest points (for point-to-plane ICP: estimate once, pass to :func:`icp`)."""
+    cloud = to_open3d(points)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
     return np.asarray(cloud.normals).copy()
 
 
 def icp(
-    source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: float, config: ICPConfig = ICPConfig(), normals: Optional[np.ndarray] = None
+    source: np.ndarray,
+    target: np.ndarray,
+    init: np.ndarray,
+    distance: float,
+    config: ICPConfig = ICPConfig(),
+    target_normals: Optional[np.ndarray] = None,
 ) -> ICPResult:
     """ICP from `init`, point-to-point or point-to-plane (``config.method``), over the distance
     schedule of `config`.
@@ -141,8 +146,9 @@ def icp(
         source: (N, 3); target: (M, 3) in their original frames.
         init: (4, 4) initial T_target_source.
         distance: max correspondence distance in cloud units (the schedule's multipliers apply).
-        normals: (M, 3) the target's :func:`target_normals`, when point-to-plane ICP runs on it
-            often (estimated here otherwise, and when the target is downsampled first).
+        target_normals: (M, 3) the target's :func:`normals` (``config.normal_neighbours``), when
+            point-to-plane ICP runs on it often (estimated here otherwise, and when the target is
+            downsampled first).
     Returns:
         ICPResult with the refined transform, and the fitness and inlier RMSE at `distance`.
     """
@@ -158,8 +164,8 @@ def icp(
 
     plane = config.method == "plane"
     if plane:
-        given = normals is not None and len(normals) == len(target) and len(target) <= config.max_points
-        tgt.normals = o3d.utility.Vector3dVector(normals if given else target_normals(tgt_points, config))
+        given = target_normals is not None and len(target_normals) == len(target) and len(target) <= config.max_points
+        tgt.normals = o3d.utility.Vector3dVector(target_normals if given else normals(tgt_points, config.normal_neighbours))
     estimation = reg.TransformationEstimationPointToPlane() if plane else reg.TransformationEstimationPointToPoint()
 
     def run(T: np.ndarray, stage_distance: float, criteria) -> np.ndarray:

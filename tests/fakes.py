@@ -133,9 +133,9 @@ def record_icp(monkeypatch) -> list:
     calls = []
     real_icp = refine.icp
 
-    def recording_icp(source, target, init, distance, config=refine.ICPConfig(), normals=None):
+    def recording_icp(source, target, init, distance, config=refine.ICPConfig(), target_normals=None):
         calls.append((len(source), config.schedule))
-        return real_icp(source, target, init, distance, config, normals)
+        return real_icp(source, target, init, distance, config, target_normals)
 
     monkeypatch.setattr(refine, "icp", recording_icp)
     return calls

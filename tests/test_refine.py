@@ -123,7 +123,7 @@ def test_the_quick_icp_ranks_with_the_loose_stages_only():
 
 
 def test_point_to_plane_with_the_normals_given_once_is_the_same_icp():
-    from o3dsoft.refine import icp, target_normals
+    from o3dsoft.refine import icp, normals
 
     rng = np.random.default_rng(9)
     src = blob(rng, 3_000)
@@ -131,6 +131,6 @@ def test_point_to_plane_with_the_normals_given_once_is_the_same_icp():
     tgt = src @ T[:3, :3].T + T[:3, 3]
     config = ICPConfig(method="plane")
     inside = icp(src, tgt, np.eye(4), 0.3, config)
-    given = icp(src, tgt, np.eye(4), 0.3, config, target_normals(tgt, config))
+    given = icp(src, tgt, np.eye(4), 0.3, config, normals(tgt, config.normal_neighbours))
     assert np.allclose(inside.transformation, given.transformation, rtol=0, atol=1e-12)
     assert rotation_error_deg(given.transformation[:3, :3], T[:3, :3]) < 0.01
