@@ -595,8 +595,9 @@ def _run_scan_bench(folders, min_overlap, common):
     if common["methods"]:
         check_methods(common["methods"])
     else:  # the peers users compare with, where installed
-        common["methods"] = ("o3dsoft", "fpfh-ransac+icp") + (("kiss-matcher+gicp",) if peers_installed() else ())
-        if not peers_installed():
+        peers = peers_installed()
+        common["methods"] = ("o3dsoft", "fpfh-ransac+icp") + (("kiss-matcher+gicp",) if peers else ())
+        if not peers:
             click.echo("Note: KISS-Matcher + small_gicp left out: pip install 'o3dsoft[peers]'", err=True)
     titles, recall, description = {}, {}, []
     for scans in folders:

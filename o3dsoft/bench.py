@@ -230,9 +230,9 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> S
         table.append({"source": s.stem, "target": t.stem, "overlap": overlap, "kept": keep})
         if keep:
             pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{s.stem}->{t.stem}"))
-    first = next(iter(clouds.values()))
-    kind = guess_kind(first) if kind == "auto" else kind
-    return ScanFolder(name, pairs, kind, recall_thresholds(kind, scene_size(first)), table)
+    size = scene_size(next(iter(clouds.values())))  # of the first scan
+    kind = guess_kind(size) if kind == "auto" else kind
+    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size), table)
 
 
 def export_pairs(path: Path, pairs: Sequence[BenchPair]) -> None:

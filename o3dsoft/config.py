@@ -144,6 +144,11 @@ class SearchConfig:
     restart: RestartConfig = field(default_factory=RestartConfig)
     screen: ScreenConfig = field(default_factory=ScreenConfig)
 
+    @property
+    def features_on(self) -> bool:
+        """The feature match may run: the search is not off and the feature match is enabled."""
+        return self.mode != "off" and self.features.enabled
+
 
 @dataclass(frozen=True)
 class RegisterConfig:

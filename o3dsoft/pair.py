@@ -95,8 +95,6 @@ class PreparedPair:
         if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest
             config = replace(config, icp=replace(config.icp, method="point" if self.voxel is None else "plane"))
         self.config = config
-        sizes = [scene_size(c) for c in self.full]
-        self.size_ratio = max(sizes) / max(min(sizes), 1e-300)  # far from 1: different units, or unrelated clouds
         clock.lap("clean")
         # The network's samples, normalised together (own centroids, one common scale).
         self.norm = normalisation_for(*self.full)
@@ -111,6 +109,13 @@ class PreparedPair:
         self.work: Clouds = (refine_stage.downsample(work[0], config.attempt_points), refine_stage.downsample(work[1], config.attempt_points))
         self._scorers: Dict[str, confidence_stage.Scorer] = {}
         self._normals: Dict[str, np.ndarray] = {}
+
+    @cached_property
+    def size_ratio(self) -> float:
+        """The larger cleaned cloud's :func:`~o3dsoft.preprocess.scene_size` over the smaller's:
+        far from 1 for clouds in different units, or unrelated ones."""
+        sizes = [scene_size(report.points) for report in self.cleaned]
+        return max(sizes) / max(min(sizes), 1e-300)
 
     @staticmethod
     def _grid(clouds: Clouds, voxel: float, names: Tuple[str, str], k: int) -> Clouds:

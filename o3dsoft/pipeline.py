@@ -153,11 +153,10 @@ def register(
     pair = PreparedPair(source, target, config, model.config.k, (source_name, target_name), clock)
     verifier = Verifier(pair, clock)
     network = NetworkPass(model, config.coarse_iterations)
-    features = search.mode != "off" and search.features.enabled
 
     # Propose: on a partial overlap the feature match first (the network, trained on complete
     # shapes, is seldom confident there); then the network, unless that was confident.
-    features_first = features and pair.looks_partial()
+    features_first = search.features_on and pair.looks_partial()
     clock.lap("sample_normalise")
     if features_first:
         FeatureMatchProposals().propose(pair, verifier)
@@ -191,12 +190,11 @@ def _search(pair: PreparedPair, verifier: Verifier, model, search_model, feature
     """The global search's strategies in turn, each while nothing is confident: the feature match
     (unless done), the networks from many starts, translation votes, and the optional restart."""
     config = pair.config
-    features = config.search.mode != "off" and config.search.features.enabled
-    if features and not features_done:
+    if config.search.features_on and not features_done:
         FeatureMatchProposals().propose(pair, verifier)
     if not verifier.confident():
         NetworkStarts(model, search_model).propose(pair, verifier)
-    if features and not verifier.confident():
+    if config.search.features_on and not verifier.confident():
         TranslationVotes().propose(pair, verifier)
     if config.refine and config.search.restart.enabled and not verifier.settled():
         Restart().propose(pair, verifier)

@@ -87,11 +87,16 @@ def voxel_downsample(points: np.ndarray, voxel: float, name: str = "cloud", min_
     return down
 
 
-def scene_size(points: np.ndarray) -> float:
-    """Diagonal of the box holding the central 98 % of the (N, 3) points along each axis (cloud
+def robust_extent(points: np.ndarray) -> np.ndarray:
+    """(3,) sides of the box holding the central 98 % of the (N, 3) points along each axis (cloud
     units): a few stray far points do not change it."""
     lo, hi = np.percentile(points, [1, 99], axis=0)
-    return float(np.linalg.norm(hi - lo))
+    return hi - lo
+
+
+def scene_size(points: np.ndarray) -> float:
+    """Diagonal of the :func:`robust_extent` box of the (N, 3) points (cloud units)."""
+    return float(np.linalg.norm(robust_extent(points)))
 
 
 def point_spacing(points: np.ndarray, sample: int = 2000, seed: int = 0) -> float:

@@ -20,6 +20,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from ._open3d import open3d as o3d
+from .preprocess import robust_extent
 from .procrustes import weighted_procrustes
 from .transforms import apply_transform, rigid
 
@@ -110,7 +111,7 @@ def downsample(points: np.ndarray, max_points: int) -> np.ndarray:
     if len(points) <= max_points:
         return points
     cloud = to_open3d(points)
-    extent = np.subtract(*np.percentile(points, [99, 1], axis=0))  # stray far points aside
+    extent = robust_extent(points)  # stray far points aside
     # Surface-like data: the count falls with the square of the voxel size. Start from the voxel
     # that a surface filling the bounding box's largest face would need, then grow until it fits.
     dims = np.sort(extent)[1:]

@@ -21,7 +21,6 @@ from typing import Dict, List, NamedTuple, Tuple, Union
 import numpy as np
 
 from .errors import InputError, UsageError
-from .preprocess import scene_size
 from .transforms import quaternion_to_matrix, rigid
 
 
@@ -47,10 +46,9 @@ KINDS: Dict[str, Kind] = {
 }
 
 
-def guess_kind(points: np.ndarray) -> str:
-    """The kind of a scan in metres, from its size: under 1 m an object, under 30 m an indoor
-    RGB-D scene, else an outdoor LiDAR scene."""
-    size = scene_size(points)
+def guess_kind(size: float) -> str:
+    """The kind of a scan in metres from its :func:`~o3dsoft.preprocess.scene_size`: under 1 m an
+    object, under 30 m an indoor RGB-D scene, else an outdoor LiDAR scene."""
     return "object" if size < 1.0 else "rgbd" if size < 30.0 else "lidar"
 
 
