@@ -30,6 +30,6 @@ PIP="$VENV/bin/python -m pip --disable-pip-version-check -q"
 # torch first and pinned: an unpinned torch pulls a multi-GB CUDA build.
 $PIP install "$TORCH_SPEC" 2>&1 | grep -v "^WARNING: Location" || true
 $VENV/bin/python -c "import torch" 2>/dev/null || { echo "install.sh: torch failed to install ($TORCH_SPEC)" >&2; exit 1; }
-$PIP install -e ".[test,peers]" 2>&1 | grep -v "^WARNING: Location" || true
+$PIP install -e ".[test,peers,ray]" 2>&1 | grep -v "^WARNING: Location" || true
 $VENV/bin/python -c "import o3dsoft, open3d" || { echo "install.sh: o3dsoft failed to install" >&2; exit 1; }
 echo "install.sh: ready ($VENV)" >&2

@@ -136,8 +136,17 @@ def _register_config(*, weights, device, voxel, coarse_iterations, search, searc
 
 
 @main.command()
-@click.argument("source", type=click.Path(path_type=Path))
-@click.argument("target", type=click.Path(path_type=Path))
+@click.argument("source", type=click.Path(path_type=Path), required=False)
+@click.argument("target", type=click.Path(path_type=Path), required=False)
+@click.option(
+    "--pairs",
+    "pairs_path",
+    type=click.Path(path_type=Path),
+    help="Register every pair of this file instead (lines 'source target [ground-truth transform]', paths relative to it); --out names the results CSV.",
+)
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="--pairs: pairs registered at once, each in its own process.")
+@click.option("--ray", "ray_address", help="--pairs: run on a Ray cluster: local (start one here), auto (the one `ray start` set up) or its address.")
+@click.option("--no-progress", is_flag=True, help="--pairs: no progress bar.")
 @click.option("--gt", "gt_path", type=click.Path(path_type=Path), help="Ground-truth T_target_source (4x4 text or .npy): print the errors against it.")
 @click.option("--out", "out_path", type=click.Path(path_type=Path), help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .npy).")
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
@@ -172,6 +181,10 @@ def _register_config(*, weights, device, voxel, coarse_iterations, search, searc
 def register(
     source,
     target,
+    pairs_path,
+    workers,
+    ray_address,
+    no_progress,
     gt_path,
     out_path,
     save_transform,
@@ -188,9 +201,27 @@ def register(
 ):
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
-    SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY) or meshes (OFF, OBJ,
-    STL, PLY with faces), sampled on their faces.
+    SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY, LAS, LAZ, E57 of one
+    scan) or meshes (OFF, OBJ, STL, PLY with faces), sampled on their faces. With --pairs, every
+    pair of a file, one CSV row each (a run stopped half-way resumes from its --out file).
     """
+    icp = dict(distance=icp_distance, absolute=icp_absolute, method=icp_method)
+    if pairs_path is not None:
+        given = [
+            name
+            for name, v in (("SOURCE", source), ("--gt", gt_path), ("--save-transform", save_transform), ("--render", render_path), ("--json", as_json))
+            if v
+        ]
+        if given:
+            raise click.UsageError(f"--pairs registers the pairs of a file; {', '.join(given)} belong(s) to a single pair")
+        if out_path is None or out_path.suffix.lower() != ".csv":
+            raise click.UsageError("--pairs needs --out RESULTS.csv")
+        _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num_points, no_refine, icp, pipeline)
+        return
+    if source is None or target is None:
+        raise click.UsageError("give SOURCE and TARGET, or --pairs FILE")
+    if workers > 1 or ray_address:
+        raise click.UsageError("--workers and --ray go with --pairs")
     from .. import io
     from ..coarse import load_model
     from ..metrics import pair_errors
@@ -211,9 +242,7 @@ def register(
     tgt = io.read_points(target, mesh_points=mesh_points)
     T_gt = io.read_transform(gt_path) if gt_path is not None else None
     read_ms = (time.perf_counter() - t0) * 1000.0
-    config = _register_config(
-        **pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(distance=icp_distance, absolute=icp_absolute, method=icp_method)
-    )
+    config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
     t0 = time.perf_counter()
     model = load_model(config.weights, config.device)
     load_ms = (time.perf_counter() - t0) * 1000.0
@@ -257,6 +286,41 @@ def register(
         render_registration(render_path, src, tgt, panels, scale, caption)
         click.echo(f"Picture: {render_path}", err=as_json)
     if result.likely_failed and strict:
+        sys.exit(3)
+
+
+def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num_points, no_refine, icp, pipeline) -> None:
+    """`register --pairs`: every pair of the file, rows into the CSV `out_path`; exit 3 when a pair
+    failed to run."""
+    from tqdm import tqdm
+
+    from ..batch import done_lines, read_pair_jobs, run_jobs
+    from ..coarse import load_model
+    from ..refine import ICPConfig
+
+    jobs = read_pair_jobs(pairs_path)
+    config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
+    load_model(config.weights, config.device)  # a bad --weights fails here, once, not on every row
+    done = done_lines(out_path)
+    skipped = sum(j.line in done for j in jobs)
+    if skipped:
+        click.echo(f"Resuming: {skipped} of {len(jobs)} pairs already in {out_path}", err=True)
+    bar = tqdm(total=len(jobs) - skipped, unit="pair", disable=True if no_progress else None, dynamic_ncols=True)
+    try:
+        rows = run_jobs(jobs, config, out_path, workers=workers, ray=ray_address, progress=lambda row: bar.update(1))
+    finally:
+        bar.close()
+    failed = [r for r in rows if r["status"] != "ok"]
+    flagged = [r for r in rows if r["status"] == "ok" and str(r["likely_failed"]) == "True"]
+    seconds = sorted(float(r["seconds"]) for r in rows if r["status"] == "ok")
+    median = f"; median {seconds[len(seconds) // 2]:.2f} s per pair (lower is better)" if seconds else ""
+    click.echo(
+        f"{len(rows)} pairs: {len(rows) - len(failed) - len(flagged)} trusted, {len(flagged)} flagged likely failed, {len(failed)} could not run{median}."
+    )
+    for r in failed:
+        click.echo(f"  line {r['line']}: {r['error']}", err=True)
+    click.echo(f"Results: {out_path}")
+    if failed:
         sys.exit(3)
 
 
@@ -306,6 +370,119 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
             )
     t = result.timings_ms
     lines += ["", "Time per stage (ms, lower is better): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items())]
+    return "\n".join(lines)
+
+
+@main.command()
+@click.argument("scans", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True, help="Folder for poses.json and merged.ply (created if missing).")
+@click.option(
+    "--neighbours",
+    type=click.Choice(["auto", "all", "sequence", "near"]),
+    default="auto",
+    show_default=True,
+    help="Pairs registered: all, each scan with the next --window (scans in order), each with its --near nearest by centroid (scans roughly placed); auto: all up to 12 scans, else sequence.",
+)
+@click.option("--window", type=click.IntRange(min=1), default=3, show_default=True, help="sequence: following scans each scan is paired with.")
+@click.option("--near", type=click.IntRange(min=1), default=4, show_default=True, help="near: nearest scans each scan is paired with.")
+@click.option(
+    "--merge-voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="Grid of merged.ply (scan units); default: the pairs' registration grid."
+)
+@click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the merged cloud, one colour per scan.")
+@click.option("--json", "as_json", is_flag=True, help="Print the result (poses, edges) as JSON instead of a table.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@_pipeline_options
+@_friendly_errors
+def multiway(scans, out_dir, neighbours, window, near, merge_voxel, render_path, as_json, no_progress, **pipeline):
+    """Register SCANS (two or more files; every scan of an E57) into the frame of the first.
+
+    Writes OUT/poses.json (world_T_scan per scan, each edge's transform, confidence and whether it
+    was pruned) and OUT/merged.ply. Exit status 3 when a scan joined no other.
+    """
+    from tqdm import tqdm
+
+    from .. import io
+    from ..coarse import load_model
+    from ..multiway import MultiwayConfig, merged_cloud
+    from ..multiway import multiway as run_multiway
+
+    seen: dict = {}
+    for p in scans:
+        key = p.resolve()
+        if key in seen:
+            raise click.UsageError(f"{p}: given twice (as {seen[key]} too); each scan once")
+        seen[key] = p
+    if render_path is not None and render_path.suffix.lower() != ".png":
+        raise click.UsageError(f"--render {render_path}: give a .png file name")
+    io.make_folder(out_dir)
+    for p in (out_dir / "poses.json", out_dir / "merged.ply", render_path):
+        if p is not None:
+            io.check_writable(p)
+    names, clouds = [], []
+    for p in scans:
+        for name, points in io.read_scans(p):
+            names.append(name)
+            clouds.append(points)
+    if len(clouds) < 2:
+        raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
+    config = MultiwayConfig(neighbours=neighbours, window=window, near=near, voxel=merge_voxel, register=_register_config(**pipeline))
+    model = load_model(config.register.weights, config.register.device)
+    bar = tqdm(unit="pair", disable=True if no_progress else None, dynamic_ncols=True, desc="pairs")
+
+    def progress(done, total):
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        result = run_multiway(clouds, config, names=names, model=model, progress=progress)
+    finally:
+        bar.close()
+    payload = result.to_dict()
+    with io.atomic_output(out_dir / "poses.json") as tmp:
+        tmp.write_text(json.dumps(payload, indent=2))
+    points, labels = merged_cloud(clouds, result, result.voxel)
+    io.write_points(out_dir / "merged.ply", points)
+    if as_json:
+        click.echo(json.dumps(payload, indent=2))
+    else:
+        click.echo(_format_multiway(result, out_dir, len(points)))
+    if render_path is not None:
+        from ..render import render_merged
+
+        joined = sum(result.joined)
+        render_merged(render_path, points, labels, names, f"{joined} of {len(names)} scans joined.")
+        click.echo(f"Picture: {render_path}", err=as_json)
+    left_out = [n for n, j in zip(names, result.joined) if not j]
+    if left_out:
+        click.echo(f"Warning: {len(left_out)} scan(s) overlap no other with a trusted alignment and were left out: {', '.join(left_out)}", err=True)
+        sys.exit(3)
+
+
+def _format_multiway(result, out_dir: Path, merged_points: int) -> str:
+    import numpy as np
+
+    lines = [f"o3dsoft multiway  {len(result.names)} scans, world frame: {result.names[result.world]}", "", "Scans:"]
+    for name, pose in zip(result.names, result.poses):
+        if pose is None:
+            lines.append(f"  {name}: not joined (no trusted alignment to another scan)")
+        else:
+            angle = np.degrees(np.arccos(np.clip((np.trace(pose[:3, :3]) - 1) / 2, -1, 1)))
+            lines.append(f"  {name}: joined; world_T_scan turns {angle:.2f} deg and moves {np.linalg.norm(pose[:3, 3]):.4g} units")
+    used = [e for e in result.edges if e.used]
+    lines += [
+        "",
+        f"Pairs: {len(result.edges)} registered, {len(used)} trusted (confidence >= 0.5, higher is better), "
+        f"{sum(e.in_tree for e in result.edges)} in the spanning tree, {sum(e.pruned for e in result.edges)} pruned by the optimisation.",
+    ]
+    for e in result.edges:
+        state = "pruned" if e.pruned else "tree" if e.in_tree else "loop" if e.used else "left out"
+        lines.append(f"  {result.names[e.source]} -> {result.names[e.target]}: confidence {e.confidence:.3f}, {state}, {e.seconds:.2f} s")
+    t = result.timings_s
+    lines += [
+        "",
+        f"Time (s, lower is better): pairs {t['pairs']:.1f}, optimisation {t['optimise']:.2f}, total {t['total']:.1f}",
+        f"Wrote {out_dir / 'poses.json'} and {out_dir / 'merged.ply'} ({merged_points:,} points).",
+    ]
     return "\n".join(lines)
 
 

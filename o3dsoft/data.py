@@ -36,6 +36,7 @@ _HOW_TO_GET = (
 # --------------------------------------------------------------------------------------------
 _NOISE = dict(noise_std=0.01, noise_clip=0.05)  # per cloud, as dcp-noise and rpmnet-crop
 _WIDE45 = dict(angle_min=-45.0, angle_max=45.0, translation=0.5)  # the shipped default's range
+_NEAR = dict(angle_min=-10.0, angle_max=10.0, translation=0.1)  # what a further network pass sees
 
 
 @dataclass(frozen=True)
@@ -108,6 +109,9 @@ PROTOCOLS: Dict[str, Protocol] = {
         Protocol("incongruent-wide-crop", disjoint_share=1.0, crop_keep=0.7, **_WIDE45, **_NOISE),
         Protocol("incongruent-wide-sparse", disjoint_share=1.0, source_share=0.3, **_WIDE45, **_NOISE),
         Protocol("incongruent-wide-dense", disjoint_share=1.0, source_share=0.7, **_WIDE45, **_NOISE),
+        # Training only: the residual poses of a second network pass, for "incongruent-iterative".
+        Protocol("incongruent-near", disjoint_share=1.0, **_NEAR),
+        Protocol("incongruent-near-crop", disjoint_share=1.0, crop_keep=0.7, **_NEAR, **_NOISE),
     )
 }
 
@@ -138,6 +142,23 @@ MIXTURES: Dict[str, Mixture] = {
                 ("incongruent-wide-crop", 0.2),
                 ("incongruent-wide-sparse", 0.1),
                 ("incongruent-wide-dense", 0.1),
+            ),
+            "incongruent",
+        ),
+        # incongruent-mix with a third of the batches near the true pose (within 10 degrees per
+        # axis), where further network passes (``coarse_iterations``) start.
+        Mixture(
+            "incongruent-iterative",
+            (
+                ("wide45", 0.1),
+                ("wide45-partial", 0.07),
+                ("incongruent-wide", 0.14),
+                ("incongruent-wide-noise", 0.1),
+                ("incongruent-wide-crop", 0.14),
+                ("incongruent-wide-sparse", 0.07),
+                ("incongruent-wide-dense", 0.07),
+                ("incongruent-near", 0.18),
+                ("incongruent-near-crop", 0.13),
             ),
             "incongruent",
         ),

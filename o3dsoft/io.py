@@ -2,7 +2,8 @@
 
 Point clouds are read through Open3D: PLY, PCD, XYZ, XYZN, XYZRGB, PTS as points, and meshes
 (OFF, OBJ, STL, and PLY/GLB/GLTF with faces) sampled uniformly on their faces, as the paper did;
-plus NumPy ``.npy`` arrays of shape (N, 3). Transforms are 4x4 text (whitespace or comma
+plus NumPy ``.npy`` arrays of shape (N, 3), LAS/LAZ through laspy (LAZ with its lazrs backend),
+and E57 through pye57 (every scan of a file: :func:`read_scans`). Transforms are 4x4 text (whitespace or comma
 separated) or ``.npy``. Files are written by o3dsoft itself (:func:`write_points`), to a temporary
 file that is flushed to the disk and then renamed, so a failure (a full disk included) never
 leaves a half-written output.
@@ -25,8 +26,10 @@ PathLike = Union[str, Path]
 
 POINT_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_ONLY_EXTENSIONS = (".off", ".obj", ".stl", ".glb", ".gltf", ".fbx")
-READ_EXTENSIONS = POINT_EXTENSIONS + MESH_ONLY_EXTENSIONS + (".npy",)
-WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy")
+SCANNER_EXTENSIONS = (".las", ".laz", ".e57")
+READ_EXTENSIONS = POINT_EXTENSIONS + MESH_ONLY_EXTENSIONS + SCANNER_EXTENSIONS + (".npy",)
+WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy", ".las")
+LAS_RESOLUTION = 1e-4  # coordinate step of the LAS files written (file units: 0.1 mm for metres)
 DEFAULT_MESH_POINTS = 20_000
 READ_TOLERANCE = 1e-3  # |R^T R - I| a transform file may have (rounded published ground truths)
 
@@ -87,6 +90,13 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
     _check_readable(path)
     if ext == ".npy":
         return _read_npy_points(path)
+    if ext in (".las", ".laz"):
+        return _read_las(path)
+    if ext == ".e57":
+        scans = read_scans(path)
+        if len(scans) > 1:
+            raise InputError(f"{path}: holds {len(scans)} scans; register takes one cloud per file (o3dsoft multiway reads every scan of an E57)")
+        return scans[0][1]
     o3d = _o3d()
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
         with quiet_c_output():
@@ -145,6 +155,75 @@ def _vertices_without_faces(path: Path) -> np.ndarray:
         loaded = loaded.dump(concatenate=True) if loaded.geometry else None
     vertices = getattr(loaded, "vertices", None)
     return np.zeros((0, 3)) if vertices is None else np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+
+
+def read_scans(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS) -> List[Tuple[str, np.ndarray]]:
+    """The scans of a file as (name, (N, 3) float64 points): every scan of an E57, in the file's
+    common frame (each scan's pose applied, where it has one), named ``FILE#INDEX`` when the file
+    holds several; any other file is one scan (:func:`read_points`), named by its path.
+
+    Raises:
+        UsageError: missing file or unknown extension.
+        InputError: an E57 without scans, or a scan without Cartesian coordinates or points.
+    """
+    path = Path(path)
+    check_extension(path, READ_EXTENSIONS, "a point cloud")
+    _check_readable(path)
+    if path.suffix.lower() != ".e57":
+        return [(str(path), read_points(path, mesh_points=mesh_points))]
+    import pye57
+
+    try:
+        e57 = pye57.E57(str(path))
+    except Exception as e:  # libE57's own exceptions, with long messages
+        raise InputError(f"{path}: not a readable E57 file ({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+    try:
+        count = e57.scan_count
+        if count == 0:
+            raise InputError(f"{path}: holds no scan")
+        scans = []
+        for index in range(count):
+            try:
+                data = e57.read_scan(index, ignore_missing_fields=True)
+            except Exception as e:
+                raise InputError(f"{path}, scan {index}: cannot be read ({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+            if "cartesianX" not in data:
+                raise InputError(f"{path}, scan {index}: no Cartesian coordinates (cartesianX/Y/Z); spherical-only scans are not read")
+            points = np.column_stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]]).astype(np.float64)
+            if len(points) == 0:
+                raise InputError(f"{path}, scan {index}: holds 0 points")
+            scans.append((f"{path}#{index}" if count > 1 else str(path), points))
+    finally:
+        e57.close()
+    return scans
+
+
+def _read_las(path: Path) -> np.ndarray:
+    import laspy
+
+    try:
+        las = laspy.read(str(path))
+    except Exception as e:  # laspy raises LaspyException, or the LAZ backend's errors
+        raise InputError(f"{path}: not a readable LAS/LAZ file ({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+    if len(las.points) == 0:
+        raise InputError(f"{path}: holds 0 points")
+    return np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64)
+
+
+def _write_las(f, points: np.ndarray) -> None:
+    """LAS 1.4, point format 0, coordinates stored as integers of LAS_RESOLUTION from the
+    cloud's lowest corner."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=0, version="1.4")
+    header.offsets = np.floor(points.min(axis=0)) if len(points) else np.zeros(3)
+    header.scales = np.full(3, LAS_RESOLUTION)
+    span = (points.max(axis=0) - header.offsets) / LAS_RESOLUTION if len(points) else np.zeros(3)
+    if (span >= 2**31).any():
+        raise InputError(f"the cloud spans {span.max() * LAS_RESOLUTION:.3g} units, more than LAS holds at a {LAS_RESOLUTION:g}-unit step")
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    las.write(f)
 
 
 def _read_npy_points(path: Path) -> np.ndarray:
@@ -249,13 +328,16 @@ def write_points(path: PathLike, points: np.ndarray) -> Path:
     The files are written here rather than by Open3D, whose writers report success after a
     failed write (a full disk left a truncated file): binary little-endian PLY of float64
     coordinates, PCD of float32 (as Open3D writes them: its reader takes no other), and text with 10 decimals (.pts: the point count first; .xyzn: the normals that
-    format carries, estimated from 30 neighbours)."""
+    format carries, estimated from 30 neighbours), and LAS 1.4 of point format 0 at a 1e-4-unit
+    step (0.1 mm for metres)."""
     path = Path(path)
     ext = check_extension(path, WRITE_EXTENSIONS, "writing points")
     points = np.ascontiguousarray(points, dtype=np.float64)
     with atomic_output(path) as tmp, open(tmp, "wb") as f:
         if ext == ".npy":
             np.save(f, points)
+        elif ext == ".las":
+            _write_las(f, points)
         elif ext == ".ply":
             header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n" + "".join(f"property double {a}\n" for a in "xyz") + "end_header\n"
             f.write(header.encode("ascii") + points.astype("<f8").tobytes())

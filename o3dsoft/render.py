@@ -85,3 +85,40 @@ def render_registration(
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
     return Path(path)
+
+
+def render_merged(path: Union[str, Path], points: np.ndarray, labels: np.ndarray, names: Sequence[str], caption: str = "", dpi: int = 110) -> Path:
+    """Write a PNG of a merged cloud seen onto its principal plane, each scan in its own colour.
+
+    Args:
+        path: output .png path (written atomically).
+        points: (P, 3) the scans in one frame; labels: (P,) each point's scan, an index into `names`.
+        caption: a line under the picture.
+    Returns:
+        The path written.
+    """
+    from matplotlib import colormaps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rng = np.random.default_rng(0)
+    keep = rng.choice(len(points), min(len(points), 4 * _MAX_DRAWN), replace=False)
+    pts, lab = points[keep], labels[keep]
+    flat = (pts - pts.mean(axis=0)) @ principal_plane(pts)
+    fig = Figure(figsize=(7.5, 6.5))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    palette = colormaps["tab20"]
+    for k, name in enumerate(names):
+        mine = lab == k
+        if mine.any():
+            ax.scatter(*flat[mine].T, s=0.4, color=palette(k % 20), linewidths=0, label=Path(name).name)
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=6)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=7, markerscale=12)
+    ax.set_title("merged scans, one colour per scan", fontsize=9)
+    fig.subplots_adjust(left=0.06, right=0.75, bottom=0.08, top=0.94)
+    fig.text(0.01, 0.01, "View: the merged cloud's principal plane. " + caption, fontsize=7)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    return Path(path)

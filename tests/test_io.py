@@ -3,7 +3,7 @@ import pytest
 import trimesh
 
 from o3dsoft.errors import InputError, UsageError
-from o3dsoft.io import read_points, read_transform, sample_mesh, write_points, write_transform
+from o3dsoft.io import LAS_RESOLUTION, read_points, read_scans, read_transform, sample_mesh, write_points, write_transform
 
 from .conftest import blob
 
@@ -13,12 +13,12 @@ def pts():
     return blob(np.random.default_rng(0), 200)
 
 
-@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy"])
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy", ".las"])
 def test_point_formats_round_trip(tmp_path, pts, ext):
     path = write_points(tmp_path / f"cloud{ext}", pts)
     back = read_points(path)
     assert back.shape == pts.shape
-    assert np.allclose(back, pts, atol=1e-5)
+    assert np.allclose(back, pts, atol=LAS_RESOLUTION / 2 if ext == ".las" else 1e-5)  # LAS stores integers
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
 
 
@@ -205,3 +205,71 @@ def test_the_real_scans_ground_truths_read(tmp_path):
     for path in sorted(folder.glob("gt_*.txt")):
         T = read_transform(path)
         assert np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() < 1e-12
+
+
+def test_las_keeps_large_coordinates_to_its_step(tmp_path, pts):
+    # Survey coordinates (UTM, metres): the file stores integers from the cloud's corner.
+    far = pts * 10 + np.array([512_345.0, 5_432_100.0, 230.0])
+    back = read_points(write_points(tmp_path / "survey.las", far))
+    assert np.abs(back - far).max() <= LAS_RESOLUTION / 2 + 1e-9
+
+
+def test_laz_is_read(tmp_path, pts):
+    import laspy
+
+    las = laspy.read(write_points(tmp_path / "cloud.las", pts))
+    las.write(tmp_path / "cloud.laz")  # compressed by the lazrs backend
+    assert (tmp_path / "cloud.laz").stat().st_size > 0
+    assert np.allclose(read_points(tmp_path / "cloud.laz"), pts, atol=LAS_RESOLUTION)
+
+
+def test_las_without_points_is_refused(tmp_path):
+    import laspy
+
+    laspy.LasData(laspy.LasHeader(point_format=0, version="1.4")).write(tmp_path / "empty.las")
+    with pytest.raises(InputError, match="empty.las: holds 0 points"):
+        read_points(tmp_path / "empty.las")
+
+
+def test_las_of_an_unknown_point_format_is_refused(tmp_path, pts):
+    path = write_points(tmp_path / "odd.las", pts)
+    data = bytearray(path.read_bytes())
+    data[104] = 42  # the header's point data format ID (0-10 exist)
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="odd.las: not a readable LAS/LAZ file"):
+        read_points(path)
+
+
+def _write_e57(path, clouds, translations):
+    import pye57
+
+    e57 = pye57.E57(str(path), mode="w")
+    for k, (points, shift) in enumerate(zip(clouds, translations)):
+        data = {"cartesianX": points[:, 0], "cartesianY": points[:, 1], "cartesianZ": points[:, 2]}
+        e57.write_scan_raw(data, name=f"station {k}", rotation=np.array([1.0, 0.0, 0.0, 0.0]), translation=np.asarray(shift, dtype=float))
+    e57.close()
+    return path
+
+
+def test_e57_gives_every_scan_in_the_files_frame(tmp_path, pts):
+    path = _write_e57(tmp_path / "survey.e57", [pts, pts[:150]], [(0, 0, 0), (5, 0, 0)])
+    scans = read_scans(path)
+    assert [name for name, _ in scans] == [f"{path}#0", f"{path}#1"]
+    assert np.allclose(scans[0][1], pts)
+    assert np.allclose(scans[1][1], pts[:150] + [5, 0, 0])  # the scan's pose applied
+    with pytest.raises(InputError, match="holds 2 scans.*multiway"):
+        read_points(path)
+
+
+def test_e57_of_one_scan_reads_as_a_cloud(tmp_path, pts):
+    path = _write_e57(tmp_path / "one.e57", [pts], [(0, 0, 1)])
+    assert np.allclose(read_points(path), pts + [0, 0, 1])
+    assert [name for name, _ in read_scans(path)] == [str(path)]
+
+
+def test_a_broken_e57_is_refused_in_one_line(tmp_path):
+    path = tmp_path / "broken.e57"
+    path.write_bytes(b"ASTM-E57" + bytes(200))
+    with pytest.raises(InputError, match="broken.e57: not a readable E57 file") as info:
+        read_scans(path)
+    assert "\n" not in str(info.value)

@@ -1,0 +1,377 @@
+"""Many pairs at once: ``o3dsoft register --pairs pairs.txt --out results.csv``.
+
+Every pair of a pairs file is registered in turn, in a pool of worker processes on this machine
+(``workers``), or on a Ray cluster (``ray``); each worker loads the network once. One CSV row per
+pair, written as each pair ends, so that an interrupted run resumes from its results file and
+skips the pairs already there. A pair whose worker process dies is retried once, then reported as
+failed; a pair whose files cannot be read is reported as failed with the reason. The rows do not
+depend on how the pairs were spread over workers.
+
+This module imports neither torch nor Open3D at import time: worker processes set their thread
+counts before those start.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+
+from .errors import InputError, O3dsoftError, UsageError
+
+COLUMNS = (
+    "line",
+    "source",
+    "target",
+    "status",
+    "error",
+    "T_target_source",
+    "fitness",
+    "confidence",
+    "likely_failed",
+    "failure_reason",
+    "rotation_error_deg",
+    "translation_error",
+    "seconds",
+)
+RETRIES = 1  # a pair whose worker process dies is run this many more times
+
+
+@dataclass(frozen=True)
+class PairJob:
+    """One line of a pairs file: source and target files, the ground truth's file if given
+    (T_target_source), and the line number (the pair's key in the results)."""
+
+    line: int
+    source: str
+    target: str
+    transform: Optional[str] = None
+
+
+def read_pair_jobs(path) -> List[PairJob]:
+    """The pairs of a file of lines ``source target [transform]`` (paths relative to the file's
+    folder; ``#`` starts a comment). Files are not checked here: a pair naming a missing file fails
+    on its own row, and the others run.
+
+    Raises:
+        UsageError: no such pairs file.
+        InputError: a line with other than 2 or 3 fields (names the line), or no pair at all.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UsageError(f"{path}: no such pairs file")
+    jobs = []
+    for lineno, text in enumerate(path.read_text().splitlines(), start=1):
+        fields = text.split("#", 1)[0].split()
+        if not fields:
+            continue
+        if len(fields) not in (2, 3):
+            raise InputError(f"{path}, line {lineno}: expected 'source target [transform]', got {len(fields)} field(s)")
+        files = [str(path.parent / f) for f in fields]
+        jobs.append(PairJob(lineno, files[0], files[1], files[2] if len(files) == 3 else None))
+    if not jobs:
+        raise InputError(f"{path}: no pairs (expected lines 'source target [transform]')")
+    return jobs
+
+
+# --- one pair, in whichever process runs it -------------------------------------------------
+
+_MODEL: Dict[Tuple[Optional[str], str], object] = {}
+
+
+def run_job(job: PairJob, config) -> dict:
+    """Register one pair and return its results row (a dict of :data:`COLUMNS`); an error of the
+    input (a missing or unreadable file) is the row's ``error``, never an exception."""
+    from . import io
+    from .coarse import load_model
+    from .metrics import pair_errors
+    from .pipeline import register
+
+    t0 = time.perf_counter()
+    row = {"line": job.line, "source": job.source, "target": job.target}
+    try:
+        key = (config.weights, config.device)
+        if key not in _MODEL:
+            _MODEL[key] = load_model(config.weights, config.device)
+        source, target = io.read_points(job.source), io.read_points(job.target)
+        truth = io.read_transform(job.transform) if job.transform else None
+        result = register(source, target, config, model=_MODEL[key], source_name=job.source, target_name=job.target)
+    except O3dsoftError as e:
+        return {**row, "status": "failed", "error": str(e), "seconds": time.perf_counter() - t0}
+    row.update(
+        status="ok",
+        T_target_source=" ".join(f"{v:.10g}" for v in result.transformation.reshape(-1)),
+        fitness=result.fitness,
+        confidence=result.confidence,
+        likely_failed=result.likely_failed,
+        failure_reason=result.failure_reason or "",
+        seconds=time.perf_counter() - t0,
+    )
+    if truth is not None:
+        errors = pair_errors(result.transformation, truth)
+        row.update(rotation_error_deg=errors.rotation_deg, translation_error=errors.translation)
+    return row
+
+
+def _worker_start(threads: int) -> None:
+    """A pool process's set-up: its share of the CPU's threads, fixed before torch and Open3D
+    start their thread pools."""
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    import torch
+
+    torch.set_num_threads(threads)
+
+
+# --- the results file ------------------------------------------------------------------------
+
+
+def done_lines(results) -> Dict[int, dict]:
+    """Rows already in a results file, by line number (pairs a resumed run skips); {} if none.
+
+    Raises:
+        InputError: the file exists but is not an o3dsoft results file.
+    """
+    results = Path(results)
+    if not results.is_file() or results.stat().st_size == 0:
+        return {}
+    with open(results, newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames is None or tuple(reader.fieldnames) != COLUMNS:
+            raise InputError(f"{results}: exists and is not an o3dsoft results file (its header differs); choose another --out or remove it")
+        rows = {}
+        for row in reader:
+            if row.get("seconds"):  # a row cut short by a kill has no last field
+                rows[int(row["line"])] = row
+    return rows
+
+
+class ResultsFile:
+    """Appends rows to the CSV as pairs end (each row one write, flushed), then rewrites it in
+    the pairs file's order."""
+
+    def __init__(self, path, rows: Dict[int, dict]) -> None:
+        from .io import check_writable
+
+        self.path = Path(path)
+        check_writable(self.path)
+        self.rows = dict(rows)
+        fresh = not self.path.is_file() or self.path.stat().st_size == 0
+        self._file = open(self.path, "a", newline="")
+        self._writer = csv.DictWriter(self._file, COLUMNS)
+        if fresh:
+            self._writer.writeheader()
+            self._file.flush()
+
+    def add(self, row: dict) -> None:
+        self.rows[int(row["line"])] = row
+        self._writer.writerow(row)
+        self._file.flush()
+
+    def close(self, order: Sequence[int]) -> None:
+        """Rewrite the file with the rows in `order` (atomically), then close it."""
+        from .io import atomic_output
+
+        self._file.close()
+        with atomic_output(self.path) as tmp, open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, COLUMNS)
+            writer.writeheader()
+            for line in order:
+                if line in self.rows:
+                    writer.writerow(self.rows[line])
+
+
+# --- running many ----------------------------------------------------------------------------
+
+
+def run_jobs(
+    jobs: Sequence[PairJob],
+    config,
+    results,
+    workers: int = 1,
+    ray: Optional[str] = None,
+    progress: Optional[Callable[[dict], None]] = None,
+    task: Optional[Callable[[PairJob, object], dict]] = None,
+) -> List[dict]:
+    """Register every pair of `jobs` not already in the CSV `results`; append each row as it ends.
+
+    Args:
+        jobs: the pairs (:func:`read_pair_jobs`).
+        config: RegisterConfig of every pair.
+        results: the CSV file (created, or resumed: rows already there are kept and skipped).
+        workers: processes on this machine (1: this process), or Ray actors with `ray`.
+        ray: None (no Ray), "local" (start Ray on this machine), "auto" (the cluster ``ray start``
+            set up) or a head's address.
+        progress: called with each row as it ends.
+        task: what runs each pair, :func:`run_job` (a module-level function, so that worker
+            processes can import it; tests pass one that crashes).
+    Returns:
+        All rows, in the order of `jobs`.
+    """
+    task = task or run_job
+    if len({j.line for j in jobs}) != len(jobs):
+        raise InputError("two pairs share a line number")
+    rows = done_lines(results)
+    todo = [j for j in jobs if j.line not in rows]
+    ray_module = _ray_connect(ray) if ray is not None else None  # before any file is written
+    out = ResultsFile(results, {j.line: rows[j.line] for j in jobs if j.line in rows})
+    try:
+        if ray_module is not None:
+            runner: Iterator[dict] = _run_ray(ray_module, todo, config, workers, task)
+        elif workers > 1:
+            runner = _run_pool(todo, config, workers, task)
+        else:
+            runner = (task(j, config) for j in todo)
+        for row in runner:
+            out.add(row)
+            if progress is not None:
+                progress(row)
+    finally:
+        out.close([j.line for j in jobs])
+        if ray_module is not None and ray == "local":
+            ray_module.shutdown()
+    return [out.rows[j.line] for j in jobs if j.line in out.rows]
+
+
+def _crashed(job: PairJob) -> dict:
+    return {"line": job.line, "source": job.source, "target": job.target, "status": "failed", "error": "its worker process died twice", "seconds": 0.0}
+
+
+def _run_pool(jobs: Sequence[PairJob], config, workers: int, task) -> Iterator[dict]:
+    """Rows from a pool of `workers` processes, which runs at most `workers` pairs at a time.
+    When a process dies the pool breaks, and it is not known which of the pairs it was running
+    killed it: each of those is run again in a process of its own, where a death is its own
+    (retried once, then reported as failed); the other pairs go on in a new pool."""
+    from concurrent.futures import FIRST_COMPLETED, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    queue = list(jobs)
+    while queue:
+        suspects: List[PairJob] = []
+        with _process_pool(workers) as pool:
+            running: Dict[object, PairJob] = {}
+            while (queue or running) and not suspects:
+                while queue and len(running) < workers:
+                    job = queue.pop(0)
+                    running[pool.submit(task, job, config)] = job
+                finished, _ = wait(running, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    try:
+                        row = future.result()
+                    except BrokenProcessPool:
+                        suspects = sorted(running.values(), key=lambda j: j.line)
+                        break
+                    running.pop(future)
+                    yield row
+        for job in suspects:
+            yield _run_alone(job, config, task)
+
+
+def _run_alone(job: PairJob, config, task) -> dict:
+    """Run one pair in a process of its own, again after a death (:data:`RETRIES` times)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    for _ in range(1 + RETRIES):
+        with _process_pool(1) as alone:
+            try:
+                return alone.submit(task, job, config).result()
+            except BrokenProcessPool:
+                continue
+    return _crashed(job)
+
+
+def _process_pool(workers: int):
+    """A pool of `workers` fresh processes, each with its share of the CPU's threads."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    context = multiprocessing.get_context("spawn")  # no fork of a process whose threads hold locks
+    return ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start, initargs=(threads,))
+
+
+def _run_ray(ray, jobs: Sequence[PairJob], config, workers: int, task) -> Iterator[dict]:
+    """Rows from `workers` Ray actors, each holding the network; a pair whose actor dies is
+    retried once on a new actor."""
+    Worker = ray.remote(num_cpus=1)(_RayWorker)
+    actors = [Worker.remote(workers) for _ in range(workers)]
+    tries = {j.line: 0 for j in jobs}
+    queue = list(jobs)
+    running: Dict[object, Tuple[PairJob, int]] = {}
+    while queue or running:
+        free = [k for k in range(len(actors)) if k not in {a for _, a in running.values()}]
+        while queue and free:
+            job, k = queue.pop(0), free.pop(0)
+            running[actors[k].run.remote(job, config, task)] = (job, k)
+        finished, _ = ray.wait(list(running), num_returns=1)
+        for ref in finished:
+            job, k = running.pop(ref)
+            try:
+                yield ray.get(ref)
+            except ray.exceptions.RayActorError:
+                actors[k] = Worker.remote(workers)
+                tries[job.line] += 1
+                if tries[job.line] > RETRIES:
+                    yield _crashed(job, "its Ray actor died")
+                else:
+                    queue.insert(0, job)
+
+
+class _RayWorker:
+    """A Ray actor registering pairs with one loaded network (see :func:`run_job`)."""
+
+    def __init__(self, workers: int) -> None:
+        _worker_start(max(1, (os.cpu_count() or 1) // workers))  # this node's threads, shared as on one machine
+
+    def run(self, job: PairJob, config, task) -> dict:
+        return task(job, config)
+
+
+def _ray_connect(address: str):
+    """The ray module, connected to (for "local": started on this machine) a Ray cluster.
+
+    Raises:
+        UsageError: Ray is not installed.
+        InputError: the cluster cannot be reached (in one line).
+    """
+    try:
+        import ray
+    except ImportError:
+        raise UsageError("--ray needs Ray: pip install 'o3dsoft[ray]'") from None
+    if ray.is_initialized():
+        return ray
+    if address not in ("local", "auto"):
+        _check_reachable(address)
+    from .io import quiet_c_output
+
+    kwargs = dict(include_dashboard=False, log_to_driver=False, logging_level="ERROR", configure_logging=False)
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with quiet_c_output("stdout"), quiet_c_output("stderr"):  # Ray's own notices and retry logs; the outcome is reported here
+            ray.init(**kwargs) if address == "local" else ray.init(address=address, **kwargs)
+    except Exception as e:  # ConnectionError, ValueError, Ray's own: all mean "cannot reach it"
+        text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise InputError(f"--ray {address}: cannot connect to a Ray cluster ({text})") from None
+    finally:
+        if threading.current_thread() is threading.main_thread():  # Ray installs its own; Ctrl-C and kill stay o3dsoft's
+            for sig, handler in handlers.items():
+                signal.signal(sig, handler)
+    return ray
+
+
+def _check_reachable(address: str, timeout: float = 5.0) -> None:
+    """InputError unless a TCP connection to ``[ray://]HOST:PORT`` opens within `timeout` seconds
+    (Ray itself retries an address that refuses for a long time)."""
+    import socket
+
+    host, _, port = address.split("://", 1)[-1].rpartition(":")
+    if not host or not port.isdigit():
+        raise InputError(f"--ray {address}: expected local, auto or HOST:PORT (ray://HOST:PORT for Ray Client)")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as e:
+        raise InputError(f"--ray {address}: cannot connect to a Ray cluster ({e.strerror or e})") from None

@@ -1,0 +1,378 @@
+"""``multiway``: many scans of one scene into one frame.
+
+    choose the pairs that may overlap (all of them for a few scans; neighbours in sequence or by
+    position for many)
+    -> register each pair (:func:`o3dsoft.register`), keeping its transform and confidence
+    -> connect the scans through their most confident edges (a maximum spanning tree)
+    -> optimise the pose graph (Open3D's Levenberg-Marquardt with a line process, which prunes
+       wrong loop closures)
+    -> one pose per scan, world_T_scan, the first joined scan being the world frame.
+
+Edges flagged likely failed are left out of the graph; scans that no trusted edge reaches are
+reported and left out of the result.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .config import RegisterConfig
+from .errors import InputError
+from .pair import CloudLike, as_points
+from .pipeline import RegistrationResult, register
+from .preprocess import clean_points, voxel_downsample
+
+NEIGHBOUR_RULES = ("auto", "all", "sequence", "near")
+
+
+@dataclass(frozen=True)
+class MultiwayConfig:
+    """Settings of :func:`multiway`.
+
+    Attributes:
+        neighbours: which pairs are registered: "all" (every pair), "sequence" (each scan with the
+            next `window` scans, for scans taken in order), "near" (each scan with its `near`
+            nearest by centroid, for scans already roughly placed, e.g. georeferenced), or "auto"
+            (default: "all" up to `all_up_to` scans, "sequence" beyond).
+        all_up_to: "auto" registers every pair of at most this many scans (default 12: 66 pairs).
+        window: "sequence": how many following scans each scan is paired with (default 3).
+        near: "near": how many nearest scans each scan is paired with (default 4).
+        prune_below: a loop-closure edge whose line-process weight ends below this is pruned
+            (Open3D's ``edge_prune_threshold``, default 0.25).
+        loop_closure_preference: weight of loop-closure edges against the spanning tree's in the
+            optimisation (Open3D's ``preference_loop_closure``, default 1.0).
+        voxel: grid of the merged cloud (scan units); None: the pairs' registration grid, or
+            every point where they had none.
+        register: settings of every pairwise registration.
+    """
+
+    neighbours: str = "auto"
+    all_up_to: int = 12
+    window: int = 3
+    near: int = 4
+    prune_below: float = 0.25
+    loop_closure_preference: float = 1.0
+    voxel: Optional[float] = None
+    register: RegisterConfig = field(default_factory=RegisterConfig)
+
+    def validate(self) -> None:
+        """Raise InputError for settings :func:`multiway` cannot run with."""
+        if self.neighbours not in NEIGHBOUR_RULES:
+            raise InputError(f"neighbours={self.neighbours!r}; valid: {', '.join(NEIGHBOUR_RULES)}")
+        for name, value in (("all_up_to", self.all_up_to), ("window", self.window), ("near", self.near)):
+            if value < 1:
+                raise InputError(f"{name} must be at least 1, got {value}")
+        if not 0 <= self.prune_below < 1:
+            raise InputError(f"prune_below must be in [0, 1), got {self.prune_below}")
+        if self.voxel is not None and not self.voxel > 0:
+            raise InputError(f"voxel must be positive, got {self.voxel}")
+
+
+@dataclass(frozen=True)
+class Edge:
+    """One registered pair: ``transformation`` (4, 4) is T_target_source (maps scan `source` onto
+    scan `target`, indices into the scans).
+
+    Attributes:
+        confidence: the registration's confidence (0-1, higher is better).
+        used: the edge entered the pose graph (not flagged likely failed).
+        in_tree: it is one of the spanning tree's edges, which place the scans before the
+            optimisation (never pruned).
+        pruned: the optimisation's line process rejected it as a wrong loop closure.
+        seconds: time of the pairwise registration (s, lower is better).
+        searched: the global search ran on this pair (only for scans that no quick alignment
+            joined, when the search mode is "auto").
+    """
+
+    source: int
+    target: int
+    transformation: np.ndarray
+    confidence: float
+    fitness: float
+    likely_failed: bool
+    failure_reason: Optional[str]
+    seconds: float
+    searched: bool = False
+    used: bool = False
+    in_tree: bool = False
+    pruned: bool = False
+
+    def to_dict(self, names: Sequence[str]) -> dict:
+        return {
+            "source": names[self.source],
+            "target": names[self.target],
+            "T_target_source": np.asarray(self.transformation).tolist(),
+            "confidence": self.confidence,
+            "fitness": self.fitness,
+            "likely_failed": self.likely_failed,
+            "failure_reason": self.failure_reason,
+            "used": self.used,
+            "in_tree": self.in_tree,
+            "pruned": self.pruned,
+            "seconds": self.seconds,
+            "searched": self.searched,
+        }
+
+
+@dataclass(frozen=True)
+class MultiwayResult:
+    """Poses of many scans in one frame.
+
+    Attributes:
+        names: the scans' names, in input order.
+        poses: (4, 4) world_T_scan per scan (maps the scan's points into the world frame); None
+            for a scan that joined no other.
+        world: index of the scan whose frame is the world (the first scan that joined).
+        edges: every registered pair.
+        timings_s: "pairs" (all pairwise registrations), "optimise", "total" (s, lower is better).
+        voxel: the grid the information matrices were computed on, and the merged cloud's
+            default (scan units); None: every point.
+    """
+
+    names: Tuple[str, ...]
+    poses: Tuple[Optional[np.ndarray], ...]
+    world: int
+    edges: Tuple[Edge, ...]
+    timings_s: Dict[str, float]
+    voxel: Optional[float] = None
+
+    @property
+    def joined(self) -> Tuple[bool, ...]:
+        """Per scan: it has a pose (a trusted edge connects it to the world scan)."""
+        return tuple(p is not None for p in self.poses)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict: world frame, per-scan poses and per-edge results."""
+        return {
+            "world": self.names[self.world],
+            "scans": [
+                {"name": name, "joined": pose is not None, "world_T_scan": None if pose is None else pose.tolist()}
+                for name, pose in zip(self.names, self.poses)
+            ],
+            "edges": [e.to_dict(self.names) for e in self.edges],
+            "timings_s": self.timings_s,
+            "voxel": self.voxel,
+        }
+
+
+def choose_pairs(clouds: Sequence[np.ndarray], config: MultiwayConfig) -> List[Tuple[int, int]]:
+    """The pairs (i, j), i < j, that are registered: see :attr:`MultiwayConfig.neighbours`."""
+    n = len(clouds)
+    rule = config.neighbours
+    if rule == "auto":
+        rule = "all" if n <= config.all_up_to else "sequence"
+    if rule == "all":
+        return [(i, j) for i in range(n) for j in range(i + 1, n)]
+    if rule == "sequence":
+        return [(i, j) for i in range(n) for j in range(i + 1, min(n, i + 1 + config.window))]
+    centres = np.array([c.mean(axis=0) for c in clouds])
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    pairs = set()
+    for i in range(n):
+        for j in np.argsort(d[i])[1 : config.near + 1]:
+            pairs.add((min(i, int(j)), max(i, int(j))))
+    return sorted(pairs)
+
+
+def multiway(
+    clouds: Sequence[CloudLike],
+    config: MultiwayConfig = MultiwayConfig(),
+    names: Optional[Sequence[str]] = None,
+    model=None,
+    progress: Optional[Callable[[int, int], None]] = None,
+) -> MultiwayResult:
+    """Register every scan of a scene into the frame of the first one.
+
+    Args:
+        clouds: the scans, (N_i, 3) arrays or Open3D point clouds, in the same units.
+        config: the settings.
+        names: how to call the scans (file names); default scan0, scan1, ...
+        model: an already loaded network (else loaded once from ``config.register.weights``).
+        progress: called as progress(pairs done, pairs in all) after each registration.
+    Returns:
+        MultiwayResult.
+    Raises:
+        InputError: fewer than two scans, or a scan that cannot be registered (empty, degenerate).
+    """
+    from .coarse import load_model
+
+    config.validate()
+    names = tuple(names) if names is not None else tuple(f"scan{i}" for i in range(len(clouds)))
+    if len(clouds) < 2:
+        raise InputError(f"multiway needs at least two scans, got {len(clouds)}")
+    if len(names) != len(clouds):
+        raise InputError(f"{len(names)} names for {len(clouds)} scans")
+    points = [as_points(c, name) for c, name in zip(clouds, names)]
+    model = model if model is not None else load_model(config.register.weights, config.register.device)
+    t_start = time.perf_counter()
+
+    # Register the pairs that may overlap (T_i_j maps scan j onto scan i), first without the
+    # global search: most pairs of a scene either align at once or do not overlap at all.
+    pairs = choose_pairs(points, config)
+    quick = replace(config.register, search=replace(config.register.search, mode="off")) if config.register.search.mode == "auto" else config.register
+    found: Dict[Tuple[int, int], Tuple[Edge, RegistrationResult]] = {}
+    for done, (i, j) in enumerate(pairs, start=1):
+        found[i, j] = _register_edge(points, names, i, j, quick, model)
+        if progress is not None:
+            progress(done, len(pairs))
+    # Then the search, only on the pairs of scans that no trusted edge reaches yet, until each joins.
+    if quick is not config.register:
+        for i, j in pairs:
+            joined = _groups(len(points), [e for e, _ in found.values() if not e.likely_failed])
+            if any(i in g and j in g for g in joined if len(g) > 1):
+                continue
+            if found[i, j][0].likely_failed:
+                found[i, j] = _register_edge(points, names, i, j, config.register, model)
+    edges = [e for e, _ in found.values()]
+    results = [r for _, r in found.values()]
+    t_pairs = time.perf_counter()
+
+    # Connect the scans through their most confident edges, then optimise the graph.
+    world, tree = _spanning_tree(len(points), edges)
+    poses: List[Optional[np.ndarray]] = [None] * len(points)
+    edges = [_mark(e, tree) for e in edges]
+    grid = _merge_grid(config, results)
+    if tree:
+        info_clouds = [voxel_downsample(clean_points(p, name).points, grid, name) if grid else clean_points(p, name).points for p, name in zip(points, names)]
+        distance = float(np.median([r.tight_distance for r, e in zip(results, edges) if e.used]))
+        optimised, pruned = _optimise(info_clouds, edges, world, tree, distance, config)
+        poses = [optimised.get(k) for k in range(len(points))]
+        edges = [_replace(e, pruned=(e.source, e.target) in pruned) for e in edges]
+    t_end = time.perf_counter()
+    return MultiwayResult(names, tuple(poses), world, tuple(edges), {"pairs": t_pairs - t_start, "optimise": t_end - t_pairs, "total": t_end - t_start}, grid)
+
+
+def _register_edge(points, names, i: int, j: int, config: RegisterConfig, model) -> Tuple[Edge, RegistrationResult]:
+    """Register scan j onto scan i: the edge j -> i and the full result."""
+    t0 = time.perf_counter()
+    r = register(points[j], points[i], config, model=model, source_name=names[j], target_name=names[i])
+    return Edge(j, i, r.transformation, r.confidence, r.fitness, r.likely_failed, r.failure_reason, time.perf_counter() - t0, r.searched), r
+
+
+def _replace(edge: Edge, **changes) -> Edge:
+    return replace(edge, **changes)
+
+
+def _mark(edge: Edge, tree: Dict[int, Tuple[int, Edge]]) -> Edge:
+    in_tree = any(parent_edge is edge for _, parent_edge in tree.values())
+    return _replace(edge, used=not edge.likely_failed, in_tree=in_tree)
+
+
+def _spanning_tree(n: int, edges: Sequence[Edge]) -> Tuple[int, Dict[int, Tuple[int, Edge]]]:
+    """A maximum-confidence spanning tree over the trusted edges of the largest group of
+    connected scans (Prim's algorithm): (world scan, {scan: (its parent, the edge between)}).
+    The world scan is the group's first; scans outside the group are not in the dict."""
+    trusted = [e for e in edges if not e.likely_failed]
+    groups = _groups(n, trusted)
+    largest = max(groups, key=lambda g: (len(g), -min(g)))
+    if len(largest) < 2:
+        return 0, {}
+    world = min(largest)
+    tree: Dict[int, Tuple[int, Edge]] = {}
+    reached = {world}
+    while len(reached) < len(largest):
+        best = max((e for e in trusted if (e.source in reached) != (e.target in reached)), key=lambda e: e.confidence)
+        new, parent = (best.target, best.source) if best.source in reached else (best.source, best.target)
+        tree[new] = (parent, best)
+        reached.add(new)
+    return world, tree
+
+
+def _groups(n: int, edges: Sequence[Edge]) -> List[set]:
+    """Connected groups of scans (union-find over the edges)."""
+    root = list(range(n))
+
+    def find(a: int) -> int:
+        while root[a] != a:
+            root[a] = root[root[a]]
+            a = root[a]
+        return a
+
+    for e in edges:
+        root[find(e.source)] = find(e.target)
+    groups: Dict[int, set] = {}
+    for k in range(n):
+        groups.setdefault(find(k), set()).add(k)
+    return list(groups.values())
+
+
+def _merge_grid(config: MultiwayConfig, results: Sequence[RegistrationResult]) -> Optional[float]:
+    """The merged cloud's (and the information matrices') grid: the config's, else the finest
+    grid the pairs were registered on; None: every point."""
+    if config.voxel is not None:
+        return config.voxel
+    grids = [r.voxel for r in results if r.voxel is not None]
+    return min(grids) if grids else None
+
+
+def _optimise(
+    clouds: Sequence[np.ndarray], edges: Sequence[Edge], world: int, tree: Dict[int, Tuple[int, Edge]], distance: float, config: MultiwayConfig
+) -> Tuple[Dict[int, np.ndarray], set]:
+    """Open3D's pose-graph optimisation from the spanning tree's poses: ({scan: world_T_scan},
+    {(source, target) of the pruned edges})."""
+    from ._open3d import open3d as o3d
+    from .refine import to_open3d
+
+    reg = o3d.pipelines.registration
+    # Poses along the tree: world_T_child = world_T_parent @ parent_T_child.
+    pose = {world: np.eye(4)}
+    order = [world]
+    while len(order) < len(tree) + 1:
+        for child, (parent, edge) in tree.items():
+            if child not in pose and parent in pose:
+                T_parent_child = edge.transformation if edge.source == child else np.linalg.inv(edge.transformation)
+                pose[child] = pose[parent] @ T_parent_child
+                order.append(child)
+    node_of = {scan: k for k, scan in enumerate(order)}
+    graph = reg.PoseGraph()
+    for scan in order:
+        graph.nodes.append(reg.PoseGraphNode(pose[scan]))
+    o3d_clouds = {scan: to_open3d(clouds[scan]) for scan in order}
+    graph_edges = []
+    for e in edges:
+        if not e.used or e.source not in node_of or e.target not in node_of:
+            continue
+        info = reg.get_information_matrix_from_point_clouds(o3d_clouds[e.source], o3d_clouds[e.target], distance, e.transformation)
+        graph.edges.append(reg.PoseGraphEdge(node_of[e.source], node_of[e.target], e.transformation, info, uncertain=not e.in_tree))
+        graph_edges.append((e.source, e.target))
+    option = reg.GlobalOptimizationOption(
+        max_correspondence_distance=distance,
+        edge_prune_threshold=config.prune_below,
+        preference_loop_closure=config.loop_closure_preference,
+        reference_node=node_of[world],
+    )
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option)
+    kept = {(order[e.source_node_id], order[e.target_node_id]) for e in graph.edges}
+    pruned = {pair for pair in graph_edges if pair not in kept}
+    return {scan: np.asarray(graph.nodes[node_of[scan]].pose).copy() for scan in order}, pruned
+
+
+def merged_cloud(clouds: Sequence[CloudLike], result: MultiwayResult, voxel: Optional[float] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """The joined scans in the world frame, on a voxel grid of `voxel` (None: every point).
+
+    Returns:
+        (P, 3) points and (P,) the index of the scan each point came from (the first scan's in
+        a voxel holding several).
+    """
+    parts, labels = [], []
+    for k, (cloud, pose) in enumerate(zip(clouds, result.poses)):
+        if pose is None:
+            continue
+        pts = clean_points(as_points(cloud, result.names[k]), result.names[k]).points
+        parts.append(pts @ pose[:3, :3].T + pose[:3, 3])
+        labels.append(np.full(len(pts), k))
+    points, label = np.concatenate(parts), np.concatenate(labels)
+    if voxel:
+        keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        sums = np.zeros((len(first), 3))
+        np.add.at(sums, inverse, points)
+        counts = np.bincount(inverse, minlength=len(first))[:, None]
+        return sums / counts, label[first]
+    return points, label

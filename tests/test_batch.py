@@ -1,0 +1,177 @@
+"""register --pairs: many pairs, in worker processes or on a local Ray, resumable."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from o3dsoft.batch import COLUMNS, PairJob, done_lines, read_pair_jobs, run_job, run_jobs
+from o3dsoft.cli.main import main
+from o3dsoft.config import RegisterConfig
+from o3dsoft.errors import InputError, UsageError
+from o3dsoft.io import write_transform
+
+from .conftest import apply, blob, random_transform
+
+CONFIG = RegisterConfig()
+
+
+def crash_once_or_always(job: PairJob, config) -> dict:
+    """The pair task of a worker that dies: on a source named *crash-once* the first time only,
+    on *crash-always* every time."""
+    name = Path(job.source).name
+    marker = Path(job.source + ".crashed")
+    if "crash-always" in name or ("crash-once" in name and not marker.exists()):
+        marker.touch()
+        os._exit(1)
+    return run_job(job, config)
+
+
+@pytest.fixture(scope="module")
+def pairs_file(tmp_path_factory):
+    """Four pairs of small blobs with their ground truth, and a fifth naming a missing file."""
+    folder = tmp_path_factory.mktemp("pairs")
+    rng = np.random.default_rng(5)
+    lines = []
+    for k in range(4):
+        shape = blob(rng, 400)
+        T = random_transform(rng, 30.0, 0.3)
+        np.save(folder / f"s{k}.npy", shape)
+        np.save(folder / f"t{k}.npy", apply(T, shape)[rng.permutation(400)])
+        write_transform(folder / f"gt{k}.txt", T)
+        lines.append(f"s{k}.npy t{k}.npy gt{k}.txt")
+    lines.insert(2, "missing.npy t0.npy  # a file that is not there")
+    (folder / "pairs.txt").write_text("# source target truth\n" + "\n".join(lines) + "\n")
+    return folder / "pairs.txt"
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return {int(r["line"]): r for r in csv.DictReader(f)}
+
+
+def _same_results(a, b):
+    assert a.keys() == b.keys()
+    for line in a:
+        for column in ("status", "error", "likely_failed", "failure_reason"):
+            assert a[line][column] == b[line][column], (line, column)
+        if a[line]["status"] == "ok":
+            assert np.allclose(np.array(a[line]["T_target_source"].split(), float), np.array(b[line]["T_target_source"].split(), float), atol=1e-9)
+            assert float(a[line]["confidence"]) == pytest.approx(float(b[line]["confidence"]), abs=1e-9)
+
+
+def test_pairs_file_lines(tmp_path, pairs_file):
+    jobs = read_pair_jobs(pairs_file)
+    assert [j.line for j in jobs] == [2, 3, 4, 5, 6]
+    assert jobs[0].source == str(pairs_file.parent / "s0.npy") and jobs[0].transform == str(pairs_file.parent / "gt0.txt")
+    assert jobs[2].transform is None
+    bad = tmp_path / "bad.txt"
+    bad.write_text("a.ply b.ply\na.ply\n")
+    with pytest.raises(InputError, match="bad.txt, line 2: expected 'source target \\[transform\\]'"):
+        read_pair_jobs(bad)
+    with pytest.raises(UsageError, match="no such pairs file"):
+        read_pair_jobs(tmp_path / "none.txt")
+
+
+def test_sequential_rows_report_the_missing_file_and_run_the_rest(tmp_path, pairs_file):
+    rows = run_jobs(read_pair_jobs(pairs_file), CONFIG, tmp_path / "r.csv")
+    assert [r["status"] for r in rows] == ["ok", "ok", "failed", "ok", "ok"]
+    assert "missing.npy: no such file" in rows[2]["error"]
+    for r in rows:
+        if r["status"] == "ok":
+            assert r["rotation_error_deg"] < 1.0 and not r["likely_failed"]
+    on_disk = _rows(tmp_path / "r.csv")
+    assert list(on_disk) == [2, 3, 4, 5, 6]  # the pairs file's order
+    assert list(csv.reader(open(tmp_path / "r.csv")))[0] == list(COLUMNS)
+
+
+def test_two_workers_give_the_sequential_results(tmp_path, pairs_file):
+    jobs = read_pair_jobs(pairs_file)
+    run_jobs(jobs, CONFIG, tmp_path / "one.csv")
+    run_jobs(jobs, CONFIG, tmp_path / "two.csv", workers=2)
+    _same_results(_rows(tmp_path / "one.csv"), _rows(tmp_path / "two.csv"))
+
+
+def test_an_interrupted_run_resumes_from_its_results(tmp_path, pairs_file):
+    jobs = read_pair_jobs(pairs_file)
+    results = tmp_path / "r.csv"
+    run_jobs(jobs[:2], CONFIG, results)
+    with open(results, "a") as f:
+        f.write("6,s,t,ok,,1 0")  # a row cut short by a kill: run again
+    ran = []
+    run_jobs(jobs, CONFIG, results, progress=ran.append)
+    assert [r["line"] for r in ran] == [4, 5, 6]
+    assert list(_rows(results)) == [2, 3, 4, 5, 6]
+    assert done_lines(results).keys() == {2, 3, 4, 5, 6}
+
+
+def test_a_results_file_of_another_kind_is_not_overwritten(tmp_path, pairs_file):
+    other = tmp_path / "notes.csv"
+    other.write_text("name,value\na,1\n")
+    with pytest.raises(InputError, match="not an o3dsoft results file"):
+        run_jobs(read_pair_jobs(pairs_file), CONFIG, other)
+    assert other.read_text() == "name,value\na,1\n"
+
+
+def test_a_crashed_worker_is_retried_once_then_reported(tmp_path, pairs_file):
+    folder = tmp_path / "crash"
+    folder.mkdir()
+    for name in ("crash-once.npy", "crash-always.npy"):
+        (folder / name).write_bytes((pairs_file.parent / "s0.npy").read_bytes())
+    jobs = [
+        PairJob(1, str(folder / "crash-once.npy"), str(pairs_file.parent / "t0.npy")),
+        PairJob(2, str(folder / "crash-always.npy"), str(pairs_file.parent / "t0.npy")),
+    ]
+    jobs += [PairJob(3, str(pairs_file.parent / "s1.npy"), str(pairs_file.parent / "t1.npy"))]
+    rows = run_jobs(jobs, CONFIG, tmp_path / "r.csv", workers=2, task=crash_once_or_always)
+    assert [r["status"] for r in rows] == ["ok", "failed", "ok"]
+    assert "its worker process died twice" in rows[1]["error"]
+
+
+def test_cli_pairs_with_workers_and_resume(tmp_path, pairs_file):
+    runner = CliRunner()
+    out = tmp_path / "results.csv"
+    first = runner.invoke(main, ["register", "--pairs", str(pairs_file), "--out", str(out), "--workers", "2", "--no-progress"])
+    assert first.exit_code == 3, first.output  # one pair could not run
+    assert "5 pairs: 4 trusted, 0 flagged likely failed, 1 could not run" in first.output
+    assert "line 4: " in first.output and "missing.npy" in first.output
+    again = runner.invoke(main, ["register", "--pairs", str(pairs_file), "--out", str(out), "--no-progress"])
+    assert "Resuming: 5 of 5 pairs already in" in again.output
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--pairs", "P", "--out", "r.ply"], "--pairs needs --out RESULTS.csv"),
+        (["--pairs", "P", "a.ply", "--out", "r.csv"], "SOURCE belong(s) to a single pair"),
+        (["a.ply", "b.ply", "--workers", "2"], "--workers and --ray go with --pairs"),
+        ([], "give SOURCE and TARGET, or --pairs FILE"),
+    ],
+)
+def test_cli_pairs_usage_errors(tmp_path, pairs_file, args, message):
+    args = [str(pairs_file) if a == "P" else str(tmp_path / a) if a.endswith((".ply", ".csv")) else a for a in args]
+    result = CliRunner().invoke(main, ["register", *args])
+    assert result.exit_code == 2
+    assert message in result.output
+
+
+def test_ray_on_this_machine_gives_the_workers_results(tmp_path, pairs_file):
+    pytest.importorskip("ray")
+    jobs = read_pair_jobs(pairs_file)
+    run_jobs(jobs, CONFIG, tmp_path / "pool.csv", workers=2)
+    run_jobs(jobs, CONFIG, tmp_path / "ray.csv", workers=2, ray="local")
+    _same_results(_rows(tmp_path / "pool.csv"), _rows(tmp_path / "ray.csv"))
+
+
+def test_an_unreachable_ray_cluster_is_one_line_and_writes_nothing(tmp_path, pairs_file):
+    pytest.importorskip("ray")
+    out = tmp_path / "r.csv"
+    result = CliRunner().invoke(main, ["register", "--pairs", str(pairs_file), "--out", str(out), "--ray", "127.0.0.1:1", "--no-progress"])
+    assert result.exit_code == 1
+    assert result.output.strip().splitlines()[-1].startswith("Error: --ray 127.0.0.1:1: cannot connect to a Ray cluster")
+    assert not out.exists()

@@ -1,0 +1,173 @@
+"""o3dsoft.multiway: the spanning tree, the pose graph, and scans of one object into one frame."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from o3dsoft.cli.main import main
+from o3dsoft.coarse import load_model
+from o3dsoft.errors import InputError
+from o3dsoft.io import read_points, write_points
+from o3dsoft.metrics import pair_errors
+from o3dsoft.multiway import Edge, MultiwayConfig, _optimise, _spanning_tree, choose_pairs, merged_cloud, multiway
+
+from .conftest import EXAMPLES, apply, blob, random_transform
+
+
+def _edge(source, target, confidence, T=None):
+    return Edge(source, target, np.eye(4) if T is None else T, confidence, 0.9, confidence < 0.5, None, 0.1)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model()
+
+
+@pytest.fixture(scope="module")
+def scans():
+    """Four views of the bundled bunny scan: each a random 60 % of its points cut by its own
+    half-space to about 80 %, then moved by a known pose (world_T_scan^-1)."""
+    rng = np.random.default_rng(3)
+    shape = read_points(EXAMPLES / "bun000.ply")
+    clouds, poses = [], []
+    for k in range(4):
+        points = shape[rng.random(len(shape)) < 0.6]
+        direction = rng.normal(size=3)
+        along = (points - points.mean(axis=0)) @ direction
+        points = points[along < np.quantile(along, 0.8)]
+        pose = np.eye(4) if k == 0 else random_transform(rng, max_angle=25.0, max_t=0.03)
+        clouds.append(apply(np.linalg.inv(pose), points))
+        poses.append(pose)
+    return clouds, poses
+
+
+def test_pairs_all_sequence_and_near():
+    clouds = [np.zeros((3, 3)) + [x, 0, 0] for x in (0.0, 10.0, 1.0, 11.0)]
+    assert choose_pairs(clouds, MultiwayConfig(neighbours="all")) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    assert choose_pairs(clouds, MultiwayConfig(neighbours="sequence", window=1)) == [(0, 1), (1, 2), (2, 3)]
+    assert choose_pairs(clouds, MultiwayConfig(neighbours="near", near=1)) == [(0, 2), (1, 3)]
+    many = [np.zeros((3, 3))] * 14
+    assert len(choose_pairs(many, MultiwayConfig())) == 13 * 3 - 3  # auto: sequence beyond 12 scans, window 3
+
+
+def test_spanning_tree_takes_the_most_confident_trusted_edges():
+    edges = [_edge(1, 0, 0.9), _edge(2, 0, 0.6), _edge(2, 1, 0.95), _edge(3, 2, 0.2)]
+    world, tree = _spanning_tree(4, edges)
+    assert world == 0
+    assert {child: parent for child, (parent, _) in tree.items()} == {1: 0, 2: 1}  # 2 via 1 (0.95), not via 0 (0.6)
+    assert 3 not in tree  # its only edge is flagged
+
+
+def test_spanning_tree_of_the_largest_group():
+    world, tree = _spanning_tree(4, [_edge(0, 1, 0.1), _edge(2, 3, 0.9), _edge(1, 3, 0.8)])
+    assert world == 1 and set(tree) == {2, 3}
+
+
+def test_a_wrong_loop_closure_is_pruned_and_the_right_ones_kept():
+    rng = np.random.default_rng(0)
+    shape = blob(rng, 2000)
+    poses = [np.eye(4)] + [random_transform(rng, 30.0, 0.2) for _ in range(3)]
+    clouds = [apply(np.linalg.inv(p), shape) for p in poses]
+
+    def truth(i, j):  # T_j_i: maps scan i onto scan j
+        return np.linalg.inv(poses[j]) @ poses[i]
+
+    wrong = random_transform(rng, 40.0, 0.3) @ truth(3, 0)
+    edges = [
+        _edge(1, 0, 0.99, truth(1, 0)),
+        _edge(2, 1, 0.99, truth(2, 1)),
+        _edge(3, 2, 0.99, truth(3, 2)),
+        _edge(2, 0, 0.9, truth(2, 0)),
+        _edge(3, 0, 0.8, wrong),
+    ]
+    world, tree = _spanning_tree(4, edges)
+    edges = [e.__class__(**{**e.__dict__, "used": True, "in_tree": any(e is t for _, t in tree.values())}) for e in edges]
+    optimised, pruned = _optimise(clouds, edges, world, tree, 0.05, MultiwayConfig())
+    assert pruned == {(3, 0)}
+    for k in range(4):
+        assert pair_errors(optimised[k], poses[k]).rotation_deg < 1e-3
+
+
+def test_scans_of_one_object_come_into_one_frame(scans, model):
+    clouds, poses = scans
+    calls = []
+    result = multiway(clouds, MultiwayConfig(), names=[f"view{k}" for k in range(4)], model=model, progress=lambda done, total: calls.append((done, total)))
+    assert calls[-1] == (6, 6)
+    assert result.world == 0 and all(result.joined)
+    for k in range(4):
+        errors = pair_errors(result.poses[k], poses[k])
+        assert errors.rotation_deg < 1.0 and errors.translation < 0.002  # metres: 1 degree, 2 mm
+    assert sum(e.in_tree for e in result.edges) == 3
+    record = json.loads(json.dumps(result.to_dict()))
+    assert [s["name"] for s in record["scans"]] == ["view0", "view1", "view2", "view3"]
+    points, labels = merged_cloud(clouds, result, voxel=0.002)
+    assert set(labels) == {0, 1, 2, 3}
+    assert len(points) < sum(map(len, clouds))  # the grid merges the overlapping views
+
+
+def test_a_scan_that_overlaps_none_is_left_out(scans, model):
+    clouds, _ = scans
+    stray = blob(np.random.default_rng(1), 3000) * 0.05 + [5.0, 0.0, 0.0]
+    result = multiway([clouds[0], stray, clouds[1]], MultiwayConfig(register=MultiwayConfig().register), model=model)
+    assert result.joined == (True, False, True)
+    assert result.poses[1] is None
+    assert not any(e.used for e in result.edges if 1 in (e.source, e.target))
+
+
+def test_bad_settings_and_too_few_scans(scans, model):
+    with pytest.raises(InputError, match="at least two scans"):
+        multiway(scans[0][:1], model=model)
+    with pytest.raises(InputError, match="neighbours='nearest'"):
+        multiway(scans[0], MultiwayConfig(neighbours="nearest"), model=model)
+
+
+def test_cli_writes_poses_and_the_merged_cloud(tmp_path, scans):
+    clouds, poses = scans
+    files = [write_points(tmp_path / f"view{k}.ply", c) for k, c in enumerate(clouds[:3])]
+    out = tmp_path / "out"
+    result = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(out), "--render", str(tmp_path / "merged.png"), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert "3 scans" in result.output and "Picture:" in result.output
+    record = json.loads((out / "poses.json").read_text())
+    for k, scan in enumerate(record["scans"]):
+        assert scan["joined"]
+        assert pair_errors(np.array(scan["world_T_scan"]), poses[k]).rotation_deg < 1.0
+    assert len(read_points(out / "merged.ply")) > 0
+    assert (tmp_path / "merged.png").stat().st_size > 0
+
+
+def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
+    clouds, _ = scans
+    a = write_points(tmp_path / "a.ply", clouds[0])
+    b = write_points(tmp_path / "b.ply", clouds[1])
+    stray = write_points(tmp_path / "stray.ply", blob(np.random.default_rng(1), 3000) * 0.05 + [5.0, 0.0, 0.0])
+    runner = CliRunner()
+    twice = runner.invoke(main, ["multiway", str(a), str(b), str(a), "--out", str(tmp_path / "o1")])
+    assert twice.exit_code == 2 and "given twice" in twice.output
+    assert not (tmp_path / "o1").exists()
+    left = runner.invoke(main, ["multiway", str(a), str(stray), str(b), "--out", str(tmp_path / "o2"), "--no-progress"])
+    assert left.exit_code == 3
+    assert "stray.ply: not joined" in left.output and "left out: " in left.output
+    assert json.loads((tmp_path / "o2" / "poses.json").read_text())["scans"][1]["joined"] is False
+
+
+@pytest.mark.slow
+def test_the_ten_bunny_scans_within_a_degree_and_two_millimetres(bunny_root, model):
+    from o3dsoft.scans import read_conf
+
+    conf = read_conf(bunny_root / "bun.conf")
+    names = sorted(conf)
+    clouds = [read_points(bunny_root / name) for name in names]
+    t0 = time.perf_counter()
+    result = multiway(clouds, names=names, model=model)
+    seconds = time.perf_counter() - t0
+    assert all(result.joined) and result.world == 0
+    for name, pose in zip(names, result.poses):
+        errors = pair_errors(pose, np.linalg.inv(conf[names[0]]) @ conf[name])
+        assert errors.rotation_deg < 1.0 and errors.translation < 0.002, name
+    print(f"ten bunny scans: {seconds:.1f} s")
