@@ -37,6 +37,10 @@ _LAZY = {
     "ScreenConfig": "config",
     "RegistrationResult": "pipeline",
     "register": "pipeline",
+    "multiway": "multiway",
+    "MultiwayConfig": "multiway",
+    "MultiwayResult": "multiway",
+    "read_scans": "io",
     "ICPConfig": "refine",
     "ConfidenceConfig": "confidence",
     "FeatureMatchConfig": "search",
@@ -46,8 +50,9 @@ if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
     from .coarse import CoarseModel, load_model
     from .confidence import ConfidenceConfig
     from .config import FeatureSearchConfig, RegisterConfig, RestartConfig, ScreenConfig, SearchConfig, StartsConfig, VotesConfig
-    from .io import read_points, read_transform, write_points, write_transform
+    from .io import read_points, read_scans, read_transform, write_points, write_transform
     from .metrics import pair_errors, rotation_error_deg
+    from .multiway import MultiwayConfig, MultiwayResult, multiway
     from .pipeline import RegistrationResult, register
     from .refine import ICPConfig
     from .search import FeatureMatchConfig
@@ -86,6 +91,10 @@ __all__ = [
     "StartsConfig",
     "UsageError",
     "load_model",
+    "multiway",
+    "MultiwayConfig",
+    "MultiwayResult",
+    "read_scans",
     "pair_errors",
     "read_points",
     "read_transform",

@@ -173,6 +173,9 @@ class RegisterConfig:
             rotation (a prior, e.g. from odometry): estimates beyond it get confidence 0, and the
             result lies within it; None: any rotation (default).
         refine: run ICP on every estimate (default True); False: the estimates as they are.
+        refine_flagged: refine a result that the work clouds flag at full resolution too
+            (default True); False: return it as the work clouds left it, which saves the most
+            expensive ICP for callers that discard flagged results (multiway's first pass).
         weights: TorchScript model file, or a shipped model's name; None: the shipped default.
         device: torch device of the network ("cpu", "cuda", "cuda:1"...; default "cpu").
         seed: seed of the point sampling and of the search's RANSAC: the same input and seed
@@ -191,6 +194,7 @@ class RegisterConfig:
     attempt_points: int = 5_000
     max_rotation: Optional[float] = None
     refine: bool = True
+    refine_flagged: bool = True
     weights: Optional[str] = None
     device: str = "cpu"
     seed: int = 0

@@ -213,7 +213,9 @@ def multiway(
     # Register the pairs that may overlap (T_i_j maps scan j onto scan i), first without the
     # global search: most pairs of a scene either align at once or do not overlap at all.
     pairs = choose_pairs(points, config)
-    quick = replace(config.register, search=replace(config.register.search, mode="off")) if config.register.search.mode == "auto" else config.register
+    quick = config.register
+    if quick.search.mode == "auto":  # flagged edges are left out or registered again: no full-resolution ICP for them
+        quick = replace(quick, search=replace(quick.search, mode="off"), refine_flagged=False)
     found: Dict[Tuple[int, int], Tuple[Edge, RegistrationResult]] = {}
     for done, (i, j) in enumerate(pairs, start=1):
         found[i, j] = _register_edge(points, names, i, j, quick, model)

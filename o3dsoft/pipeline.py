@@ -60,7 +60,8 @@ class RegistrationResult:
         correspondence_distance: the ICP / scoring distance used (cloud units).
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
-        num_source, num_target: points registered (after cleaning and the voxel grid).
+        num_source, num_target: points registered (after cleaning and the voxel grid; the work
+            clouds' for a flagged result left unrefined, ``refine_flagged=False``).
         voxel: the voxel grid the clouds were registered on (cloud units): the config's, or one
             from the data (:func:`o3dsoft.preprocess.data_grids`); None: every point.
         icp_method: "point" (point-to-point) or "plane" (point-to-plane), as ICP ran.
@@ -170,7 +171,8 @@ def register(
 
     # Select the most trusted, then refine it at full resolution, where it is trusted or not.
     chosen = _select(verifier)
-    best = _refine_full(pair, verifier, chosen)
+    final_level = "full" if pair.reduced and (config.refine_flagged or chosen.trust >= config.confidence.likely_failed_below) else "work"
+    best = _refine_full(pair, verifier, chosen) if final_level == "full" else chosen
     if search.mode == "auto" and not searched and best.trust < config.confidence.likely_failed_below:
         # Trusted on the work clouds, not on the clouds it is the answer for: search after all.
         verifier.distrust(chosen, best.trust)
@@ -183,7 +185,7 @@ def register(
     )
     clock.lap("degeneracy")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
-    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms)
+    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, final_level)
 
 
 def _search(pair: PreparedPair, verifier: Verifier, model, search_model, features_done: bool) -> None:
@@ -248,9 +250,10 @@ def _result(
     searched: bool,
     geometry: degeneracy_stage.Degeneracy,
     timings_ms: Dict[str, float],
+    final_level: str = "full",
 ) -> RegistrationResult:
     config = pair.config
-    (src, tgt), (src_report, tgt_report) = pair.full, pair.cleaned
+    (src, tgt), (src_report, tgt_report) = pair.clouds(final_level), pair.cleaned
     trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
     reason = geometry.reason or _failure_reason(best, config, searched)
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:

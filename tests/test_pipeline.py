@@ -274,6 +274,22 @@ def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolu
     assert sizes == [(900, (1.0, 0.3, 0.1))]  # small clouds: refined once, as they are
 
 
+def test_a_flagged_result_is_left_unrefined_when_asked(monkeypatch):
+    rng = np.random.default_rng(8)
+    src = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = random_transform(rng, 30.0, 0.02)
+    tgt = apply(T, src)
+    wrong = AlwaysWrongModel(euler_to_matrix(np.array([0.0, 0.0, 120.0])) @ T[:3, :3])  # far beyond ICP's reach
+    sizes = record_icp(monkeypatch)
+    config = RegisterConfig(attempt_points=1000, search=SearchConfig(mode="off"))
+    refined = register(src, tgt, config, model=wrong)
+    assert refined.likely_failed and sizes[-1][0] == len(src) and refined.num_source == len(src)
+    sizes.clear()
+    left = register(src, tgt, replace(config, refine_flagged=False), model=wrong)
+    assert left.likely_failed and all(n <= 1000 for n, _ in sizes), sizes  # no ICP on the full clouds
+    assert left.points_used["final"] == left.points_used["attempts"] and left.num_source <= 1000
+
+
 def test_a_doubtful_result_is_searched_further_when_asked(modelnet_root):
     from o3dsoft.data import get_protocol, load_pairs
 
