@@ -62,20 +62,11 @@ def read_pair_jobs(path) -> List[PairJob]:
         UsageError: no such pairs file.
         InputError: a line with other than 2 or 3 fields (names the line), or no pair at all.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise UsageError(f"{path}: no such pairs file")
+    from .scans import pair_lines
+
     jobs = []
-    for lineno, text in enumerate(path.read_text().splitlines(), start=1):
-        fields = text.split("#", 1)[0].split()
-        if not fields:
-            continue
-        if len(fields) not in (2, 3):
-            raise InputError(f"{path}, line {lineno}: expected 'source target [transform]', got {len(fields)} field(s)")
-        files = [str(path.parent / f) for f in fields]
-        jobs.append(PairJob(lineno, files[0], files[1], files[2] if len(files) == 3 else None))
-    if not jobs:
-        raise InputError(f"{path}: no pairs (expected lines 'source target [transform]')")
+    for lineno, files in pair_lines(path, (2, 3)):
+        jobs.append(PairJob(lineno, str(files[0]), str(files[1]), str(files[2]) if len(files) == 3 else None))
     return jobs
 
 

@@ -69,6 +69,31 @@ class PairEntry(NamedTuple):
     line: int
 
 
+def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,)) -> List[Tuple[int, List[Path]]]:
+    """(line number, files) of each pair a pairs file lists: lines of `counts` file names
+    (``source target transform``; ``#`` starts a comment), resolved against the file's folder.
+
+    Raises:
+        UsageError: no such file.
+        InputError: a line with another number of fields (names the line); no pair at all.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UsageError(f"{path}: no such pairs file")
+    expected = "source target transform" if counts == (3,) else "source target [transform]"
+    lines = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        if len(fields) not in counts:
+            raise InputError(f"{path}, line {lineno}: expected '{expected}', got {len(fields)} field(s)")
+        lines.append((lineno, [path.parent / f for f in fields]))
+    if not lines:
+        raise InputError(f"{path}: no pairs (expected lines '{expected}')")
+    return lines
+
+
 def read_pairs_file(path: Union[str, Path]) -> List[PairEntry]:
     """The pairs a ``pairs.txt`` lists, with paths resolved against its folder.
 
@@ -78,22 +103,12 @@ def read_pairs_file(path: Union[str, Path]) -> List[PairEntry]:
             line); no pair at all.
     """
     path = Path(path)
-    if not path.is_file():
-        raise UsageError(f"{path}: no such pairs file")
     entries = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        fields = line.split("#", 1)[0].split()
-        if not fields:
-            continue
-        if len(fields) != 3:
-            raise InputError(f"{path}, line {lineno}: expected 'source target transform', got {len(fields)} field(s)")
-        files = [path.parent / f for f in fields]
+    for lineno, files in pair_lines(path):
         for f in files:
             if not f.is_file():
                 raise InputError(f"{path}, line {lineno}: no file {f.name} in {path.parent}")
         entries.append(PairEntry(*files, lineno))
-    if not entries:
-        raise InputError(f"{path}: no pairs (expected lines 'source target transform')")
     return entries
 
 

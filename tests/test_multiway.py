@@ -171,3 +171,22 @@ def test_the_ten_bunny_scans_within_a_degree_and_two_millimetres(bunny_root, mod
         errors = pair_errors(pose, np.linalg.inv(conf[names[0]]) @ conf[name])
         assert errors.rotation_deg < 1.0 and errors.translation < 0.002, name
     print(f"ten bunny scans: {seconds:.1f} s")
+
+
+def test_cli_takes_every_scan_of_an_e57(tmp_path, scans):
+    import pye57
+
+    clouds, poses = scans
+    survey = pye57.E57(str(tmp_path / "survey.e57"), mode="w")
+    for k in (1, 2):
+        c = clouds[k]
+        survey.write_scan_raw({"cartesianX": c[:, 0], "cartesianY": c[:, 1], "cartesianZ": c[:, 2]}, name=f"station {k}")
+    survey.close()
+    first = write_points(tmp_path / "view0.ply", clouds[0])
+    out = tmp_path / "out"
+    result = CliRunner().invoke(main, ["multiway", str(first), str(tmp_path / "survey.e57"), "--out", str(out), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    record = json.loads((out / "poses.json").read_text())
+    assert [s["name"] for s in record["scans"]] == [str(first), f"{tmp_path / 'survey.e57'}#0", f"{tmp_path / 'survey.e57'}#1"]
+    for scan, pose in zip(record["scans"], poses[:3]):
+        assert pair_errors(np.array(scan["world_T_scan"]), pose).rotation_deg < 1.0
