@@ -505,6 +505,7 @@ _TRAIN_FIELDS = (
     "checkpoint_minutes",
     "eval_pairs",
     "max_steps",
+    "max_minutes",
     "limit_train",
     "points_per_shape",
     "workers",
@@ -560,6 +561,12 @@ _TRAIN_FIELDS = (
     help="Continue from OUT/checkpoint.pt exactly where it stopped, with the settings of OUT/config.yaml (options given here override them).",
 )
 @click.option("--max-steps", type=click.IntRange(min=1), default=None, help="Stop after this many steps (quick runs).")
+@click.option(
+    "--max-minutes",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Stop after this many minutes of training, with a checkpoint and the model exported (--resume goes on).",
+)
 @click.option("--limit-train", type=click.IntRange(min=1), default=None, help="Use only the first N training shapes.")
 @click.option("--points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True, help="Points per shape (first N of the HDF5 data).")
 @click.option("--eval-pairs", type=click.IntRange(min=0), default=300, show_default=True, help="Test pairs evaluated after each epoch (0: none).")

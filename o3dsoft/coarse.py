@@ -21,13 +21,10 @@ from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Tu
 import numpy as np
 import torch
 
-from ._open3d import open3d
 from .errors import InputError, UsageError
 from .io import atomic_output, make_folder
 from .model import NetConfig, SoftAlignNet, ball_query
 from .transforms import apply_transform, rigid
-
-o3c = open3d.core
 
 FORMAT = "o3dsoft-softalign"
 FORMAT_VERSION = 1
@@ -203,6 +200,9 @@ class CoarseModel:
         k, radius = self.config.k, self.config.radius
         if self.device.type != "cpu":
             return ball_query(points.to(self.device), k, radius)
+        from ._open3d import open3d  # here, so that training (o3dsoft.train) runs where Open3D is not installed
+
+        o3c = open3d.core
         out = []
         for cloud in points.detach().float().numpy():
             cloud = o3c.Tensor(np.ascontiguousarray(cloud))

@@ -60,6 +60,9 @@ class TrainConfig:
         checkpoint_minutes: wall-clock interval between checkpoints (also written each epoch).
         eval_pairs: test pairs evaluated after each epoch (0: none; None: the whole split).
         max_steps: stop after this many optimiser steps in total (None: run all epochs).
+        max_minutes: stop after this many minutes of training in this process, with a checkpoint
+            and the model exported (``--resume`` goes on): for a machine lent for a fixed time
+            (None: no limit).
         limit_train: use only the first N training shapes (None: all).
         points_per_shape: points per shape (the first N of the HDF5 data, N samples on meshes).
         workers: DataLoader worker processes making pairs (0: in the training process).
@@ -82,6 +85,7 @@ class TrainConfig:
     checkpoint_minutes: float = 5.0
     eval_pairs: Optional[int] = 300
     max_steps: Optional[int] = None
+    max_minutes: Optional[float] = None
     limit_train: Optional[int] = None
     points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE
     workers: int = 0
@@ -106,6 +110,7 @@ class TrainConfig:
             ("checkpoint_minutes", self.checkpoint_minutes > 0, "positive"),
             ("eval_pairs", self.eval_pairs is None or self.eval_pairs >= 0, "0 or more, or null for the whole split"),
             ("max_steps", self.max_steps is None or self.max_steps >= 1, "at least 1 or null"),
+            ("max_minutes", self.max_minutes is None or self.max_minutes > 0, "positive or null"),
             ("limit_train", self.limit_train is None or self.limit_train >= 1, "at least 1 or null"),
             ("points_per_shape", self.points_per_shape is None or self.points_per_shape >= self.net.k, f"at least k = {self.net.k} or null"),
             ("workers", self.workers >= 0, "0 or more"),
@@ -507,7 +512,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
 
     dataset = _TrainingPairs([train_pairs])
     model.train()
-    last_ckpt = time.monotonic()
+    last_ckpt = started = time.monotonic()
     done = config.max_steps is not None and state["global_step"] >= config.max_steps
     while state["epoch"] < config.epochs and not done:
         epoch = state["epoch"]
@@ -541,7 +546,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                 state["seconds"] += time.monotonic() - last_ckpt
                 last_ckpt = time.monotonic()
                 checkpoint()
-            if config.max_steps is not None and state["global_step"] >= config.max_steps:
+            out_of_steps = config.max_steps is not None and state["global_step"] >= config.max_steps
+            if out_of_steps or (config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60):
                 done = True
                 break
         progress.close()

@@ -284,3 +284,13 @@ def test_a_checkpoint_carrying_code_is_refused_without_running_it(modelnet_root,
     with pytest.raises(InputError, match="unreadable checkpoint"):
         train(_config(modelnet_root, tmp_path / "b", max_steps=1, eval_pairs=0, init=str(tmp_path / "checkpoint.pt")), log=lambda m: None)
     assert not marker.exists()
+
+
+def test_a_time_limit_ends_the_run_with_a_checkpoint_and_a_model(modelnet_root, tmp_path):
+    path = train(_config(modelnet_root, tmp_path, max_minutes=1e-6, epochs=3, eval_pairs=0), log=lambda m: None)
+    card = json.loads((tmp_path / "model_card.json").read_text())
+    assert card["steps"] == 1 and path.is_file()  # the first step outlasts the limit
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["state"]
+    assert state["global_step"] == 1 and state["epoch"] == 0  # --resume goes on from here
+    with pytest.raises(InputError, match="max_minutes"):
+        _config(modelnet_root, tmp_path, max_minutes=0).validate()
