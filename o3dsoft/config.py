@@ -131,6 +131,10 @@ class SearchConfig:
         prior_margin_deg: under ``RegisterConfig.max_rotation``, estimates are screened against
             the bound with this margin (degrees) before ICP, which can still move them into it
             (default 10).
+        kiss: on clouds registered on a voxel grid (scans), KISS-Matcher's estimate is tried
+            before the feature match, where the optional package ``kiss-matcher`` is installed
+            (``o3dsoft[peers]``; default True).
+        kiss_voxel: KISS-Matcher's voxel, as a share of the larger scene's size (default 0.01).
         features, starts, votes, restart: the search's steps, in the order they run.
         screen: how the steps' estimates are tried first on large clouds.
     """
@@ -138,6 +142,8 @@ class SearchConfig:
     mode: str = "auto"
     partial_pvalue: float = 0.01
     prior_margin_deg: float = 10.0
+    kiss: bool = True
+    kiss_voxel: float = 0.01
     features: FeatureSearchConfig = field(default_factory=FeatureSearchConfig)
     starts: StartsConfig = field(default_factory=StartsConfig)
     votes: VotesConfig = field(default_factory=VotesConfig)

@@ -23,7 +23,7 @@ from . import degeneracy as degeneracy_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
 from .pair import CloudLike, PreparedPair, as_points
-from .strategies import FeatureMatchProposals, NetworkPass, NetworkStarts, Restart, TranslationVotes
+from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, kiss_available
 from .transforms import rotation_angle_deg
 from .verify import Attempt, Verifier
 
@@ -160,7 +160,7 @@ def register(
     features_first = search.features_on and pair.looks_partial()
     clock.lap("sample_normalise")
     if features_first:
-        FeatureMatchProposals().propose(pair, verifier)
+        _match_features(pair, verifier)
     if not (features_first and verifier.confident()):
         network.propose(pair, verifier)
 
@@ -193,13 +193,23 @@ def _search(pair: PreparedPair, verifier: Verifier, model, search_model, feature
     (unless done), the networks from many starts, translation votes, and the optional restart."""
     config = pair.config
     if config.search.features_on and not features_done:
-        FeatureMatchProposals().propose(pair, verifier)
+        _match_features(pair, verifier)
     if not verifier.confident():
         NetworkStarts(model, search_model).propose(pair, verifier)
     if config.search.features_on and not verifier.confident():
         TranslationVotes().propose(pair, verifier)
     if config.refine and config.search.restart.enabled and not verifier.settled():
         Restart().propose(pair, verifier)
+
+
+def _match_features(pair: PreparedPair, verifier: Verifier) -> None:
+    """The search's matching strategies: KISS-Matcher's estimate on scans (where installed), then
+    FPFH + RANSAC's while none is trusted enough to end the feature match."""
+    kiss = pair.config.search.kiss and pair.voxel is not None and kiss_available()
+    if kiss:
+        KissMatcherProposal().propose(pair, verifier)
+    if not (kiss and verifier.settled()):
+        FeatureMatchProposals().propose(pair, verifier)
 
 
 def _refine_full(pair: PreparedPair, verifier: Verifier, best: Attempt) -> Attempt:

@@ -10,6 +10,7 @@ from o3dsoft.config import FeatureSearchConfig, RegisterConfig, RestartConfig, S
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.metrics import pair_errors, rotation_error_deg
 from o3dsoft.pipeline import register
+from o3dsoft.preprocess import scene_size
 from o3dsoft.refine import ICPConfig
 from o3dsoft.transforms import euler_to_matrix, rotation_angle_deg
 
@@ -387,3 +388,26 @@ def test_clouds_that_do_not_overlap_are_flagged():
     floor = np.c_[rng.uniform(-5, 5, size=(20_000, 2)), rng.normal(scale=0.002, size=20_000)]  # a 10 m floor
     res = register(bunny, floor)
     assert res.likely_failed and res.failure_reason
+
+
+def test_kiss_matchers_estimate_comes_before_the_feature_match_on_scans(monkeypatch):
+    from o3dsoft import baselines
+    from o3dsoft.strategies import features
+
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    truth = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    feature_runs, kiss_runs = [], []
+    real_propose = features.FeatureMatchProposals.propose
+    monkeypatch.setattr(features.FeatureMatchProposals, "propose", lambda self, pair, verifier: feature_runs.append(1) or real_propose(self, pair, verifier))
+    monkeypatch.setattr(baselines, "kiss_matcher", lambda s, t, voxel: kiss_runs.append(voxel) or truth)
+    config = RegisterConfig(voxel=0.003, search=SearchConfig(mode="always"))  # on a grid: a scan
+    res = register(src, tgt, config)
+    assert len(kiss_runs) == 1 and not feature_runs  # trusted: the feature match is not needed
+    assert kiss_runs[0] == pytest.approx(0.01 * max(scene_size(src), scene_size(tgt)), rel=0.05)
+    assert not res.likely_failed and pair_errors(res.transformation, truth).rotation_deg < 0.5
+    register(src, tgt, replace(config, search=replace(config.search, kiss=False)))
+    register(src, tgt, replace(config, voxel=None))  # not on a grid: the ModelNet40 protocols' path
+    monkeypatch.setattr("o3dsoft.pipeline.kiss_available", lambda: False)  # o3dsoft without its [peers] extra
+    register(src, tgt, config)
+    assert len(kiss_runs) == 1 and len(feature_runs) == 3

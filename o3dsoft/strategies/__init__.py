@@ -4,6 +4,7 @@ verifier's stop rule says so. :func:`o3dsoft.register` runs them in this order (
 overlap the feature match goes first, and the network only when it found nothing confident):
 
 - :class:`NetworkPass` (:mod:`.network`): the network from the pose the clouds are given in;
+- :class:`KissMatcherProposal` (:mod:`.kiss`): KISS-Matcher's estimate, on scans, where installed;
 - :class:`FeatureMatchProposals` (:mod:`.features`): FPFH + RANSAC's distinct estimates;
 - :class:`NetworkStarts` (:mod:`.starts`): the networks from many starting rotations;
 - :class:`TranslationVotes` (:mod:`.votes`): translations the feature matches vote for at the best
@@ -18,6 +19,7 @@ from typing import Protocol
 from ..pair import PreparedPair
 from ..verify import Verifier
 from .features import FeatureMatchProposals
+from .kiss import KissMatcherProposal, kiss_available
 from .network import NetworkPass
 from .restart import Restart
 from .starts import NetworkStarts
@@ -32,4 +34,4 @@ class Strategy(Protocol):
         :meth:`~o3dsoft.verify.Verifier.try_estimate`) until done or its stop rule holds."""
 
 
-__all__ = ["Strategy", "NetworkPass", "FeatureMatchProposals", "NetworkStarts", "TranslationVotes", "Restart"]
+__all__ = ["Strategy", "NetworkPass", "KissMatcherProposal", "kiss_available", "FeatureMatchProposals", "NetworkStarts", "TranslationVotes", "Restart"]

@@ -1,0 +1,33 @@
+"""KISS-Matcher's estimate, where the optional package is installed (``o3dsoft[peers]``): a
+global registration made for scans (robust to low overlap), proposed on clouds registered on a
+voxel grid before the FPFH feature match."""
+
+from __future__ import annotations
+
+from ..pair import PreparedPair
+from ..preprocess import scene_size
+from ..verify import Verifier
+
+
+def kiss_available() -> bool:
+    """The optional package ``kiss-matcher`` can be imported."""
+    try:
+        import kiss_matcher  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class KissMatcherProposal:
+    """One estimate, from KISS-Matcher on the full clouds at ``search.kiss_voxel`` of the larger
+    scene's size, verified like the feature match's (refined on the screen, then the work clouds)."""
+
+    def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
+        from ..baselines import kiss_matcher
+
+        source, target = pair.full
+        voxel = pair.config.search.kiss_voxel * max(scene_size(source), scene_size(target))
+        T = kiss_matcher(source, target, voxel)
+        verifier.clock.lap("search")
+        if verifier.plausible(T):
+            verifier.try_estimate(T, pair.config.icp)
