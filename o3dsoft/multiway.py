@@ -125,8 +125,9 @@ class MultiwayResult:
     Attributes:
         names: the scans' names, in input order.
         poses: (4, 4) world_T_scan per scan (maps the scan's points into the world frame); None
-            for a scan that joined no other.
-        world: index of the scan whose frame is the world (the first scan that joined).
+            for a scan that joined no other (the world scan has the identity).
+        world: index of the scan whose frame is the world: the first of the largest group of
+            scans joined by trusted alignments (the first scan when none is).
         edges: every registered pair.
         timings_s: "pairs" (all pairwise registrations), "optimise", "total" (s, lower is better).
         voxel: the grid the information matrices were computed on, and the merged cloud's
@@ -142,7 +143,7 @@ class MultiwayResult:
 
     @property
     def joined(self) -> Tuple[bool, ...]:
-        """Per scan: it has a pose (a trusted edge connects it to the world scan)."""
+        """Per scan: it has a pose (it is the world scan, or trusted edges connect it to it)."""
         return tuple(p is not None for p in self.poses)
 
     def to_dict(self) -> dict:
@@ -236,6 +237,7 @@ def multiway(
     # Connect the scans through their most confident edges, then optimise the graph.
     world, tree = _spanning_tree(len(points), edges)
     poses: List[Optional[np.ndarray]] = [None] * len(points)
+    poses[world] = np.eye(4)  # the world frame, even when no other scan joins it
     edges = [_mark(e, tree) for e in edges]
     grid = _merge_grid(config, results)
     if tree:

@@ -190,3 +190,13 @@ def test_cli_takes_every_scan_of_an_e57(tmp_path, scans):
     assert [s["name"] for s in record["scans"]] == [str(first), f"{tmp_path / 'survey.e57'}#0", f"{tmp_path / 'survey.e57'}#1"]
     for scan, pose in zip(record["scans"], poses[:3]):
         assert pair_errors(np.array(scan["world_T_scan"]), pose).rotation_deg < 1.0
+
+
+def test_scans_that_join_none_leave_the_first_as_the_world(tmp_path, scans):
+    rng = np.random.default_rng(0)
+    a = write_points(tmp_path / "a.ply", scans[0][0])
+    b = write_points(tmp_path / "b.ply", rng.uniform(size=(2000, 3)) * [3, 3, 0.1] + [10, 0, 0])
+    result = CliRunner().invoke(main, ["multiway", str(a), str(b), "--out", str(tmp_path / "out"), "--no-progress"])
+    assert result.exit_code == 3 and "Traceback" not in result.output
+    assert "b.ply: not joined" in result.output
+    assert len(read_points(tmp_path / "out" / "merged.ply")) <= len(scans[0][0])  # the first scan alone
