@@ -414,10 +414,6 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, render_path,
         seen[key] = p
     if render_path is not None and render_path.suffix.lower() != ".png":
         raise click.UsageError(f"--render {render_path}: give a .png file name")
-    io.make_folder(out_dir)
-    for p in (out_dir / "poses.json", out_dir / "merged.ply", render_path):
-        if p is not None:
-            io.check_writable(p)
     names, clouds = [], []
     for p in scans:
         for name, points in io.read_scans(p):
@@ -425,6 +421,10 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, render_path,
             clouds.append(points)
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
+    io.make_folder(out_dir)  # after the scans are read: a bad file leaves no folder behind
+    for p in (out_dir / "poses.json", out_dir / "merged.ply", render_path):
+        if p is not None:
+            io.check_writable(p)
     config = MultiwayConfig(neighbours=neighbours, window=window, near=near, voxel=merge_voxel, register=_register_config(**pipeline))
     model = load_model(config.register.weights, config.register.device)
     bar = tqdm(unit="pair", disable=True if no_progress else None, dynamic_ncols=True, desc="pairs")

@@ -150,6 +150,12 @@ def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
     twice = runner.invoke(main, ["multiway", str(a), str(b), str(a), "--out", str(tmp_path / "o1")])
     assert twice.exit_code == 2 and "given twice" in twice.output
     assert not (tmp_path / "o1").exists()
+    import laspy
+
+    laspy.LasData(laspy.LasHeader(point_format=0, version="1.4")).write(tmp_path / "empty.las")
+    empty = runner.invoke(main, ["multiway", str(a), str(tmp_path / "empty.las"), "--out", str(tmp_path / "o3")])
+    assert empty.exit_code == 1 and "empty.las: holds 0 points" in empty.output
+    assert not (tmp_path / "o3").exists()
     left = runner.invoke(main, ["multiway", str(a), str(stray), str(b), "--out", str(tmp_path / "o2"), "--no-progress"])
     assert left.exit_code == 3
     assert "stray.ply: not joined" in left.output and "left out: " in left.output
