@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
-from .errors import InputError, O3dsoftError, UsageError
+from .errors import InputError, O3dsoftError, UsageError, first_line
 
 COLUMNS = (
     "line",
@@ -345,8 +345,7 @@ def _ray_connect(address: str):
         with quiet_c_output("stdout"), quiet_c_output("stderr"):  # Ray's own notices and retry logs; the outcome is reported here
             ray.init(**kwargs) if address == "local" else ray.init(address=address, **kwargs)
     except Exception as e:  # ConnectionError, ValueError, Ray's own: all mean "cannot reach it"
-        text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise InputError(f"--ray {address}: cannot connect to a Ray cluster ({text})") from None
+        raise InputError(f"--ray {address}: cannot connect to a Ray cluster ({first_line(e)})") from None
     finally:
         if threading.current_thread() is threading.main_thread():  # Ray installs its own; Ctrl-C and kill stay o3dsoft's
             for sig, handler in handlers.items():

@@ -21,7 +21,7 @@ from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Tu
 import numpy as np
 import torch
 
-from .errors import InputError, UsageError
+from .errors import InputError, UsageError, first_line
 from .io import atomic_output, make_folder
 from .model import NetConfig, SoftAlignNet, ball_query
 from .transforms import apply_transform, rigid
@@ -286,8 +286,7 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
         with _quiet_jit():
             module = torch.jit.load(str(path), map_location=device, _extra_files=extra)
     except Exception as e:  # torch raises RuntimeError or ValueError, with long C++ traces
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise InputError(f"{path}: not a readable TorchScript model file ({first})") from None
+        raise InputError(f"{path}: not a readable TorchScript model file ({first_line(e)})") from None
     try:
         meta = json.loads(extra[META_NAME])
     except json.JSONDecodeError:
@@ -314,8 +313,7 @@ def _check_contract(model: CoarseModel) -> None:
             R, t, w = model.run(source, target)
         ok = tuple(R.shape) == (1, 3, 3) and tuple(t.shape) == (1, 3) and tuple(w.shape) == (1, k + 8)
     except Exception as e:  # whatever a foreign network raises
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise InputError(f"{model.path}: its network does not run as an o3dsoft model ({first})") from None
+        raise InputError(f"{model.path}: its network does not run as an o3dsoft model ({first_line(e)})") from None
     if not ok:
         raise InputError(
             f"{model.path}: its network returns {tuple(R.shape)}, {tuple(t.shape)}, {tuple(w.shape)}; an o3dsoft model returns R (B, 3, 3), t (B, 3), w (B, N)"

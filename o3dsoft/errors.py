@@ -29,6 +29,13 @@ class UsageError(O3dsoftError, ValueError):
     exit_code = 2
 
 
+def first_line(error: BaseException) -> str:
+    """The first line of an exception's message (libraries' messages often carry C++ traces), or
+    the exception's type name when it has none: for one-line errors naming what failed."""
+    lines = str(error).strip().splitlines()
+    return lines[0] if lines else type(error).__name__
+
+
 @contextmanager
 def terminate_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM (``kill``, a scheduler's time limit) stops the work as Ctrl-C

@@ -20,7 +20,7 @@ from typing import Iterator, List, Tuple, Union
 
 import numpy as np
 
-from .errors import InputError, UsageError
+from .errors import InputError, UsageError, first_line
 
 PathLike = Union[str, Path]
 
@@ -176,7 +176,7 @@ def read_scans(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS) -> List[T
     try:
         e57 = pye57.E57(str(path))
     except Exception as e:  # libE57's own exceptions, with long messages
-        raise InputError(f"{path}: not a readable E57 file ({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+        raise InputError(f"{path}: not a readable E57 file ({first_line(e)})") from None
     try:
         count = e57.scan_count
         if count == 0:
@@ -186,7 +186,7 @@ def read_scans(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS) -> List[T
             try:
                 data = e57.read_scan(index, ignore_missing_fields=True)
             except Exception as e:
-                raise InputError(f"{path}, scan {index}: cannot be read ({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+                raise InputError(f"{path}, scan {index}: cannot be read ({first_line(e)})") from None
             if "cartesianX" not in data:
                 raise InputError(f"{path}, scan {index}: no Cartesian coordinates (cartesianX/Y/Z); spherical-only scans are not read")
             points = np.column_stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]]).astype(np.float64)
@@ -204,7 +204,7 @@ def _read_las(path: Path) -> np.ndarray:
     try:
         las = laspy.read(str(path))
     except Exception as e:  # laspy raises LaspyException, or the LAZ backend's errors
-        raise InputError(f"{path}: not a readable LAS/LAZ file ({str(e).splitlines()[0] if str(e) else type(e).__name__})") from None
+        raise InputError(f"{path}: not a readable LAS/LAZ file ({first_line(e)})") from None
     if len(las.points) == 0:
         raise InputError(f"{path}: holds 0 points")
     return np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64)
