@@ -461,13 +461,14 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, render_path,
 def _format_multiway(result, out_dir: Path, merged_points: int) -> str:
     import numpy as np
 
+    from ..transforms import rotation_angle_deg
+
     lines = [f"o3dsoft multiway  {len(result.names)} scans, world frame: {result.names[result.world]}", "", "Scans:"]
     for name, pose in zip(result.names, result.poses):
         if pose is None:
             lines.append(f"  {name}: not joined (no trusted alignment to another scan)")
         else:
-            angle = np.degrees(np.arccos(np.clip((np.trace(pose[:3, :3]) - 1) / 2, -1, 1)))
-            lines.append(f"  {name}: joined; world_T_scan turns {angle:.2f} deg and moves {np.linalg.norm(pose[:3, 3]):.4g} units")
+            lines.append(f"  {name}: joined; world_T_scan turns {rotation_angle_deg(pose[:3, :3]):.2f} deg and moves {np.linalg.norm(pose[:3, 3]):.4g} units")
     used = [e for e in result.edges if e.used]
     lines += [
         "",

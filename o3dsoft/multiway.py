@@ -25,6 +25,7 @@ from .errors import InputError
 from .pair import CloudLike, as_points
 from .pipeline import RegistrationResult, register
 from .preprocess import clean_points, voxel_downsample
+from .transforms import apply_transform
 
 NEIGHBOUR_RULES = ("auto", "all", "sequence", "near")
 
@@ -224,12 +225,12 @@ def multiway(
             progress(done, len(pairs))
     # Then the search, only on the pairs of scans that no trusted edge reaches yet, until each joins.
     if quick is not config.register:
+        group_of = _group_of(len(points), [e for e, _ in found.values()])
         for i, j in pairs:
-            joined = _groups(len(points), [e for e, _ in found.values() if not e.likely_failed])
-            if any(i in g and j in g for g in joined if len(g) > 1):
-                continue
-            if found[i, j][0].likely_failed:
+            if group_of[i] != group_of[j] and found[i, j][0].likely_failed:
                 found[i, j] = _register_edge(points, names, i, j, config.register, model)
+                if not found[i, j][0].likely_failed:  # two groups joined
+                    group_of = _group_of(len(points), [e for e, _ in found.values()])
     edges = [e for e, _ in found.values()]
     results = [r for _, r in found.values()]
     t_pairs = time.perf_counter()
@@ -245,7 +246,7 @@ def multiway(
         distance = float(np.median([r.tight_distance for r, e in zip(results, edges) if e.used]))
         optimised, pruned = _optimise(info_clouds, edges, world, tree, distance, config)
         poses = [optimised.get(k) for k in range(len(points))]
-        edges = [_replace(e, pruned=(e.source, e.target) in pruned) for e in edges]
+        edges = [replace(e, pruned=(e.source, e.target) in pruned) for e in edges]
     t_end = time.perf_counter()
     return MultiwayResult(names, tuple(poses), world, tuple(edges), {"pairs": t_pairs - t_start, "optimise": t_end - t_pairs, "total": t_end - t_start}, grid)
 
@@ -257,13 +258,9 @@ def _register_edge(points, names, i: int, j: int, config: RegisterConfig, model)
     return Edge(j, i, r.transformation, r.confidence, r.fitness, r.likely_failed, r.failure_reason, time.perf_counter() - t0, r.searched), r
 
 
-def _replace(edge: Edge, **changes) -> Edge:
-    return replace(edge, **changes)
-
-
 def _mark(edge: Edge, tree: Dict[int, Tuple[int, Edge]]) -> Edge:
     in_tree = any(parent_edge is edge for _, parent_edge in tree.values())
-    return _replace(edge, used=not edge.likely_failed, in_tree=in_tree)
+    return replace(edge, used=not edge.likely_failed, in_tree=in_tree)
 
 
 def _spanning_tree(n: int, edges: Sequence[Edge]) -> Tuple[int, Dict[int, Tuple[int, Edge]]]:
@@ -271,7 +268,8 @@ def _spanning_tree(n: int, edges: Sequence[Edge]) -> Tuple[int, Dict[int, Tuple[
     connected scans (Prim's algorithm): (world scan, {scan: (its parent, the edge between)}).
     The world scan is the group's first; scans outside the group are not in the dict."""
     trusted = [e for e in edges if not e.likely_failed]
-    groups = _groups(n, trusted)
+    group_of = _group_of(n, trusted)
+    groups = [{k for k in range(n) if group_of[k] == g} for g in sorted(set(group_of))]
     largest = max(groups, key=lambda g: (len(g), -min(g)))
     if len(largest) < 2:
         return 0, {}
@@ -286,8 +284,9 @@ def _spanning_tree(n: int, edges: Sequence[Edge]) -> Tuple[int, Dict[int, Tuple[
     return world, tree
 
 
-def _groups(n: int, edges: Sequence[Edge]) -> List[set]:
-    """Connected groups of scans (union-find over the edges)."""
+def _group_of(n: int, edges: Sequence[Edge]) -> List[int]:
+    """Per scan, a label of its group: scans joined through the trusted ones of `edges` share it
+    (union-find)."""
     root = list(range(n))
 
     def find(a: int) -> int:
@@ -297,11 +296,9 @@ def _groups(n: int, edges: Sequence[Edge]) -> List[set]:
         return a
 
     for e in edges:
-        root[find(e.source)] = find(e.target)
-    groups: Dict[int, set] = {}
-    for k in range(n):
-        groups.setdefault(find(k), set()).add(k)
-    return list(groups.values())
+        if not e.likely_failed:
+            root[find(e.source)] = find(e.target)
+    return [find(k) for k in range(n)]
 
 
 def _merge_grid(config: MultiwayConfig, results: Sequence[RegistrationResult]) -> Optional[float]:
@@ -368,7 +365,7 @@ def merged_cloud(clouds: Sequence[CloudLike], result: MultiwayResult, voxel: Opt
         if pose is None:
             continue
         pts = clean_points(as_points(cloud, result.names[k]), result.names[k]).points
-        parts.append(pts @ pose[:3, :3].T + pose[:3, 3])
+        parts.append(apply_transform(pose, pts))
         labels.append(np.full(len(pts), k))
     points, label = np.concatenate(parts), np.concatenate(labels)
     if voxel:

@@ -171,8 +171,8 @@ def register(
 
     # Select the most trusted, then refine it at full resolution, where it is trusted or not.
     chosen = _select(verifier)
-    final_level = "full" if pair.reduced and (config.refine_flagged or chosen.trust >= config.confidence.likely_failed_below) else "work"
-    best = _refine_full(pair, verifier, chosen) if final_level == "full" else chosen
+    unrefined = not config.refine_flagged and chosen.trust < config.confidence.likely_failed_below  # left as the work clouds gave it
+    best = chosen if unrefined else _refine_full(pair, verifier, chosen)
     if search.mode == "auto" and not searched and best.trust < config.confidence.likely_failed_below:
         # Trusted on the work clouds, not on the clouds it is the answer for: search after all.
         verifier.distrust(chosen, best.trust)
@@ -185,7 +185,7 @@ def register(
     )
     clock.lap("degeneracy")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
-    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, final_level)
+    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, "work" if unrefined else "full")
 
 
 def _search(pair: PreparedPair, verifier: Verifier, model, search_model, features_done: bool) -> None:
