@@ -142,21 +142,16 @@ def done_lines(results) -> Dict[int, dict]:
 
 
 class ResultsFile:
-    """Appends rows to the CSV as pairs end (each row one write, flushed), then rewrites it in
-    the pairs file's order."""
+    """Appends rows to the CSV as pairs end (each row one write, flushed). It starts by rewriting
+    the file with the rows kept, so that a row cut short by a kill is not continued by the next
+    one, and ends by rewriting it in the pairs file's order."""
 
     def __init__(self, path, rows: Dict[int, dict]) -> None:
-        from .io import check_writable
-
         self.path = Path(path)
-        check_writable(self.path)
         self.rows = dict(rows)
-        fresh = not self.path.is_file() or self.path.stat().st_size == 0
+        self._write_all(sorted(self.rows))
         self._file = open(self.path, "a", newline="")
         self._writer = csv.DictWriter(self._file, COLUMNS)
-        if fresh:
-            self._writer.writeheader()
-            self._file.flush()
 
     def add(self, row: dict) -> None:
         self.rows[int(row["line"])] = row
@@ -164,10 +159,14 @@ class ResultsFile:
         self._file.flush()
 
     def close(self, order: Sequence[int]) -> None:
-        """Rewrite the file with the rows in `order` (atomically), then close it."""
+        """Rewrite the file with the rows in `order`, then close it."""
+        self._file.close()
+        self._write_all(order)
+
+    def _write_all(self, order: Sequence[int]) -> None:
+        """The header and the rows of `order` that are done, written atomically."""
         from .io import atomic_output
 
-        self._file.close()
         with atomic_output(self.path) as tmp, open(tmp, "w", newline="") as f:
             writer = csv.DictWriter(f, COLUMNS)
             writer.writeheader()

@@ -107,6 +107,15 @@ def test_an_interrupted_run_resumes_from_its_results(tmp_path, pairs_file):
     run_jobs(jobs, CONFIG, results, progress=ran.append)
     assert [r["line"] for r in ran] == [4, 5, 6]
     assert list(_rows(results)) == [2, 3, 4, 5, 6]
+    # Mid-run, as a kill would leave it, the file holds whole rows: the first new one does not
+    # continue the row cut short.
+    results.unlink()
+    run_jobs(jobs[:2], CONFIG, results)
+    with open(results, "a") as f:
+        f.write("6,s,t,ok,,1 0")
+    seen = []
+    run_jobs(jobs, CONFIG, results, progress=lambda row: seen.append(set(done_lines(results))))
+    assert seen[0] == {2, 3, 4}
     assert done_lines(results).keys() == {2, 3, 4, 5, 6}
 
 
