@@ -110,6 +110,13 @@ def fgr(source: Features, target: Features, scale: float, config: GlobalConfig =
     return np.asarray(result.transformation).copy()
 
 
+def installed(*packages: str) -> bool:
+    """Whether every one of these optional packages (``o3dsoft[peers]``) can be imported."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(name) is not None for name in packages)
+
+
 @dataclass(frozen=True)
 class KissConfig:
     """KISS-Matcher (coarse) followed by small_gicp's GICP (fine): the pip packages

@@ -116,9 +116,7 @@ def check_methods(names: Sequence[str]) -> Tuple[str, ...]:
 
 def peers_installed() -> bool:
     """Whether the optional packages of :data:`PEER_METHODS` can be imported."""
-    import importlib.util
-
-    return all(importlib.util.find_spec(name) is not None for name in ("kiss_matcher", "small_gicp"))
+    return baselines.installed("kiss_matcher", "small_gicp")
 
 
 class BenchPair(NamedTuple):

@@ -4,6 +4,7 @@ voxel grid before the FPFH feature match."""
 
 from __future__ import annotations
 
+from .. import baselines
 from ..pair import PreparedPair
 from ..preprocess import scene_size
 from ..verify import Verifier
@@ -11,11 +12,7 @@ from ..verify import Verifier
 
 def kiss_available() -> bool:
     """The optional package ``kiss-matcher`` can be imported."""
-    try:
-        import kiss_matcher  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    return baselines.installed("kiss_matcher")
 
 
 class KissMatcherProposal:
@@ -23,11 +20,9 @@ class KissMatcherProposal:
     scene's size, verified like the feature match's (refined on the screen, then the work clouds)."""
 
     def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
-        from ..baselines import kiss_matcher
-
         source, target = pair.full
         voxel = pair.config.search.kiss_voxel * max(scene_size(source), scene_size(target))
-        T = kiss_matcher(source, target, voxel)
+        T = baselines.kiss_matcher(source, target, voxel)
         verifier.clock.lap("search")
         if verifier.plausible(T):
             verifier.try_estimate(T, pair.config.icp)
