@@ -111,18 +111,30 @@ def _pipeline_options(fn):
                 show_default=True,
                 help="The search's feature match goes on until an estimate reaches this confidence (0.9: doubtful results, 0.5-0.9, are searched further; see docs/pipeline.md).",
             ),
+            click.option(
+                "--search-replace-odds",
+                type=click.FloatRange(min=1),
+                default=30.0,
+                show_default=True,
+                help="An estimate of the search replaces the first one (the network's) only when its odds of being right are this many times higher (1: the most trusted wins; see docs/incongruent.md).",
+            ),
             click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP),
         ],
         fn,
     )
 
 
-def _register_config(*, weights, device, voxel, coarse_iterations, search, search_features, search_restart, search_feature_stop, max_rotation, **more):
+def _register_config(
+    *, weights, device, voxel, coarse_iterations, search, search_features, search_restart, search_feature_stop, search_replace_odds, max_rotation, **more
+):
     """RegisterConfig from the values of :func:`_pipeline_options` and further fields (`more`)."""
     from ..config import FeatureSearchConfig, RegisterConfig, RestartConfig, SearchConfig
 
     search_config = SearchConfig(
-        mode=search, features=FeatureSearchConfig(enabled=search_features, stop=search_feature_stop), restart=RestartConfig(enabled=search_restart)
+        mode=search,
+        features=FeatureSearchConfig(enabled=search_features, stop=search_feature_stop),
+        restart=RestartConfig(enabled=search_restart),
+        replace_odds=search_replace_odds,
     )
     return RegisterConfig(
         weights=str(weights) if weights else None,

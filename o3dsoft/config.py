@@ -135,6 +135,9 @@ class SearchConfig:
             before the feature match, where the optional package ``kiss-matcher`` is installed
             (``o3dsoft[peers]``; default True).
         kiss_voxel: KISS-Matcher's voxel, as a share of the larger scene's size (default 0.01).
+        replace_odds: an estimate of the search replaces the pipeline's own (the network's, and the
+            feature match's where it ran first) only when its confidence's odds, p / (1 - p), are
+            this many times higher (default 30; 1: the most trusted wins).
         features, starts, votes, restart: the search's steps, in the order they run.
         screen: how the steps' estimates are tried first on large clouds.
     """
@@ -144,6 +147,7 @@ class SearchConfig:
     prior_margin_deg: float = 10.0
     kiss: bool = True
     kiss_voxel: float = 0.01
+    replace_odds: float = 30.0
     features: FeatureSearchConfig = field(default_factory=FeatureSearchConfig)
     starts: StartsConfig = field(default_factory=StartsConfig)
     votes: VotesConfig = field(default_factory=VotesConfig)
@@ -233,6 +237,8 @@ class RegisterConfig:
         threshold = self.confidence.likely_failed_below
         if not threshold <= search.features.stop <= 1:
             raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
+        if not search.replace_odds >= 1:
+            raise InputError(f"search.replace_odds must be at least 1, got {search.replace_odds}")
         if search.starts.refine < 1:
             raise InputError(f"search.starts.refine must be at least 1, got {search.starts.refine}")
         if search.features.first_round < 1:

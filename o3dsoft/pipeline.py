@@ -192,6 +192,7 @@ def _search(pair: PreparedPair, verifier: Verifier, model, search_model, feature
     """The global search's strategies in turn, each while nothing is confident: the feature match
     (unless done), the networks from many starts, translation votes, and the optional restart."""
     config = pair.config
+    verifier.begin_search()
     if config.search.features_on and not features_done:
         _match_features(pair, verifier)
     if not verifier.confident():
@@ -222,9 +223,9 @@ def _refine_full(pair: PreparedPair, verifier: Verifier, best: Attempt) -> Attem
 
 
 def _select(verifier: Verifier) -> Attempt:
-    """The most trusted attempt; under a rotation prior, one within the bound before any beyond
-    it, and when none is within it, the pose as given (refined if ICP keeps it within)."""
-    best = max(verifier.attempts, key=lambda a: (verifier.admissible(a.fine.transformation), a.trust))
+    """The most trusted attempt (:meth:`Verifier.most_trusted`); under a rotation prior, when none
+    is within the bound, the pose as given (refined if ICP keeps it within)."""
+    best = verifier.most_trusted()
     if verifier.admissible(best.fine.transformation):
         return best
     identity = np.eye(4)
@@ -249,7 +250,7 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool) -> Op
         why = f"the clouds barely touch: the points near the other cloud are {100 * best.scored.overlap:.0f} % of the smaller one"
     else:
         why = f"of the points near the other cloud, only {100 * best.scored.consistency:.0f} % lie within {best.scored.tight_distance:.3g} units of it"
-    return why + ("; the global search found nothing better" if searched else "")
+    return why + ("; the global search found nothing clearly better" if searched else "")
 
 
 def _result(

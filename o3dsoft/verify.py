@@ -3,6 +3,7 @@ and kept in one list from which the result is chosen (:class:`Verifier`)."""
 
 from __future__ import annotations
 
+import math
 from typing import List, NamedTuple, Optional
 
 import numpy as np
@@ -46,6 +47,7 @@ class Verifier:
         self.clock = clock
         self.attempts: List[Attempt] = []
         self.screened: List[Attempt] = []
+        self.search_from: Optional[int] = None  # attempts before this index are the pipeline's own
 
     # -- the prior and the stop rule ------------------------------------------------------------
     def admissible(self, T: np.ndarray, margin: float = 0.0) -> bool:
@@ -68,6 +70,29 @@ class Verifier:
     def settled(self) -> bool:
         """Some attempt so far is trusted enough to end the feature match (its ``stop``)."""
         return self.best_trust() >= max(self.config.search.features.stop, self.config.confidence.likely_failed_below)
+
+    def begin_search(self) -> None:
+        """Mark the attempts so far as the pipeline's own, those from here on as the search's."""
+        if self.search_from is None:
+            self.search_from = len(self.attempts)
+
+    def most_trusted(self) -> Attempt:
+        """The attempt to answer with: the most trusted, those within the rotation prior first.
+        One the search proposed replaces the most trusted of the pipeline's own only when its odds
+        of being right are ``search.replace_odds`` times higher: on sparse, independently sampled
+        clouds a right pose and a turn onto a near-symmetric copy of the shape score alike, and the
+        search would trade the first estimate for one no better."""
+
+        def rank(a: Attempt):
+            return (self.admissible(a.fine.transformation), a.trust)
+
+        best = max(self.attempts, key=rank)
+        own = self.attempts[: self.search_from] if self.search_from is not None else []
+        if not own or any(a is best for a in own):
+            return best
+        first = max(own, key=rank)
+        gain = _log_odds(best.trust) - _log_odds(first.trust)
+        return first if rank(first)[0] == rank(best)[0] and gain < math.log(self.config.search.replace_odds) else best
 
     # -- refining and scoring ---------------------------------------------------------------------
     def refine(
@@ -123,3 +148,9 @@ class Verifier:
         self.screened.append(s)
         if (s.trust > record and s.trust >= self.config.search.screen.min_trust) or s.trust >= self.config.confidence.likely_failed_below:
             self.promote(s)
+
+
+def _log_odds(p: float) -> float:
+    """log(p / (1 - p)), finite for p in [0, 1]."""
+    p = min(max(p, 1e-300), 1.0 - 1e-16)
+    return math.log(p) - math.log1p(-p)

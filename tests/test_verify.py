@@ -1,0 +1,45 @@
+from types import SimpleNamespace
+
+import numpy as np
+
+from o3dsoft.clock import StageClock
+from o3dsoft.confidence import Features
+from o3dsoft.config import RegisterConfig, SearchConfig
+from o3dsoft.refine import ICPResult
+from o3dsoft.transforms import euler_to_matrix, rigid
+from o3dsoft.verify import Attempt, Verifier
+
+
+def _attempt(trust, turn_deg=0.0):
+    T = rigid(euler_to_matrix([0.0, 0.0, turn_deg]), np.zeros(3))
+    return Attempt(trust, Features(0.0, 0.0, 0.0, 0.0), ICPResult(T, 1.0, 0.0), T, T)
+
+
+def _verifier(own, searched, config=RegisterConfig()):
+    verifier = Verifier(SimpleNamespace(config=config), StageClock())
+    verifier.attempts = list(own)
+    verifier.begin_search()
+    verifier.attempts += list(searched)
+    verifier.begin_search()  # a second search keeps the first mark
+    return verifier
+
+
+def test_a_search_estimate_replaces_the_first_only_when_far_more_trusted():
+    first, flip = _attempt(0.3), _attempt(0.6, 180.0)
+    # odds 1.5 against 0.43: 3.5 times, below the default 30
+    assert _verifier([first], [flip]).most_trusted() is first
+    sure = _attempt(0.99, 180.0)  # odds 99: 231 times
+    assert _verifier([first], [flip, sure]).most_trusted() is sure
+    assert _verifier([_attempt(0.0)], [_attempt(0.01)]).most_trusted().trust == 0.01
+    most_trusted_wins = RegisterConfig(search=SearchConfig(replace_odds=1.0))
+    assert _verifier([first], [flip], most_trusted_wins).most_trusted() is flip
+
+
+def test_without_a_search_the_most_trusted_wins_and_the_prior_comes_first():
+    low, high = _attempt(0.2), _attempt(0.7)
+    verifier = Verifier(SimpleNamespace(config=RegisterConfig()), StageClock())
+    verifier.attempts = [low, high]
+    assert verifier.most_trusted() is high
+    bounded = RegisterConfig(max_rotation=30.0)
+    # the first estimate lies beyond the prior: the search's, within it, wins however trusted
+    assert _verifier([_attempt(0.0, 90.0)], [_attempt(0.05)], bounded).most_trusted().trust == 0.05
