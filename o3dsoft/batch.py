@@ -227,8 +227,9 @@ def run_jobs(
     return [out.rows[j.line] for j in jobs if j.line in out.rows]
 
 
-def _crashed(job: PairJob) -> dict:
-    return {"line": job.line, "source": job.source, "target": job.target, "status": "failed", "error": "its worker process died twice", "seconds": 0.0}
+def _crashed(job: PairJob, why: str) -> dict:
+    """The row of a pair whose process died each time it ran (`why`, in words)."""
+    return {"line": job.line, "source": job.source, "target": job.target, "status": "failed", "error": why, "seconds": 0.0}
 
 
 def _run_pool(jobs: Sequence[PairJob], config, workers: int, task) -> Iterator[dict]:
@@ -271,7 +272,7 @@ def _run_alone(job: PairJob, config, task) -> dict:
                 return alone.submit(task, job, config).result()
             except BrokenProcessPool:
                 continue
-    return _crashed(job)
+    return _crashed(job, "its worker process died twice")
 
 
 def _process_pool(workers: int):
@@ -306,7 +307,7 @@ def _run_ray(ray, jobs: Sequence[PairJob], config, workers: int, task) -> Iterat
                 actors[k] = Worker.remote(workers)
                 tries[job.line] += 1
                 if tries[job.line] > RETRIES:
-                    yield _crashed(job, "its Ray actor died")
+                    yield _crashed(job, "its Ray actor died twice")
                 else:
                     queue.insert(0, job)
 

@@ -127,7 +127,10 @@ def test_a_results_file_of_another_kind_is_not_overwritten(tmp_path, pairs_file)
     assert other.read_text() == "name,value\na,1\n"
 
 
-def test_a_crashed_worker_is_retried_once_then_reported(tmp_path, pairs_file):
+@pytest.mark.parametrize("ray, died", [(None, "its worker process died twice"), ("local", "its Ray actor died twice")], ids=["pool", "ray"])
+def test_a_crashed_worker_is_retried_once_then_reported(tmp_path, pairs_file, ray, died):
+    if ray:
+        pytest.importorskip("ray")
     folder = tmp_path / "crash"
     folder.mkdir()
     for name in ("crash-once.npy", "crash-always.npy"):
@@ -137,9 +140,9 @@ def test_a_crashed_worker_is_retried_once_then_reported(tmp_path, pairs_file):
         PairJob(2, str(folder / "crash-always.npy"), str(pairs_file.parent / "t0.npy")),
     ]
     jobs += [PairJob(3, str(pairs_file.parent / "s1.npy"), str(pairs_file.parent / "t1.npy"))]
-    rows = run_jobs(jobs, CONFIG, tmp_path / "r.csv", workers=2, task=crash_once_or_always)
+    rows = run_jobs(jobs, CONFIG, tmp_path / "r.csv", workers=2, ray=ray, task=crash_once_or_always)
     assert [r["status"] for r in rows] == ["ok", "failed", "ok"]
-    assert "its worker process died twice" in rows[1]["error"]
+    assert rows[1]["error"] == died
 
 
 def test_cli_pairs_with_workers_and_resume(tmp_path, pairs_file):
