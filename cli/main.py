@@ -6,6 +6,7 @@ import dataclasses
 import functools
 import json
 import shlex
+import statistics
 import sys
 import time
 import warnings
@@ -306,13 +307,12 @@ def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num
     failed to run."""
     from tqdm import tqdm
 
-    from ..batch import done_lines, read_pair_jobs, run_jobs
-    from ..coarse import load_model
+    from ..batch import done_lines, model_for, read_pair_jobs, run_jobs
     from ..refine import ICPConfig
 
     jobs = read_pair_jobs(pairs_path)
     config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
-    load_model(config.weights, config.device)  # a bad --weights fails here, once, not on every row
+    model_for(config)  # a bad --weights fails here, once, not on every row; a run in this process reuses it
     done = done_lines(out_path)
     skipped = sum(j.line in done for j in jobs)
     if skipped:
@@ -324,8 +324,8 @@ def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num
         bar.close()
     failed = [r for r in rows if r["status"] != "ok"]
     flagged = [r for r in rows if r["status"] == "ok" and str(r["likely_failed"]) == "True"]
-    seconds = sorted(float(r["seconds"]) for r in rows if r["status"] == "ok")
-    median = f"; median {seconds[len(seconds) // 2]:.2f} s per pair (lower is better)" if seconds else ""
+    seconds = [float(r["seconds"]) for r in rows if r["status"] == "ok"]
+    median = f"; median {statistics.median(seconds):.2f} s per pair (lower is better)" if seconds else ""
     click.echo(
         f"{len(rows)} pairs: {len(rows) - len(failed) - len(flagged)} trusted, {len(flagged)} flagged likely failed, {len(failed)} could not run{median}."
     )

@@ -75,23 +75,30 @@ def read_pair_jobs(path) -> List[PairJob]:
 _MODEL: Dict[Tuple[Optional[str], str], object] = {}
 
 
+def model_for(config):
+    """The network of `config` (its weights on its device), loaded once per process."""
+    from .coarse import load_model
+
+    key = (config.weights, config.device)
+    if key not in _MODEL:
+        _MODEL[key] = load_model(config.weights, config.device)
+    return _MODEL[key]
+
+
 def run_job(job: PairJob, config) -> dict:
     """Register one pair and return its results row (a dict of :data:`COLUMNS`); an error of the
     input (a missing or unreadable file) is the row's ``error``, never an exception."""
     from . import io
-    from .coarse import load_model
     from .metrics import pair_errors
     from .pipeline import register
 
     t0 = time.perf_counter()
     row = {"line": job.line, "source": job.source, "target": job.target}
     try:
-        key = (config.weights, config.device)
-        if key not in _MODEL:
-            _MODEL[key] = load_model(config.weights, config.device)
+        model = model_for(config)
         source, target = io.read_points(job.source), io.read_points(job.target)
         truth = io.read_transform(job.transform) if job.transform else None
-        result = register(source, target, config, model=_MODEL[key], source_name=job.source, target_name=job.target)
+        result = register(source, target, config, model=model, source_name=job.source, target_name=job.target)
     except O3dsoftError as e:
         return {**row, "status": "failed", "error": str(e), "seconds": time.perf_counter() - t0}
     row.update(

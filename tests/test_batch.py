@@ -152,6 +152,8 @@ def test_cli_pairs_with_workers_and_resume(tmp_path, pairs_file):
     assert first.exit_code == 3, first.output  # one pair could not run
     assert "5 pairs: 4 trusted, 0 flagged likely failed, 1 could not run" in first.output
     assert "line 4: " in first.output and "missing.npy" in first.output
+    seconds = sorted(float(r["seconds"]) for r in _rows(out).values() if r["status"] == "ok")
+    assert f"median {(seconds[1] + seconds[2]) / 2:.2f} s per pair" in first.output  # of 4 pairs: the mean of the middle two
     again = runner.invoke(main, ["register", "--pairs", str(pairs_file), "--out", str(out), "--no-progress"])
     assert "Resuming: 5 of 5 pairs already in" in again.output
 
