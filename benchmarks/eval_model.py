@@ -3,7 +3,7 @@
     python -m benchmarks.eval_model [--weights weights/o3dsoft_default.pt] [--protocol paper dcp] [--search off]
         [--limit 300] [--data ../shared/data/modelnet40_ply_hdf5_1024] [--seed 0] [--iterations 1 2]
 
-Prints one JSON object per protocol and stage with the summary of o3dsoft.metrics.summarise
+The model alone (no second network, ``RegisterConfig.second_network``). Prints one JSON object per protocol and stage with the summary of o3dsoft.metrics.summarise
 (isotropic rotation error in degrees, translation error in shape units, DCP's Euler RMSE/MAE,
 recall at (1 deg, 0.01) and (5 deg, 0.05)) and the median time per pair in ms.
 """
@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from o3dsoft.coarse import load_model
-from o3dsoft.config import SearchConfig
+from o3dsoft.config import SearchConfig, SecondNetworkConfig
 from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.metrics import pair_errors, summarise
 from o3dsoft.pipeline import RegisterConfig, register
@@ -29,7 +29,8 @@ def evaluate_protocol(model, data: str, protocol: str, limit: int, seed: int, it
     pairs = load_pairs(data, "test", get_protocol(protocol), seed)
     n = min(limit, len(pairs)) if limit else len(pairs)
     coarse, fine, times = [], [], []
-    config = RegisterConfig(coarse_iterations=iterations, search=SearchConfig(mode=search))
+    # This model alone: no second network.
+    config = RegisterConfig(coarse_iterations=iterations, search=SearchConfig(mode=search), second_network=SecondNetworkConfig(weights=None))
     for i in range(n):
         p = pairs[i]
         t0 = time.perf_counter()

@@ -22,7 +22,10 @@ from ..errors import O3dsoftError, terminate_as_interrupt
 # a test keeps them equal.
 SEARCH_MODES = ("auto", "always", "off")
 METHOD_NAMES = ("oracle", "o3dsoft-coarse", "o3dsoft", "icp", "fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp", "kiss-matcher", "kiss-matcher+gicp")
-WEIGHTS_HELP = "TorchScript model file, or a shipped model by name: default, paper, partial (default: default; partial is the search network, trained on cropped, noisy clouds)."
+WEIGHTS_HELP = (
+    "TorchScript model file, or a shipped model by name: default, paper, partial, incongruent (default: default; "
+    "partial is the search network, trained on cropped, noisy clouds; incongruent the second network, trained on clouds that share no point)."
+)
 MAX_ROTATION_HELP = (
     "The clouds are given within this many degrees of their true relative rotation (e.g. from odometry): "
     "estimates beyond it are not trusted and the search goes on (default: any rotation)."
@@ -119,6 +122,12 @@ def _pipeline_options(fn):
                 show_default=True,
                 help="An estimate of the search replaces the first one (the network's) only when its odds of being right are this many times higher (1: the most trusted wins; see docs/incongruent.md).",
             ),
+            click.option(
+                "--second-weights",
+                default="incongruent",
+                show_default=True,
+                help="A second network, for clouds that share no point (scans), run when the first network's result is flagged: a model file or a shipped model's name; 'none': off.",
+            ),
             click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP),
         ],
         fn,
@@ -126,10 +135,27 @@ def _pipeline_options(fn):
 
 
 def _register_config(
-    *, weights, device, voxel, coarse_iterations, search, search_features, search_restart, search_feature_stop, search_replace_odds, max_rotation, **more
+    *,
+    weights,
+    device,
+    voxel,
+    coarse_iterations,
+    search,
+    search_features,
+    search_restart,
+    search_feature_stop,
+    search_replace_odds,
+    second_weights,
+    max_rotation,
+    **more,
 ):
     """RegisterConfig from the values of :func:`_pipeline_options` and further fields (`more`)."""
-    from ..config import FeatureSearchConfig, RegisterConfig, RestartConfig, SearchConfig
+    from ..coarse import weights_file
+    from ..config import FeatureSearchConfig, RegisterConfig, RestartConfig, SearchConfig, SecondNetworkConfig
+
+    second = None if second_weights.lower() == "none" else second_weights
+    if second is not None:
+        weights_file(second)  # a misspelt name fails now, not at the first flagged pair
 
     search_config = SearchConfig(
         mode=search,
@@ -143,6 +169,7 @@ def _register_config(
         voxel=voxel,
         coarse_iterations=coarse_iterations,
         search=search_config,
+        second_network=SecondNetworkConfig(weights=second),
         max_rotation=max_rotation,
         **more,
     )

@@ -72,17 +72,12 @@ def read_pair_jobs(path) -> List[PairJob]:
 
 # --- one pair, in whichever process runs it -------------------------------------------------
 
-_MODEL: Dict[Tuple[Optional[str], str], object] = {}
-
 
 def model_for(config):
     """The network of `config` (its weights on its device), loaded once per process."""
-    from .coarse import load_model
+    from .coarse import cached_model
 
-    key = (config.weights, config.device)
-    if key not in _MODEL:
-        _MODEL[key] = load_model(config.weights, config.device)
-    return _MODEL[key]
+    return cached_model(config.weights, config.device)
 
 
 def run_job(job: PairJob, config) -> dict:

@@ -25,7 +25,7 @@ import numpy as np
 
 from . import baselines
 from . import refine as refine_stage
-from .coarse import CoarseModel, sha256_of
+from .coarse import CoarseModel, sha256_of, weights_file
 from .data import DEFAULT_POINTS_PER_SHAPE, get_protocol, load_pairs
 from .errors import InputError, O3dsoftError, UsageError, terminate_as_interrupt
 from .io import atomic_output, make_folder
@@ -724,6 +724,14 @@ def run_pairs(
         yield from pool.imap(_run_in_worker, pairs)
 
 
+def _weights_record(weights: Optional[str]) -> Optional[dict]:
+    """Which model file a setting names, with its checksum (None: no model)."""
+    if weights is None:
+        return None
+    path = weights_file(weights)
+    return {"path": str(path), "sha256": sha256_of(path)}
+
+
 def run(
     pairs: Iterator[BenchPair],
     count: int,
@@ -781,6 +789,7 @@ def run(
         "jobs": jobs,
         "weights": {"path": str(model.path), "sha256": sha256_of(model.path)} if model is not None else None,
         "search_weights": {"path": str(search_model.path), "sha256": sha256_of(search_model.path)} if search_model is not None else None,
+        "second_weights": _weights_record(config.register.second_network.weights) if model is not None else None,
         "versions": ran_with,
         "recall_thresholds": {p: [{"rotation_deg": d, "translation": t} for d, t in config.recall_for(p)] for p in dict.fromkeys(r["protocol"] for r in rows)},
         "methods": {m: METHODS[m] for m in config.methods},

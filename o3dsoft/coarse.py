@@ -250,6 +250,24 @@ class CoarseModel:
         return run
 
 
+def weights_file(path: Union[str, Path, None] = None) -> Path:
+    """The model file that `path` names: a file, a shipped model's name, or None for "default".
+
+    Raises:
+        UsageError: no such file or shipped model, or a folder.
+    """
+    if path is None:
+        return default_weights_path()
+    if not Path(path).is_file() and str(path) in bundled_model_names():
+        return bundled_weights_path(str(path))
+    path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"{path}: is a folder; expected a model file (.pt)")
+    if not path.is_file():
+        raise UsageError(f"{path}: weights file not found (shipped models, by name: {', '.join(bundled_model_names())})")
+    return path
+
+
 def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.device] = "cpu") -> CoarseModel:
     """Load a TorchScript model file, or a shipped model by name.
 
@@ -264,15 +282,7 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
         InputError: the file is missing, damaged, is not a TorchScript archive, or is not an
             o3dsoft model; a shipped model does not match its card.
     """
-    if path is None:
-        path = default_weights_path()
-    elif not Path(path).is_file() and str(path) in bundled_model_names():
-        path = bundled_weights_path(str(path))
-    path = Path(path)
-    if path.is_dir():
-        raise UsageError(f"{path}: is a folder; expected a model file (.pt)")
-    if not path.is_file():
-        raise UsageError(f"{path}: weights file not found (shipped models, by name: {', '.join(bundled_model_names())})")
+    path = weights_file(path)
     try:
         device = torch.device(device)
     except RuntimeError as e:
@@ -300,6 +310,20 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
     model = CoarseModel(module, meta, path, device)
     _check_contract(model)
     return model
+
+
+_LOADED: Dict[Tuple[str, str, int], CoarseModel] = {}
+
+
+def cached_model(path: Union[str, Path, None] = None, device: str = "cpu") -> CoarseModel:
+    """:func:`load_model`, once per process for each file (as last modified) and device: for
+    callers that register many pairs, and for the networks :func:`o3dsoft.register` loads itself."""
+    name = str(path) if path is not None else "default"
+    file = Path(name) if Path(name).is_file() else None
+    key = (name, str(device), file.stat().st_mtime_ns if file else 0)
+    if key not in _LOADED:
+        _LOADED[key] = load_model(path, device)
+    return _LOADED[key]
 
 
 def _check_contract(model: CoarseModel) -> None:

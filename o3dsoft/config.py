@@ -161,6 +161,24 @@ class SearchConfig:
 
 
 @dataclass(frozen=True)
+class SecondNetworkConfig:
+    """A second network for clouds that share no point (two independent samplings of one surface,
+    as every two scans are), run from the pose as given when the first network's result is flagged,
+    before the search (:class:`o3dsoft.strategies.NetworkPass`). Its estimate counts as the
+    pipeline's own, so the search must find one clearly better to replace it (``replace_odds``).
+
+    Attributes:
+        weights: a model file or a shipped model's name (default "incongruent", trained on
+            independently sampled pairs; weights/o3dsoft_incongruent.json); None: off.
+        iterations: its passes, each from the estimate so far (default 3: it recovers about 60 %
+            of the remaining rotation per pass, docs/incongruent.md).
+    """
+
+    weights: Optional[str] = "incongruent"
+    iterations: int = 3
+
+
+@dataclass(frozen=True)
 class RegisterConfig:
     """Settings of :func:`o3dsoft.register` (dumped next to every result).
 
@@ -191,6 +209,7 @@ class RegisterConfig:
         seed: seed of the point sampling and of the search's RANSAC: the same input and seed
             give the same result (default 0); to the bit with point-to-point ICP, to about 1e-15
             with point-to-plane (Open3D sums it in threads).
+        second_network: the network for clouds that share no point, when the first is flagged.
         icp: the fine stage.
         search: the global search.
         confidence: how results are scored and flagged.
@@ -208,6 +227,7 @@ class RegisterConfig:
     weights: Optional[str] = None
     device: str = "cpu"
     seed: int = 0
+    second_network: SecondNetworkConfig = field(default_factory=SecondNetworkConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
     confidence: ConfidenceConfig = field(default_factory=ConfidenceConfig)
@@ -239,6 +259,8 @@ class RegisterConfig:
             raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
         if not search.replace_odds >= 1:
             raise InputError(f"search.replace_odds must be at least 1, got {search.replace_odds}")
+        if self.second_network.iterations < 1:
+            raise InputError(f"second_network.iterations must be at least 1, got {self.second_network.iterations}")
         if search.starts.refine < 1:
             raise InputError(f"search.starts.refine must be at least 1, got {search.starts.refine}")
         if search.features.first_round < 1:

@@ -1,7 +1,8 @@
 """``register``: the whole pipeline, one commented call per stage.
 
     prepare the pair (clean, voxel grid, samples for the network, normalisation, work clouds)
-    -> propose estimates (the network; when flagged, the search's strategies in turn)
+    -> propose estimates (the network; when flagged, a second network trained on clouds that share
+       no point; when still flagged, the search's strategies in turn)
     -> verify each (ICP on the work clouds, confidence)
     -> select the most trusted (within the rotation prior, if any)
     -> refine it at full resolution (when the work clouds were reduced).
@@ -156,13 +157,16 @@ def register(
     network = NetworkPass(model, config.coarse_iterations)
 
     # Propose: on a partial overlap the feature match first (the network, trained on complete
-    # shapes, is seldom confident there); then the network, unless that was confident.
+    # shapes, is seldom confident there); then the network, unless that was confident; then, while
+    # nothing is, the second network (the first matches points; two scans of a surface share none).
     features_first = search.features_on and pair.looks_partial()
     clock.lap("sample_normalise")
     if features_first:
         _match_features(pair, verifier)
     if not (features_first and verifier.confident()):
         network.propose(pair, verifier)
+    if config.second_network.weights is not None and not verifier.confident():
+        _second_network(pair, verifier)
 
     # Search while nothing is confident: feature match, networks from many starts, votes, restart.
     searched = features_first or search.mode == "always" or (search.mode == "auto" and not verifier.confident())
@@ -201,6 +205,15 @@ def _search(pair: PreparedPair, verifier: Verifier, model, search_model, feature
         TranslationVotes().propose(pair, verifier)
     if config.refine and config.search.restart.enabled and not verifier.settled():
         Restart().propose(pair, verifier)
+
+
+def _second_network(pair: PreparedPair, verifier: Verifier) -> None:
+    """The second network's passes from the pose as given (skipped on samples smaller than its
+    neighbourhood size K, which only a network with a larger K than the first one meets)."""
+    settings = pair.config.second_network
+    model = coarse_stage.cached_model(settings.weights, pair.config.device)
+    if min(len(pair.net[0]), len(pair.net[1])) >= model.config.k:
+        NetworkPass(model, settings.iterations, stage="second_network").propose(pair, verifier)
 
 
 def _match_features(pair: PreparedPair, verifier: Verifier) -> None:

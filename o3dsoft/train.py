@@ -223,6 +223,23 @@ def _zipfile_has(path: Path, name: str) -> bool:
         return False
 
 
+def checkpoint_card(checkpoint: Path) -> dict:
+    """The training record of a checkpoint, for the card of a run stopped before it wrote one."""
+    ckpt = _load_checkpoint(checkpoint)
+    config, state = ckpt["config"], ckpt["state"]
+    return {
+        "config": config,
+        "protocol": config["protocol"],
+        "epochs_completed": state["epoch"],
+        "steps": state["global_step"],
+        "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
+        "initialised_from": ckpt.get("init"),
+        "training_seconds": round(state["seconds"], 1),
+        "device": config["device"],
+        "world_size": ckpt.get("world_size", 1),
+    }
+
+
 def export_checkpoint(checkpoint: Path, out: Path) -> Path:
     """Export the model of a training checkpoint to a TorchScript file with the current code."""
     ckpt = _load_checkpoint(checkpoint)

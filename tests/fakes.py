@@ -5,9 +5,13 @@ from dataclasses import replace
 import numpy as np
 
 import o3dsoft
+from o3dsoft.config import SecondNetworkConfig
 from o3dsoft.metrics import rotation_error_deg
 
 from .conftest import EXAMPLES, apply, blob, random_transform
+
+# For tests of what follows a flagged first network (the search): no second network in between.
+NO_SECOND = SecondNetworkConfig(weights=None)
 
 
 def blob_pair(seed=0, n=400, max_angle=8.0, units=1.0):

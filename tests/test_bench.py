@@ -47,6 +47,7 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     summary = json.loads((out / "summary.json").read_text())
     assert summary["pairs_completed"] == 2 and not summary["interrupted"]
     assert len(summary["weights"]["sha256"]) == 64 and "open3d" in summary["versions"]
+    assert summary["second_weights"]["path"].endswith("o3dsoft_incongruent.pt") and len(summary["second_weights"]["sha256"]) == 64
     assert {s["method"] for s in summary["summaries"]} == set(bench.CORE_METHODS)
     # ICP from the truth stays there on a pair of identical point sets.
     assert all(float(r["rotation_deg"]) < 1e-3 for r in rows if r["method"] == "oracle")

@@ -136,6 +136,7 @@ def test_no_refine(pair_files, tiny_model_path):
         (None, ["src.ply", "tgt.pcd", "--points", "4"], 2, "num_points=4 is below the network's neighbourhood size"),
         (None, ["src.ply", "tgt.pcd", "--weights", "missing.pt"], 2, "missing.pt: weights file not found"),
         (lambda d: (d / "wdir").mkdir(), ["src.ply", "tgt.pcd", "--weights", "wdir"], 2, "wdir: is a folder; expected a model file"),
+        (None, ["src.ply", "tgt.pcd", "--second-weights", "incongruant"], 2, "incongruant: weights file not found (shipped models, by name:"),
         (lambda d: (d / "v.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"), ["v.obj", "tgt.pcd"], 1, "v.obj: mesh has 4 vertices but no faces"),
         (None, ["src.ply", "tgt.pcd", "--device", "tpu9"], 2, "invalid device 'tpu9'"),
         (None, ["src.ply", "tgt.pcd", "--max-rotation", "270"], 2, "Invalid value for '--max-rotation'"),

@@ -32,7 +32,7 @@ def test_shipped_models_load_by_name(tmp_path, monkeypatch):
     paper = load_model("paper")
     assert paper.path.name == "o3dsoft_paper.pt" and paper.meta["info"]["protocol"] == "paper"
     assert load_model("default").meta["info"]["protocol"] == "wide45"
-    with pytest.raises(UsageError, match="shipped models, by name: default, paper"):
+    with pytest.raises(UsageError, match="shipped models, by name: default, incongruent, paper"):
         load_model("nonesuch")
     # A file of that name in the working folder wins over the shipped model.
     import shutil

@@ -15,7 +15,7 @@ from o3dsoft.refine import ICPConfig
 from o3dsoft.transforms import euler_to_matrix, rotation_angle_deg
 
 from .conftest import EXAMPLES, apply, blob, random_transform
-from .fakes import AlwaysWrongModel, NearSightedModel, blob_pair, record_icp
+from .fakes import NO_SECOND, AlwaysWrongModel, NearSightedModel, blob_pair, record_icp
 
 
 def test_register_small_motion_recovered_after_icp(tiny_model_path):
@@ -159,11 +159,16 @@ def test_a_large_rotation_is_found_by_the_search():
     T[:3, 3] = [0.3, -0.2, 0.1]
     tgt = apply(T, src)
     model = NearSightedModel(T[:3, :3])
-    res = register(src, tgt, RegisterConfig(num_points=800, search=SearchConfig(mode="off")), model=model)
+    res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, num_points=800, search=SearchConfig(mode="off")), model=model)
     assert res.likely_failed and res.attempts == 1 and not res.searched and model.batches == [1]
     model = NearSightedModel(T[:3, :3])
     res = register(
-        src, tgt, RegisterConfig(num_points=800, search=SearchConfig(starts=StartsConfig(points=400), features=FeatureSearchConfig(enabled=False))), model=model
+        src,
+        tgt,
+        RegisterConfig(
+            second_network=NO_SECOND, num_points=800, search=SearchConfig(starts=StartsConfig(points=400), features=FeatureSearchConfig(enabled=False))
+        ),
+        model=model,
     )
     assert res.searched and not res.likely_failed and res.attempts == 2 and model.batches == [1, 24]
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
@@ -177,11 +182,13 @@ def test_the_search_can_add_a_feature_based_estimate():
     without = register(
         src,
         tgt,
-        RegisterConfig(search=SearchConfig(mode="always", features=FeatureSearchConfig(enabled=False), starts=StartsConfig(weights=None))),
+        RegisterConfig(
+            second_network=NO_SECOND, search=SearchConfig(mode="always", features=FeatureSearchConfig(enabled=False), starts=StartsConfig(weights=None))
+        ),
         model=model,
     )
     assert without.likely_failed and pair_errors(without.transformation, T).rotation_deg > 90
-    res = register(src, tgt, RegisterConfig(search=SearchConfig(mode="always")), model=model)  # features on by default
+    res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="always")), model=model)  # features on by default
     # The feature match comes first and is confident: the network's starts are not needed.
     assert res.attempts == 2 and not res.likely_failed
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
@@ -250,12 +257,12 @@ def test_a_rotation_prior_rejects_a_confident_answer_beyond_it(monkeypatch):
     model = AlwaysWrongModel(flipped[:3, :3])
     tgt = apply(T, box)
     assert 10.0 < rotation_error_deg(T[:3, :3], np.eye(3)) < 60.0
-    res = register(box, tgt, RegisterConfig(search=SearchConfig(starts=StartsConfig(weights=None))), model=model)
+    res = register(box, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(starts=StartsConfig(weights=None))), model=model)
     assert not res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg > 150.0
-    res = register(box, tgt, RegisterConfig(max_rotation=60.0, search=SearchConfig(starts=StartsConfig(weights=None))), model=model)
+    res = register(box, tgt, RegisterConfig(second_network=NO_SECOND, max_rotation=60.0, search=SearchConfig(starts=StartsConfig(weights=None))), model=model)
     assert res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
     assert res.attempts == 2  # the flipped feature estimate is screened out before ICP
-    res = register(box, tgt, RegisterConfig(max_rotation=10.0, search=SearchConfig(starts=StartsConfig(weights=None))), model=model)
+    res = register(box, tgt, RegisterConfig(second_network=NO_SECOND, max_rotation=10.0, search=SearchConfig(starts=StartsConfig(weights=None))), model=model)
     assert res.likely_failed  # nothing found within the bound ...
     assert rotation_angle_deg(res.transformation[:3, :3]) <= 10.0  # ... so the result stays within it
 
@@ -282,7 +289,7 @@ def test_a_flagged_result_is_left_unrefined_when_asked(monkeypatch):
     tgt = apply(T, src)
     wrong = AlwaysWrongModel(euler_to_matrix(np.array([0.0, 0.0, 120.0])) @ T[:3, :3])  # far beyond ICP's reach
     sizes = record_icp(monkeypatch)
-    config = RegisterConfig(attempt_points=1000, search=SearchConfig(mode="off"))
+    config = RegisterConfig(second_network=NO_SECOND, attempt_points=1000, search=SearchConfig(mode="off"))
     refined = register(src, tgt, config, model=wrong)
     assert refined.likely_failed and sizes[-1][0] == len(src) and refined.num_source == len(src)
     sizes.clear()
@@ -411,3 +418,59 @@ def test_kiss_matchers_estimate_comes_before_the_feature_match_on_scans(monkeypa
     monkeypatch.setattr("o3dsoft.pipeline.kiss_available", lambda: False)  # o3dsoft without its [peers] extra
     register(src, tgt, config)
     assert len(kiss_runs) == 1 and len(feature_runs) == 3
+
+
+def _turned_pair(euler_deg):
+    rng = np.random.default_rng(4)
+    src = blob(rng, 800)
+    T = np.eye(4)
+    T[:3, :3] = euler_to_matrix(euler_deg)
+    T[:3, 3] = [0.3, -0.2, 0.1]
+    return src, apply(T, src), T
+
+
+def test_a_flagged_first_network_is_followed_by_the_second_one(monkeypatch):
+    from o3dsoft import coarse
+    from o3dsoft.config import SecondNetworkConfig
+
+    src, tgt, T = _turned_pair([150.0, -20.0, 30.0])
+    asked = []
+    second = NearSightedModel(np.eye(3))
+    second.R_true = T[:3, :3]
+    second.config = replace(second.config)  # k=8, like the first
+
+    def fake_cached_model(weights, device="cpu"):
+        asked.append((weights, device))
+        return second if weights == "second.pt" else coarse.load_model(weights, device)
+
+    monkeypatch.setattr(coarse, "cached_model", fake_cached_model)
+    off = SearchConfig(mode="off")
+    first = AlwaysWrongModel(euler_to_matrix([0.0, 0.0, 180.0]))  # a half turn about z, far from either pair's truth: flagged
+    config = RegisterConfig(num_points=800, search=off, second_network=SecondNetworkConfig(weights="second.pt", iterations=2))
+    second_only_finds_under_50 = register(src, tgt, config, model=first)
+    # NearSightedModel finds rotations under 50 degrees only: from the pose as given it returns the
+    # identity, so the result stays flagged, with both networks' estimates tried.
+    assert second_only_finds_under_50.likely_failed and second_only_finds_under_50.attempts == 2
+    assert asked == [("second.pt", "cpu")] and "second_network" in second_only_finds_under_50.timings_ms
+
+    src, tgt, T = _turned_pair([40.0, 0.0, 0.0])
+    second.R_true = T[:3, :3]
+    res = register(src, tgt, config, model=first)
+    assert not res.likely_failed and res.attempts == 2 and pair_errors(res.transformation, T).rotation_deg < 1e-3
+    assert rotation_angle_deg(res.network_transformation[:3, :3]) == pytest.approx(180.0)  # the first network's own estimate is still reported
+
+    asked.clear()
+    res = register(src, tgt, RegisterConfig(num_points=800, search=off, second_network=SecondNetworkConfig(weights=None)), model=first)
+    assert res.likely_failed and res.attempts == 1 and asked == [] and "second_network" not in res.timings_ms
+
+    confident_first = NearSightedModel(T[:3, :3])
+    res = register(src, tgt, config, model=confident_first)
+    assert not res.likely_failed and res.attempts == 1 and asked == []  # trusted: the second network is not even loaded
+
+
+def test_second_network_settings_are_checked():
+    from o3dsoft.config import SecondNetworkConfig
+
+    src, tgt, _ = blob_pair()
+    with pytest.raises(InputError, match="second_network.iterations"):
+        register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(iterations=0)))

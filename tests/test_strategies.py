@@ -9,7 +9,7 @@ from o3dsoft.refine import ICPConfig
 from o3dsoft.transforms import euler_to_matrix, rigid
 
 from .conftest import apply, blob, random_transform
-from .fakes import AlwaysWrongModel, LocalModel, bundled_scan_pair, moved_bunny, record_icp, with_search
+from .fakes import NO_SECOND, AlwaysWrongModel, LocalModel, bundled_scan_pair, moved_bunny, record_icp, with_search
 
 
 def test_the_search_network_joins_the_ranking():
@@ -18,7 +18,11 @@ def test_the_search_network_joins_the_ranking():
     T = random_transform(rng, 30.0, 0.2)
     tgt = apply(T, src)
     wrong = AlwaysWrongModel(T[:3, :3] @ euler_to_matrix([180.0, 0.0, 0.0]))
-    config = RegisterConfig(num_points=800, search=SearchConfig(mode="always", starts=StartsConfig(points=400), features=FeatureSearchConfig(enabled=False)))
+    config = RegisterConfig(
+        second_network=NO_SECOND,
+        num_points=800,
+        search=SearchConfig(mode="always", starts=StartsConfig(points=400), features=FeatureSearchConfig(enabled=False)),
+    )
     alone = register(src, tgt, with_search(config, starts=StartsConfig(points=400, weights=None)), model=wrong)
     assert alone.likely_failed and pair_errors(alone.transformation, T).rotation_deg > 90
     local = LocalModel(T[:3, :3])
@@ -48,7 +52,8 @@ def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(mo
     model = AlwaysWrongModel(upside_down[:3, :3])
     # No votes (the last resort, tested on its own), no screen (every estimate on the work clouds).
     config = RegisterConfig(
-        search=SearchConfig(mode="always", starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0), screen=ScreenConfig(points=10**6))
+        second_network=NO_SECOND,
+        search=SearchConfig(mode="always", starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0), screen=ScreenConfig(points=10**6)),
     )
     res = register(src, tgt, config, model=model)
     # the network's estimate, then the feature match's first two; the right one ends the search
@@ -70,7 +75,7 @@ def test_on_large_clouds_the_search_screens_its_estimates_and_refines_only_the_p
     wrong = [T @ rigid(euler_to_matrix(angles), np.zeros(3)) for angles in ([180.0, 0.0, 0.0], [0.0, 180.0, 0.0], [0.0, 0.0, 180.0])]
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.stack(wrong + [T] + wrong))
     calls = record_icp(monkeypatch)
-    config = RegisterConfig(search=SearchConfig(mode="always", starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0)))
+    config = RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="always", starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0)))
     res = register(src, tgt, config, model=AlwaysWrongModel(wrong[0][:3, :3]))
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5
     # The network's estimate on the work clouds; the feature match's screened until the right
@@ -107,7 +112,7 @@ def test_more_feature_estimates_are_drawn_only_for_a_pair_the_first_ones_do_not_
 
     monkeypatch.setattr(search.FeatureMatch, "candidates", right_late)
     # no half turns: they would mend `wrong`
-    config = RegisterConfig(search=SearchConfig(starts=StartsConfig(weights=None), votes=VotesConfig(flipped=0)))
+    config = RegisterConfig(second_network=NO_SECOND, search=SearchConfig(starts=StartsConfig(weights=None), votes=VotesConfig(flipped=0)))
     res = register(src, tgt, config, model=AlwaysWrongModel(np.eye(3)))
     defaults = FeatureSearchConfig()
     assert asked == [defaults.first_round, defaults.candidates]
@@ -131,7 +136,9 @@ def test_feature_match_estimates_start_icp_at_the_ransac_distance(monkeypatch):
     tgt = apply(T, src)
     calls = record_icp(monkeypatch)
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: T[None])
-    res = register(src, tgt, RegisterConfig(search=SearchConfig(starts=StartsConfig(weights=None))), model=AlwaysWrongModel(np.eye(3)))
+    res = register(
+        src, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(starts=StartsConfig(weights=None))), model=AlwaysWrongModel(np.eye(3))
+    )
     assert res.searched and not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
     # RANSAC's inlier distance is 1.5 voxels of 0.05 x scale; ICP's distance is 0.1 x scale.
     assert [schedule for _, schedule in calls] == [(1.0, 0.3, 0.1), (0.75, 0.3, 0.1)]  # the network's estimate, then the match's
@@ -148,7 +155,7 @@ def test_on_a_partial_overlap_the_feature_match_goes_before_the_network(monkeypa
     wrong = T @ np.diag([1.0, -1.0, -1.0, 1.0])
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: T[None])
     # No votes: the last resort, tested on its own.
-    config = RegisterConfig(search=SearchConfig(starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0)))
+    config = RegisterConfig(second_network=NO_SECOND, search=SearchConfig(starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0)))
     res = register(src, tgt, config, model=AlwaysWrongModel(np.eye(3)))
     # the match's estimate is confident: the network never runs
     assert res.searched and res.attempts == 1 and "coarse" not in res.timings_ms and res.mean_weight is None
@@ -157,7 +164,7 @@ def test_on_a_partial_overlap_the_feature_match_goes_before_the_network(monkeypa
     res = register(src, tgt, config, model=AlwaysWrongModel(np.eye(3)))
     # nothing confident from the match: then the network's pass, then its starts
     assert res.attempts == 3 and "coarse" in res.timings_ms and res.mean_weight is not None
-    res = register(src, tgt, RegisterConfig(search=SearchConfig(mode="off")), model=AlwaysWrongModel(np.eye(3)))
+    res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="off")), model=AlwaysWrongModel(np.eye(3)))
     assert not res.searched and res.attempts == 1 and res.mean_weight is not None  # without the search: the network alone
 
 
@@ -202,7 +209,7 @@ def test_an_estimate_the_other_way_round_is_mended_by_the_half_turns(monkeypatch
     wrong = rigid(round_, tgt.mean(axis=0) - round_ @ src.mean(axis=0))
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: wrong[None])
     monkeypatch.setattr(search, "select", lambda *args: search.Choice(wrong, wrong))  # the network's starts: as wrong
-    config = RegisterConfig(search=SearchConfig(starts=StartsConfig(weights=None)))
+    config = RegisterConfig(second_network=NO_SECOND, search=SearchConfig(starts=StartsConfig(weights=None)))
     model = AlwaysWrongModel(round_)
     res = register(src, tgt, config, model=model)
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5

@@ -20,14 +20,15 @@ class NetworkPass:
     per-point weights) and ``transformation`` ((4, 4) T_target_source in the clouds' frames).
     """
 
-    def __init__(self, model: coarse_stage.CoarseModel, iterations: int = 1) -> None:
+    def __init__(self, model: coarse_stage.CoarseModel, iterations: int = 1, stage: str = "coarse") -> None:
         self.model = model
         self.iterations = iterations
+        self.stage = stage  # the name its time is reported under
         self.estimate: Optional[coarse_stage.CoarseEstimate] = None
         self.transformation: Optional[np.ndarray] = None
 
     def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
         self.estimate = coarse_stage.estimate(self.model, *pair.net_normalised, self.iterations)
-        verifier.clock.lap("coarse")
+        verifier.clock.lap(self.stage)
         self.transformation = denormalise_transform(self.estimate.transform, pair.norm)
         verifier.add(self.transformation, self.transformation)
