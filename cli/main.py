@@ -371,6 +371,8 @@ def _errors_dict(e) -> dict:
 
 
 def _format_result(source, target, result, errors, model_info, config) -> str:
+    from ..coarse import weights_file
+
     refined, search_mode = config.refine, config.search.mode
     grid = f" and a {result.voxel:.3g}-unit voxel grid" if result.voxel is not None else ""
     T = result.transformation
@@ -378,7 +380,8 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         f"o3dsoft register  {source} -> {target}",
         f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
-        f"  model:  {model_info['path']}",
+        f"  model:  {model_info['path']}"
+        + (f"; second network: {weights_file(config.second_network.weights)}" if "second_network" in result.timings_ms else ""),
         "",
         "T_target_source (maps the source onto the target):",
         *("  " + " ".join(f"{v: .6f}" for v in row) for row in T),
@@ -389,23 +392,24 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         + ("  LIKELY FAILED" if result.likely_failed else ""),
         f"  constraint   {result.constraint:.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below 0.002: not determined)",
         f"  flatness     {result.flatness:.3f}   fit 30 degrees away over the result's (0-1, lower is better; from 0.85: not determined)",
+        f"  estimate     the {result.estimate_from}'s" + (", refined by ICP" if refined else ""),
     ]
     if result.searched:
         why = "the first result looked wrong" if search_mode == "auto" else "--search always"
         screened = f" ({result.screened} screened on at most {config.search.screen.points:,} points per cloud first)" if result.screened else ""
-        lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}, the most confident kept")
+        lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}")
     if errors is not None:
         f, c = errors["final"], errors["coarse"]
-        stage = "network + ICP" if refined else "network"
+        estimate = result.estimate_from
         lines += [
             "",
             "Errors against the ground truth (lower is better):",
-            f"  {'':14s} {'rotation':>12s} {'translation':>14s} {'|R-Rgt|_1':>10s} {'|R-Rgt|_2':>10s} {'|t-tgt|_1':>10s} {'|t-tgt|_2':>10s}",
+            f"  {'':24s} {'rotation':>12s} {'translation':>14s} {'|R-Rgt|_1':>10s} {'|R-Rgt|_2':>10s} {'|t-tgt|_1':>10s} {'|t-tgt|_2':>10s}",
         ]
-        rows = [("network", c)] + ([(stage, f)] if refined else [])
+        rows = [(estimate, c)] + ([(f"{estimate} + ICP", f)] if refined else [])
         for name, e in rows:
             lines.append(
-                f"  {name:14s} {e.rotation_deg:>8.4f} deg {e.translation:>8.3g} units {e.rotation_l1:>10.6f} {e.rotation_l2:>10.6f} {e.translation_l1:>10.6f} {e.translation_l2:>10.6f}"
+                f"  {name:24s} {e.rotation_deg:>8.4f} deg {e.translation:>8.3g} units {e.rotation_l1:>10.6f} {e.rotation_l2:>10.6f} {e.translation_l1:>10.6f} {e.translation_l2:>10.6f}"
             )
     t = result.timings_ms
     lines += ["", "Time per stage (ms, lower is better): " + ", ".join(f"{k} {v:.1f}" for k, v in t.items())]

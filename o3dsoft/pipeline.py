@@ -46,6 +46,8 @@ class RegistrationResult:
         inlier_rmse: RMS distance of those point pairs (cloud units, lower is better).
         coarse_transformation: (4, 4) the estimate the result was refined from, before any ICP:
             the network's, or one the search proposed.
+        estimate_from: what proposed that estimate: "network", "second network", "KISS-Matcher",
+            "feature match", "network starts", "translation votes" or "pose as given".
         confidence: estimated probability that the alignment is right (0-1, higher is better).
         likely_failed: confidence below the threshold (0.5): treat the transform as wrong.
         failure_reason: why it is flagged, in words; None when it is not.
@@ -109,6 +111,7 @@ class RegistrationResult:
     failure_reason: Optional[str] = None
     voxel: Optional[float] = None
     icp_method: str = "point"
+    estimate_from: str = "network"
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
@@ -213,7 +216,7 @@ def _second_network(pair: PreparedPair, verifier: Verifier) -> None:
     settings = pair.config.second_network
     model = coarse_stage.cached_model(settings.weights, pair.config.device)
     if min(len(pair.net[0]), len(pair.net[1])) >= model.config.k:
-        NetworkPass(model, settings.iterations, stage="second_network").propose(pair, verifier)
+        NetworkPass(model, settings.iterations, stage="second_network", name="second network").propose(pair, verifier)
 
 
 def _match_features(pair: PreparedPair, verifier: Verifier) -> None:
@@ -232,7 +235,7 @@ def _refine_full(pair: PreparedPair, verifier: Verifier, best: Attempt) -> Attem
     and scored there; as it is when the work clouds are the full ones."""
     if not pair.reduced:
         return best
-    return verifier.refine(best.fine.transformation, best.coarse, "full", pair.config.icp.tight())
+    return verifier.refine(best.fine.transformation, best.coarse, "full", pair.config.icp.tight(), by=best.by)
 
 
 def _select(verifier: Verifier) -> Attempt:
@@ -242,11 +245,11 @@ def _select(verifier: Verifier) -> Attempt:
     if verifier.admissible(best.fine.transformation):
         return best
     identity = np.eye(4)
-    best = verifier.refine(identity, identity)
+    best = verifier.refine(identity, identity, by="pose as given")
     if verifier.admissible(best.fine.transformation):
         return best
     # ICP leaves the bound from there too: the clouds disagree with the prior.
-    return verifier.refine(identity, identity, refine=False)._replace(trust=0.0)
+    return verifier.refine(identity, identity, refine=False, by="pose as given")._replace(trust=0.0)
 
 
 def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool) -> Optional[str]:
@@ -287,6 +290,7 @@ def _result(
         fitness=best.fine.fitness,
         inlier_rmse=best.fine.inlier_rmse,
         coarse_transformation=best.coarse,
+        estimate_from=best.by,
         confidence=trust,
         likely_failed=trust < config.confidence.likely_failed_below,
         failure_reason=reason,

@@ -24,6 +24,7 @@ class Attempt(NamedTuple):
     coarse: (4, 4) the estimate as proposed.
     start: (4, 4) where ICP first started (the estimate, or its polish on smaller clouds; for an
         estimate promoted from the screen clouds, where the screen's ICP started).
+    by: what proposed the estimate ("network", "second network", "feature match", ...).
     """
 
     trust: float
@@ -31,6 +32,7 @@ class Attempt(NamedTuple):
     fine: refine_stage.ICPResult
     coarse: np.ndarray
     start: np.ndarray
+    by: str = "estimate"
 
 
 class Verifier:
@@ -96,10 +98,17 @@ class Verifier:
 
     # -- refining and scoring ---------------------------------------------------------------------
     def refine(
-        self, start: np.ndarray, coarse: np.ndarray, level: str = "work", icp: Optional[refine_stage.ICPConfig] = None, refine: Optional[bool] = None
+        self,
+        start: np.ndarray,
+        coarse: np.ndarray,
+        level: str = "work",
+        icp: Optional[refine_stage.ICPConfig] = None,
+        refine: Optional[bool] = None,
+        by: str = "estimate",
     ) -> Attempt:
         """ICP from `start` (4, 4) on the clouds at `level` (with `icp`, default the config's),
-        or only scored there when `refine` is False; then the confidence. Not kept."""
+        or only scored there when `refine` is False; then the confidence. Not kept. `by`: what
+        proposed it."""
         icp = icp or self.config.icp
         refine = self.config.refine if refine is None else refine
         src, tgt = self.pair.clouds(level)
@@ -111,11 +120,12 @@ class Verifier:
         scored = self.pair.scorer(level)(fine.transformation)
         trust = confidence_stage.confidence(scored, self.config.confidence) if self.admissible(fine.transformation) else 0.0
         self.clock.lap("score")
-        return Attempt(trust, scored, fine, coarse, start)
+        return Attempt(trust, scored, fine, coarse, start, by)
 
-    def add(self, start: np.ndarray, coarse: np.ndarray, icp: Optional[refine_stage.ICPConfig] = None) -> Attempt:
-        """Refine and score an estimate on the work clouds, and keep it among the attempts."""
-        attempt = self.refine(start, coarse, icp=icp)
+    def add(self, start: np.ndarray, coarse: np.ndarray, by: str, icp: Optional[refine_stage.ICPConfig] = None) -> Attempt:
+        """Refine and score an estimate (proposed by `by`) on the work clouds, and keep it among
+        the attempts."""
+        attempt = self.refine(start, coarse, icp=icp, by=by)
         self.attempts.append(attempt)
         return attempt
 
@@ -128,22 +138,22 @@ class Verifier:
     def promote(self, screened: Attempt) -> Attempt:
         """An estimate converged on the screen clouds, refined (tight ICP stages, from where the
         screen left it) and scored on the work clouds, and kept among the attempts."""
-        attempt = self.refine(screened.fine.transformation, screened.coarse, icp=self.config.icp.tight())._replace(start=screened.start)
+        attempt = self.refine(screened.fine.transformation, screened.coarse, icp=self.config.icp.tight(), by=screened.by)._replace(start=screened.start)
         self.attempts.append(attempt)
         return attempt
 
-    def try_estimate(self, start: np.ndarray, icp: refine_stage.ICPConfig) -> None:
+    def try_estimate(self, start: np.ndarray, icp: refine_stage.ICPConfig, by: str) -> None:
         """One of the search's estimates: on small clouds refined and kept at once; on large ones
         screened first, and kept only when the screen trusts it more than every estimate before
         it (and at least ``screen.min_trust``), or confidently."""
         if not self.pair.screening:
-            self.add(start, start, icp)
+            self.add(start, start, by, icp)
             return
         budget = self.config.search.screen.budget
         if budget and len(self.screened) >= budget:
             return
         quick = self.config.search.screen.max_iterations
-        s = self.refine(start, start, "screen", icp.quick(quick) if quick else icp)
+        s = self.refine(start, start, "screen", icp.quick(quick) if quick else icp, by=by)
         record = max((a.trust for a in self.screened), default=0.0)
         self.screened.append(s)
         if (s.trust > record and s.trust >= self.config.search.screen.min_trust) or s.trust >= self.config.confidence.likely_failed_below:

@@ -171,6 +171,7 @@ def test_a_large_rotation_is_found_by_the_search():
         model=model,
     )
     assert res.searched and not res.likely_failed and res.attempts == 2 and model.batches == [1, 24]
+    assert res.estimate_from == "network starts" and res.to_dict()["estimate_from"] == "network starts"
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
 
 
@@ -457,11 +458,13 @@ def test_a_flagged_first_network_is_followed_by_the_second_one(monkeypatch):
     second.R_true = T[:3, :3]
     res = register(src, tgt, config, model=first)
     assert not res.likely_failed and res.attempts == 2 and pair_errors(res.transformation, T).rotation_deg < 1e-3
+    assert res.estimate_from == "second network"
     assert rotation_angle_deg(res.network_transformation[:3, :3]) == pytest.approx(180.0)  # the first network's own estimate is still reported
 
     asked.clear()
     res = register(src, tgt, RegisterConfig(num_points=800, search=off, second_network=SecondNetworkConfig(weights=None)), model=first)
     assert res.likely_failed and res.attempts == 1 and asked == [] and "second_network" not in res.timings_ms
+    assert res.estimate_from == "network"
 
     confident_first = NearSightedModel(T[:3, :3])
     res = register(src, tgt, config, model=confident_first)

@@ -35,4 +35,4 @@ class FeatureMatchProposals:
             for T in filter(verifier.plausible, found):
                 if len(verifier.attempts) > before and verifier.settled():
                     break
-                verifier.try_estimate(T, icp)
+                verifier.try_estimate(T, icp, "feature match")

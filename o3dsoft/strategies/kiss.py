@@ -25,4 +25,4 @@ class KissMatcherProposal:
         T = baselines.kiss_matcher(source, target, voxel)
         verifier.clock.lap("search")
         if verifier.plausible(T):
-            verifier.try_estimate(T, pair.config.icp)
+            verifier.try_estimate(T, pair.config.icp, "KISS-Matcher")

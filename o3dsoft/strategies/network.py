@@ -20,10 +20,11 @@ class NetworkPass:
     per-point weights) and ``transformation`` ((4, 4) T_target_source in the clouds' frames).
     """
 
-    def __init__(self, model: coarse_stage.CoarseModel, iterations: int = 1, stage: str = "coarse") -> None:
+    def __init__(self, model: coarse_stage.CoarseModel, iterations: int = 1, stage: str = "coarse", name: str = "network") -> None:
         self.model = model
         self.iterations = iterations
         self.stage = stage  # the name its time is reported under
+        self.name = name  # the name its estimate is reported under
         self.estimate: Optional[coarse_stage.CoarseEstimate] = None
         self.transformation: Optional[np.ndarray] = None
 
@@ -31,4 +32,4 @@ class NetworkPass:
         self.estimate = coarse_stage.estimate(self.model, *pair.net_normalised, self.iterations)
         verifier.clock.lap(self.stage)
         self.transformation = denormalise_transform(self.estimate.transform, pair.norm)
-        verifier.add(self.transformation, self.transformation)
+        verifier.add(self.transformation, self.transformation, self.name)

@@ -32,7 +32,7 @@ class Restart:
         settings = pair.config.search.restart
         ranked = sorted(verifier.attempts + verifier.screened, key=lambda a: a.trust, reverse=True)
         starts = distinct_starts(ranked, pair.work[0].mean(axis=0), pair.norm.scale, settings.distinct_deg, settings.distinct_shift)
-        restarted = [verifier.refine(a.start, a.coarse, "screen", pair.config.icp.tight()) for a in starts if verifier.plausible(a.start)]
+        restarted = [verifier.refine(a.start, a.coarse, "screen", pair.config.icp.tight(), by=a.by) for a in starts if verifier.plausible(a.start)]
         verifier.screened.extend(restarted)
         for s in sorted(restarted, key=lambda s: s.trust, reverse=True)[: settings.refined]:
             if verifier.settled():

@@ -47,4 +47,4 @@ class NetworkStarts:
         candidates = np.stack(plausible or [np.eye(4)])  # none within the prior: the pose as given
         chosen = search_stage.select(*pair.net, candidates, pair.distance, settings.refine, config.icp if config.refine else None, config.confidence)
         verifier.clock.lap("search")
-        verifier.add(chosen.polished, chosen.estimate)
+        verifier.add(chosen.polished, chosen.estimate, "network starts")

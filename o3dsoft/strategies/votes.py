@@ -46,4 +46,4 @@ class TranslationVotes:
         for T in voted:
             if verifier.confident():
                 break
-            verifier.try_estimate(T, icp)
+            verifier.try_estimate(T, icp, "translation votes")
