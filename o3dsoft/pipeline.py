@@ -161,14 +161,15 @@ def register(
 
     # Propose: on a partial overlap the feature match first (the network, trained on complete
     # shapes, is seldom confident there); then the network, unless that was confident; then, while
-    # nothing is, the second network (the first matches points; two scans of a surface share none).
+    # nothing is and the clouds overlap fully, the second network (the first matches points; two
+    # scans of a surface share none).
     features_first = search.features_on and pair.looks_partial()
     clock.lap("sample_normalise")
     if features_first:
         _match_features(pair, verifier)
     if not (features_first and verifier.confident()):
         network.propose(pair, verifier)
-    if config.second_network.weights is not None and not verifier.confident():
+    if config.second_network.weights is not None and not features_first and not verifier.confident():
         _second_network(pair, verifier)
 
     # Search while nothing is confident: feature match, networks from many starts, votes, restart.

@@ -1,7 +1,9 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from o3dsoft.config import FeatureSearchConfig, RegisterConfig, RestartConfig, ScreenConfig, SearchConfig, StartsConfig, VotesConfig
+from o3dsoft.config import FeatureSearchConfig, RegisterConfig, RestartConfig, ScreenConfig, SearchConfig, SecondNetworkConfig, StartsConfig, VotesConfig
 from o3dsoft.errors import InputError
 from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import register
@@ -161,9 +163,9 @@ def test_on_a_partial_overlap_the_feature_match_goes_before_the_network(monkeypa
     assert res.searched and res.attempts == 1 and "coarse" not in res.timings_ms and res.mean_weight is None
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: wrong[None])
-    res = register(src, tgt, config, model=AlwaysWrongModel(np.eye(3)))
-    # nothing confident from the match: then the network's pass, then its starts
-    assert res.attempts == 3 and "coarse" in res.timings_ms and res.mean_weight is not None
+    res = register(src, tgt, replace(config, second_network=SecondNetworkConfig()), model=AlwaysWrongModel(np.eye(3)))
+    # nothing confident from the match: then the network's pass (not the second network's, after a feature match), then its starts
+    assert res.attempts == 3 and "coarse" in res.timings_ms and res.mean_weight is not None and "second_network" not in res.timings_ms
     res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="off")), model=AlwaysWrongModel(np.eye(3)))
     assert not res.searched and res.attempts == 1 and res.mean_weight is not None  # without the search: the network alone
 
