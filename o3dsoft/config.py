@@ -164,8 +164,9 @@ class SearchConfig:
 class SecondNetworkConfig:
     """A second network for clouds that share no point (two independent samplings of one surface,
     as every two scans are), run from the pose as given when the first network's result is flagged,
-    before the search (:class:`o3dsoft.strategies.NetworkPass`); not on a partial overlap, where
-    the feature match runs first (there it changed no result, docs/incongruent.md). Its estimate counts as the
+    before the search (:class:`o3dsoft.strategies.NetworkPass`); not after the feature match, which
+    runs first on a partial overlap when the search is on (there it changed no result,
+    docs/incongruent.md). Its estimate counts as the
     pipeline's own, so the search must find one clearly better to replace it (``replace_odds``).
 
     Attributes:

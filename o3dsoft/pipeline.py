@@ -140,6 +140,8 @@ def register(
         model: an already loaded model (else loaded from ``config.weights``).
         search_model: an already loaded search network (else loaded from
             ``config.search.starts.weights`` when the search needs it).
+        The second network (``config.second_network``) is loaded when first needed, once per
+        process (:func:`o3dsoft.coarse.cached_model`).
         source_name, target_name: how to call the clouds in error messages (e.g. file names).
     Returns:
         RegistrationResult.
@@ -161,8 +163,8 @@ def register(
 
     # Propose: on a partial overlap the feature match first (the network, trained on complete
     # shapes, is seldom confident there); then the network, unless that was confident; then, while
-    # nothing is and the clouds overlap fully, the second network (the first matches points; two
-    # scans of a surface share none).
+    # nothing is and the feature match did not go first, the second network (the first matches
+    # points; two scans of a surface share none).
     features_first = search.features_on and pair.looks_partial()
     clock.lap("sample_normalise")
     if features_first:
