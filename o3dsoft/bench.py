@@ -19,7 +19,7 @@ import subprocess
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -724,8 +724,9 @@ def run_pairs(
         yield from pool.imap(_run_in_worker, pairs)
 
 
-def _weights_record(weights: Optional[str]) -> Optional[dict]:
-    """Which model file a setting names, with its checksum (None: no model)."""
+def _weights_record(weights: Union[str, Path, None]) -> Optional[dict]:
+    """The model file that `weights` names (a file or a shipped model's name), with its checksum;
+    None for no model."""
     if weights is None:
         return None
     path = weights_file(weights)
@@ -787,8 +788,8 @@ def run(
         "pairs_failed": failed,
         "seconds": round(time.monotonic() - t_start, 1),
         "jobs": jobs,
-        "weights": {"path": str(model.path), "sha256": sha256_of(model.path)} if model is not None else None,
-        "search_weights": {"path": str(search_model.path), "sha256": sha256_of(search_model.path)} if search_model is not None else None,
+        "weights": _weights_record(model.path if model is not None else None),
+        "search_weights": _weights_record(search_model.path if search_model is not None else None),
         "second_weights": _weights_record(config.register.second_network.weights) if model is not None else None,
         "versions": ran_with,
         "recall_thresholds": {p: [{"rotation_deg": d, "translation": t} for d, t in config.recall_for(p)] for p in dict.fromkeys(r["protocol"] for r in rows)},

@@ -166,8 +166,8 @@ class SecondNetworkConfig:
     as every two scans are), run from the pose as given when the first network's result is flagged,
     before the search (:class:`o3dsoft.strategies.NetworkPass`); not after the feature match, which
     runs first on a partial overlap when the search is on (there it changed no result,
-    docs/incongruent.md). Its estimate counts as the
-    pipeline's own, so the search must find one clearly better to replace it (``replace_odds``).
+    docs/incongruent.md). Its estimate counts as the pipeline's own, so the search must find one
+    clearly better to replace it (``replace_odds``).
 
     Attributes:
         weights: a model file or a shipped model's name (default "incongruent", trained on
