@@ -123,6 +123,13 @@ def _pipeline_options(fn):
                 help="An estimate of the search replaces the first one (the network's) only when its odds of being right are this many times higher (1: the most trusted wins; see docs/incongruent.md).",
             ),
             click.option(
+                "--search-min-contact",
+                type=click.FloatRange(0, 1),
+                default=0.5,
+                show_default=True,
+                help="An estimate is chosen only if it brings at least this share as many points into close contact as the estimate that brings most (0: any; see docs/incongruent.md).",
+            ),
+            click.option(
                 "--second-weights",
                 default="incongruent",
                 show_default=True,
@@ -145,6 +152,7 @@ def _register_config(
     search_restart,
     search_feature_stop,
     search_replace_odds,
+    search_min_contact,
     second_weights,
     max_rotation,
     **more,
@@ -162,6 +170,7 @@ def _register_config(
         features=FeatureSearchConfig(enabled=search_features, stop=search_feature_stop),
         restart=RestartConfig(enabled=search_restart),
         replace_odds=search_replace_odds,
+        min_contact=search_min_contact,
     )
     return RegisterConfig(
         weights=str(weights) if weights else None,

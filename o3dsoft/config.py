@@ -138,6 +138,9 @@ class SearchConfig:
         replace_odds: an estimate of the search replaces the pipeline's own (the network's, and the
             feature match's where it ran first) only when its confidence's odds, p / (1 - p), are
             this many times higher (default 30; 1: the most trusted wins).
+        min_contact: an estimate is chosen only if it brings at least this share as many points
+            into close contact (``fitness_tight``) as the estimate that brings most (0-1, default
+            0.5; 0: any; docs/incongruent.md).
         features, starts, votes, restart: the search's steps, in the order they run.
         screen: how the steps' estimates are tried first on large clouds.
     """
@@ -148,6 +151,7 @@ class SearchConfig:
     kiss: bool = True
     kiss_voxel: float = 0.01
     replace_odds: float = 30.0
+    min_contact: float = 0.5
     features: FeatureSearchConfig = field(default_factory=FeatureSearchConfig)
     starts: StartsConfig = field(default_factory=StartsConfig)
     votes: VotesConfig = field(default_factory=VotesConfig)
@@ -261,6 +265,8 @@ class RegisterConfig:
             raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
         if not search.replace_odds >= 1:
             raise InputError(f"search.replace_odds must be at least 1, got {search.replace_odds}")
+        if not 0 <= search.min_contact <= 1:
+            raise InputError(f"search.min_contact must be in [0, 1], got {search.min_contact}")
         if self.second_network.iterations < 1:
             raise InputError(f"second_network.iterations must be at least 1, got {self.second_network.iterations}")
         if search.starts.refine < 1:

@@ -4,7 +4,8 @@
     -> propose estimates (the network; when flagged, a second network trained on clouds that share
        no point; when still flagged, the search's strategies in turn)
     -> verify each (ICP on the work clouds, confidence)
-    -> select the most trusted (within the rotation prior, if any)
+    -> select the most trusted (within the rotation prior, if any; among those bringing at least
+       half as many points into contact as the one that brings most)
     -> refine it at full resolution (when the work clouds were reduced).
 
 Where each stage lives: :class:`o3dsoft.pair.PreparedPair`, :mod:`o3dsoft.strategies`,

@@ -43,3 +43,31 @@ def test_without_a_search_the_most_trusted_wins_and_the_prior_comes_first():
     bounded = RegisterConfig(max_rotation=30.0)
     # the first estimate lies beyond the prior: the search's, within it, wins however trusted
     assert _verifier([_attempt(0.0, 90.0)], [_attempt(0.05)], bounded).most_trusted().trust == 0.05
+
+
+def _touching(trust, contact, turn_deg=0.0):
+    """An attempt whose pose brings a share `contact` of the points within the tight distance."""
+    T = rigid(euler_to_matrix([0.0, 0.0, turn_deg]), np.zeros(3))
+    return Attempt(trust, Features(contact, 0.05, 0.9, contact), ICPResult(T, 1.0, 0.0), T, T)
+
+
+def test_an_estimate_that_brings_under_half_the_points_into_contact_is_not_chosen():
+    whole = _touching(0.05, 0.8)  # the clouds lie on each other
+    patch = _touching(0.999, 0.2, 90.0)  # a small patch fits well, the rest is off
+    assert _verifier([whole], [patch]).most_trusted() is whole
+    # the rule holds for the pipeline's own estimates too, before the odds are compared
+    assert _verifier([patch], [whole]).most_trusted() is whole
+    assert _verifier([patch, whole], []).most_trusted() is whole
+    half = _touching(0.999, 0.4, 90.0)  # exactly half as many: still chosen
+    assert _verifier([whole], [half]).most_trusted() is half
+    anything = RegisterConfig(search=SearchConfig(min_contact=0.0))
+    assert _verifier([whole], [patch], anything).most_trusted() is patch
+
+
+def test_min_contact_is_validated():
+    import pytest
+
+    from o3dsoft.errors import InputError
+
+    with pytest.raises(InputError, match="min_contact"):
+        RegisterConfig(search=SearchConfig(min_contact=1.5)).validate(20)
