@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from typing import NamedTuple, Optional, Tuple
 
+import numpy as np
 import torch
 
 _EPS = 1e-8
@@ -123,3 +124,22 @@ def weighted_procrustes(p: torch.Tensor, q: torch.Tensor, w: Optional[torch.Tens
     R = rotation_from_covariance(H)
     t = c_q - torch.matmul(R, c_p.unsqueeze(-1)).squeeze(-1)
     return ProcrustesResult(R, t)
+
+
+def rigid_fit(p: np.ndarray, q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """The unweighted fit of :func:`weighted_procrustes` for one pair of float64 arrays, in NumPy:
+    ICP's last step calls it once per estimate, where the batched autograd path costs more
+    than the 3x3 SVD itself.
+
+    Args:
+        p: (N, 3) source points; q: (N, 3) the target points they pair with.
+    Returns:
+        R (3, 3) with det = +1, t (3,), minimising sum_i ||R p_i + t - q_i||^2.
+    """
+    c_p, c_q = p.mean(axis=0), q.mean(axis=0)
+    H = (p - c_p).T @ (q - c_q) / len(p)
+    U, _, Vh = np.linalg.svd(H)
+    V = Vh.T
+    d = -1.0 if np.linalg.det(V @ U.T) < 0 else 1.0
+    R = (V * np.array([1.0, 1.0, d])) @ U.T
+    return R, c_q - R @ c_p

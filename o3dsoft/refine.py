@@ -16,12 +16,11 @@ from dataclasses import dataclass, replace
 from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
 from ._open3d import open3d as o3d
 from .preprocess import robust_extent
-from .procrustes import weighted_procrustes
+from .procrustes import rigid_fit
 from .transforms import apply_transform, rigid
 
 
@@ -225,8 +224,7 @@ def polish(source: np.ndarray, target: np.ndarray, transformation: np.ndarray, d
     if keep.sum() < 3:
         return T
     p, q = source[keep], target[j[keep]]
-    R, t = weighted_procrustes(torch.from_numpy(p)[None], torch.from_numpy(q)[None])
-    T_new = rigid(R[0].numpy(), t[0].numpy())
+    T_new = rigid(*rigid_fit(p, q))
     before = np.mean(dist[keep] ** 2)
     after = np.mean(np.sum((apply_transform(T_new, p) - q) ** 2, axis=1))
     return T_new if after < before else T

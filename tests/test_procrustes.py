@@ -110,3 +110,20 @@ def test_scripted_rotation_equals_eager():
     scripted = torch.jit.script(rotation_from_covariance)
     H = torch.randn(10, 3, 3)
     assert torch.equal(scripted(H), rotation_from_covariance(H))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000), st.booleans())
+def test_rigid_fit_equals_the_batched_fit(seed, mirrored):
+    from o3dsoft.procrustes import rigid_fit
+
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(40, 3))
+    q = p @ random_rotation(rng).T + rng.normal(size=3) + 0.01 * rng.normal(size=(40, 3))
+    if mirrored:  # the best orthogonal fit is a reflection: both must return a rotation
+        q[:, 0] *= -1.0
+    R, t = rigid_fit(p, q)
+    expected = weighted_procrustes(torch.from_numpy(p)[None], torch.from_numpy(q)[None])
+    assert np.linalg.det(R) > 0
+    np.testing.assert_allclose(R, expected.R[0].numpy(), atol=1e-9)
+    np.testing.assert_allclose(t, expected.t[0].numpy(), atol=1e-9)
