@@ -403,6 +403,8 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         f"  flatness     {result.flatness:.3f}   fit 30 degrees away over the result's (0-1, lower is better; from 0.85: not determined)",
         f"  estimate     the {result.estimate_from}'s" + (", refined by ICP" if refined else ""),
     ]
+    if result.sparser_moved:
+        lines.append("  roles        the target is much sparser: it was registered onto the source, and the result inverted")
     if result.searched:
         why = "the first result looked wrong" if search_mode == "auto" else "--search always"
         screened = f" ({result.screened} screened on at most {config.search.screen.points:,} points per cloud first)" if result.screened else ""

@@ -206,6 +206,11 @@ class RegisterConfig:
         max_rotation: the clouds are given within this many degrees of their true relative
             rotation (a prior, e.g. from odometry): estimates beyond it get confidence 0, and the
             result lies within it; None: any rotation (default).
+        sparser_moves: when the target's points are this many times sparser on its surface than
+            the source's (points over the squared scene size), the target is registered onto
+            the source and the result inverted, so that the sparser cloud is the one whose
+            points seek partners: ICP's pairs are then a point spacing of the dense cloud apart,
+            not of the sparse one (default 4, i.e. a spacing twice as wide; 0: never).
         refine: run ICP on every estimate (default True); False: the estimates as they are.
         refine_flagged: refine a result that the work clouds flag at full resolution too
             (default True); False: return it as the work clouds left it, which saves the most
@@ -228,6 +233,7 @@ class RegisterConfig:
     coarse_iterations: int = 1
     attempt_points: int = 5_000
     max_rotation: Optional[float] = None
+    sparser_moves: float = 4.0
     refine: bool = True
     refine_flagged: bool = True
     weights: Optional[str] = None
@@ -265,6 +271,8 @@ class RegisterConfig:
             raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
         if not search.replace_odds >= 1:
             raise InputError(f"search.replace_odds must be at least 1, got {search.replace_odds}")
+        if not (self.sparser_moves == 0 or self.sparser_moves >= 1):
+            raise InputError(f"sparser_moves must be 0 (never) or at least 1, got {self.sparser_moves}")
         if not 0 <= search.min_contact <= 1:
             raise InputError(f"search.min_contact must be in [0, 1], got {search.min_contact}")
         if self.second_network.iterations < 1:

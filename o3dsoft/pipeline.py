@@ -1,5 +1,6 @@
 """``register``: the whole pipeline, one commented call per stage.
 
+    (a target much sparser than the source: the roles swapped, the result inverted)
     prepare the pair (clean, voxel grid, samples for the network, normalisation, work clouds)
     -> propose estimates (the network; when flagged, a second network trained on clouds that share
        no point; when still flagged, the search's strategies in turn)
@@ -15,16 +16,18 @@ are :class:`o3dsoft.config.RegisterConfig`, one nested config per stage.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Dict, Optional, Tuple
 
 import numpy as np
 
 from . import coarse as coarse_stage
 from . import degeneracy as degeneracy_stage
+from . import refine as refine_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
 from .pair import CloudLike, PreparedPair, as_points
+from .preprocess import point_spacing, scene_size
 from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, kiss_available
 from .transforms import rotation_angle_deg
 from .verify import Attempt, Verifier
@@ -84,6 +87,9 @@ class RegistrationResult:
         flatness: how well the clouds still fit with the source turned 30 degrees, over the
             result's fit (0-1, lower is better; from ``degeneracy.max_flatness`` = 0.85 the result
             is flagged with confidence 0, unless the clouds share their points).
+        sparser_moved: the target was much sparser than the source (``sparser_moves``), so it was
+            registered onto the source and the result inverted; every field still speaks of the
+            source onto the target.
     """
 
     transformation: np.ndarray
@@ -113,6 +119,7 @@ class RegistrationResult:
     voxel: Optional[float] = None
     icp_method: str = "point"
     estimate_from: str = "network"
+    sparser_moved: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
@@ -150,6 +157,24 @@ def register(
         InputError: a cloud is degenerate (too few points, identical or collinear points), the
             weights file is unusable, or a setting of `config` is invalid (see its ``validate``).
     """
+    source, target = as_points(source, source_name), as_points(target, target_name)
+    if _sparser(target, source, config.sparser_moves):
+        # The sparser cloud moves: register the target onto the source, and answer the question asked.
+        swapped = _register(target, source, config, model, search_model, target_name, source_name)
+        return _inverted(swapped, source, target, config)
+    return _register(source, target, config, model, search_model, source_name, target_name)
+
+
+def _register(
+    source: np.ndarray,
+    target: np.ndarray,
+    config: RegisterConfig,
+    model: Optional[coarse_stage.CoarseModel],
+    search_model: Optional[coarse_stage.CoarseModel],
+    source_name: str,
+    target_name: str,
+) -> RegistrationResult:
+    """:func:`register` with the roles as given."""
     clock = StageClock()
     if model is None:  # callers registering many pairs pass it in, loaded once
         model = coarse_stage.load_model(config.weights, config.device)
@@ -197,6 +222,49 @@ def register(
     clock.lap("degeneracy")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
     return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, "work" if unrefined else "full")
+
+
+def _sparser(target: np.ndarray, source: np.ndarray, factor: float) -> bool:
+    """The (M, 3) target's points are over `factor` times sparser on its surface than the (N, 3)
+    source's (finite rows only): its point spacing over sqrt(`factor`) times the source's. Points
+    per squared :func:`~o3dsoft.preprocess.scene_size` screen for it first, so that the spacings
+    (a KD-tree per cloud) are measured only where the counts already suggest it."""
+    if factor == 0:
+        return False
+    target, source = (c[np.isfinite(c).all(axis=1)] for c in (target, source))
+    if min(len(target), len(source)) < 2:
+        return False
+    with np.errstate(all="ignore"):  # absurd coordinates are cleaning's to report, by name
+        size_t, size_s = scene_size(target), scene_size(source)
+        if not (np.isfinite([size_t, size_s]).all() and min(size_t, size_s) > 0):
+            return False
+        # factor x density(target) < density(source), density = points / size^2, in logarithms
+        if np.log(factor * len(target)) + 2 * np.log(size_s) >= np.log(len(source)) + 2 * np.log(size_t):
+            return False
+        return bool(point_spacing(target) > np.sqrt(factor) * point_spacing(source))
+
+
+def _inverted(result: RegistrationResult, source: np.ndarray, target: np.ndarray, config: RegisterConfig) -> RegistrationResult:
+    """A result of registering `target` onto `source` (both (N, 3) as given) turned into the
+    result for `source` onto `target`: transforms inverted, per-cloud counts swapped, fitness and
+    RMSE measured again from the source's side."""
+    T = np.linalg.inv(result.transformation)
+    src, tgt = (refine_stage.downsample(c[np.isfinite(c).all(axis=1)], config.icp.max_points) for c in (source, target))
+    scored = refine_stage.evaluate(src, tgt, T, result.correspondence_distance, config.icp.max_points)
+    removed = {f"{'target' if key.startswith('source') else 'source'}{key[key.index('_') :]}": n for key, n in result.removed.items()}
+    return replace(
+        result,
+        transformation=T,
+        coarse_transformation=np.linalg.inv(result.coarse_transformation),
+        network_transformation=None if result.network_transformation is None else np.linalg.inv(result.network_transformation),
+        fitness=scored.fitness,
+        inlier_rmse=scored.inlier_rmse,
+        num_source=result.num_target,
+        num_target=result.num_source,
+        points_used={stage: (n_t, n_s) for stage, (n_s, n_t) in result.points_used.items()},
+        removed=removed,
+        sparser_moved=True,
+    )
 
 
 def _search(pair: PreparedPair, verifier: Verifier, model, search_model, features_done: bool) -> None:

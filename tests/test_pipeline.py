@@ -477,3 +477,36 @@ def test_second_network_settings_are_checked():
     src, tgt, _ = blob_pair()
     with pytest.raises(InputError, match="second_network.iterations"):
         register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(iterations=0)))
+
+
+def _dense_onto_sparse(seed=21):
+    """A dense source of 3,000 points, and a target of 150 of them, moved."""
+    rng = np.random.default_rng(seed)
+    src = blob(rng, 3000)
+    T = random_transform(rng, max_angle=8.0, max_t=0.2)
+    return src, apply(T, src[rng.choice(len(src), 150, replace=False)]), T
+
+
+def test_a_much_sparser_target_is_registered_onto_the_source_and_the_result_inverted(tiny_model_path):
+    from o3dsoft.refine import evaluate
+
+    src, tgt, T = _dense_onto_sparse()
+    cfg = RegisterConfig(weights=str(tiny_model_path), icp=ICPConfig(distance=0.5), second_network=NO_SECOND)
+    res = register(src, tgt, cfg)
+    assert res.sparser_moved
+    reverse = register(tgt, src, cfg)  # the same registration, asked the other way round
+    assert not reverse.sparser_moved
+    np.testing.assert_allclose(res.transformation, np.linalg.inv(reverse.transformation), atol=1e-9)
+    # every field speaks of the source onto the target, as asked
+    assert (res.num_source, res.num_target) == (3000, 150) and res.points_used["network"] == (1024, 150)
+    assert res.fitness == pytest.approx(evaluate(src, tgt, res.transformation, res.correspondence_distance).fitness)
+    e = pair_errors(res.transformation, T)
+    assert e.rotation_deg < 1e-3 and e.translation < 1e-4  # each sparse point has its exact partner
+    kept = register(src, tgt, replace(cfg, sparser_moves=0.0))
+    assert not kept.sparser_moved and pair_errors(kept.transformation, T).rotation_deg > 10 * e.rotation_deg
+
+
+def test_sparser_moves_is_validated(tiny_model_path):
+    src, tgt, _ = blob_pair()
+    with pytest.raises(InputError, match="sparser_moves"):
+        register(src, tgt, RegisterConfig(weights=str(tiny_model_path), sparser_moves=0.5))
