@@ -128,6 +128,7 @@ class Scorer:
         self.tight = max(config.tight * distance, config.spacings * (s_source if self.swapped else s_target))
         self.near, self.far = (target, source) if self.swapped else (source, target)
         self.far_tree = cKDTree(self.far)
+        self.near_tree = cKDTree(self.near)  # for the edge test: distances do not change under T
         self.far_spacing = max(s_source if self.swapped else s_target, 1e-12)
         self.reach = max(distance, self.tight)
         self.wide_reach = max(self.reach, config.wide_spacings * self.far_spacing)
@@ -147,7 +148,8 @@ class Scorer:
         doubtful = reached & ~close
         claimed = np.zeros(len(moved), dtype=bool)
         if doubtful.any():
-            claimed[doubtful] = cKDTree(moved).query(self.far[j[doubtful]])[0] <= self.config.claimed * dist[doubtful]
+            partners = apply_transform(np.linalg.inv(T), self.far[j[doubtful]])  # into the near cloud's frame
+            claimed[doubtful] = self.near_tree.query(partners)[0] <= self.config.claimed * dist[doubtful]
         counted = close | (within & ~claimed)
         ratio_counted = close | (reached & ~claimed)
         spacing_ratio = float(np.median(dist[ratio_counted]) / self.far_spacing) if ratio_counted.any() else math.inf
