@@ -26,7 +26,7 @@ from . import degeneracy as degeneracy_stage
 from . import refine as refine_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
-from .pair import CloudLike, PreparedPair, as_points
+from .pair import CloudLike, Clouds, PreparedPair, as_points
 from .preprocess import point_spacing, scene_size
 from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, kiss_available
 from .transforms import rotation_angle_deg
@@ -160,9 +160,9 @@ def register(
     source, target = as_points(source, source_name), as_points(target, target_name)
     if _sparser(target, source, config.sparser_moves):
         # The sparser cloud moves: register the target onto the source, and answer the question asked.
-        swapped = _register(target, source, config, model, search_model, target_name, source_name)
-        return _inverted(swapped, source, target, config)
-    return _register(source, target, config, model, search_model, source_name, target_name)
+        swapped, (moved, fixed) = _register(target, source, config, model, search_model, target_name, source_name)
+        return _inverted(swapped, fixed, moved)
+    return _register(source, target, config, model, search_model, source_name, target_name)[0]
 
 
 def _register(
@@ -173,8 +173,9 @@ def _register(
     search_model: Optional[coarse_stage.CoarseModel],
     source_name: str,
     target_name: str,
-) -> RegistrationResult:
-    """:func:`register` with the roles as given."""
+) -> Tuple[RegistrationResult, Clouds]:
+    """:func:`register` with the roles as given; also the (source, target) clouds the result was
+    registered on (cleaned, on the grid)."""
     clock = StageClock()
     if model is None:  # callers registering many pairs pass it in, loaded once
         model = coarse_stage.load_model(config.weights, config.device)
@@ -221,7 +222,8 @@ def _register(
     )
     clock.lap("degeneracy")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
-    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, "work" if unrefined else "full")
+    final_level = "work" if unrefined else "full"
+    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, final_level), pair.clouds(final_level)
 
 
 def _sparser(target: np.ndarray, source: np.ndarray, factor: float) -> bool:
@@ -244,13 +246,12 @@ def _sparser(target: np.ndarray, source: np.ndarray, factor: float) -> bool:
         return bool(point_spacing(target) > np.sqrt(factor) * point_spacing(source))
 
 
-def _inverted(result: RegistrationResult, source: np.ndarray, target: np.ndarray, config: RegisterConfig) -> RegistrationResult:
-    """A result of registering `target` onto `source` (both (N, 3) as given) turned into the
-    result for `source` onto `target`: transforms inverted, per-cloud counts swapped, fitness and
-    RMSE measured again from the source's side."""
+def _inverted(result: RegistrationResult, source: np.ndarray, target: np.ndarray) -> RegistrationResult:
+    """A result of registering `target` onto `source` turned into the result for `source` onto
+    `target`: transforms inverted, per-cloud counts swapped, fitness and RMSE measured again from
+    the source's side, on the (N, 3) and (M, 3) clouds the registration used."""
     T = np.linalg.inv(result.transformation)
-    src, tgt = (refine_stage.downsample(c[np.isfinite(c).all(axis=1)], config.icp.max_points) for c in (source, target))
-    scored = refine_stage.evaluate(src, tgt, T, result.correspondence_distance, config.icp.max_points)
+    scored = refine_stage.evaluate(source, target, T, result.correspondence_distance)
     removed = {f"{'target' if key.startswith('source') else 'source'}{key[key.index('_') :]}": n for key, n in result.removed.items()}
     return replace(
         result,

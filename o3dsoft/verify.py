@@ -80,32 +80,31 @@ class Verifier:
 
     def most_trusted(self) -> Attempt:
         """The attempt to answer with: among those :meth:`in_contact`, the most trusted, those
-        within the rotation prior first. One the search proposed replaces the most trusted of the pipeline's own only when its odds
-        of being right are ``search.replace_odds`` times higher: on sparse, independently sampled
-        clouds a right pose and a turn onto a near-symmetric copy of the shape score alike, and the
-        search would trade the first estimate for one no better."""
+        within the rotation prior first. One the search proposed replaces the most trusted of the
+        pipeline's own only when its odds of being right are ``search.replace_odds`` times higher:
+        on sparse, independently sampled clouds a right pose and a turn onto a near-symmetric copy
+        of the shape score alike, and the search would trade the first estimate for one no better."""
 
         def rank(a: Attempt):
             return (self.admissible(a.fine.transformation), a.trust)
 
-        eligible = self.in_contact()
-        best = max(eligible, key=rank)
-        own = [a for a in self.attempts[: self.search_from] if any(a is e for e in eligible)] if self.search_from is not None else []
+        best = max(self.in_contact(self.attempts), key=rank)
+        own = self.in_contact(self.attempts[: self.search_from]) if self.search_from is not None else []
         if not own or any(a is best for a in own):
             return best
         first = max(own, key=rank)
         gain = _log_odds(best.trust) - _log_odds(first.trust)
         return first if rank(first)[0] == rank(best)[0] and gain < math.log(self.config.search.replace_odds) else best
 
-    def in_contact(self) -> List[Attempt]:
-        """The attempts that bring at least ``search.min_contact`` times as many points within the
-        tight distance (``Features.fitness_tight``) as the attempt that brings most: the others
-        are not chosen. The confidence judges how well the part in contact fits, so that partial
+    def in_contact(self, attempts: List[Attempt]) -> List[Attempt]:
+        """Those of `attempts` that bring at least ``search.min_contact`` times as many points
+        within the tight distance (``Features.fitness_tight``) as the attempt of the pair that
+        brings most: the others are not chosen. The confidence judges how well the part in contact fits, so that partial
         overlaps are not penalised; a pose that slides one shape off the other until a small
         patch fits scores as high as the right one, and among the estimates of one pair the one
         that explains more of the clouds at that quality is the likelier."""
         most = max(a.scored.fitness_tight for a in self.attempts)
-        return [a for a in self.attempts if a.scored.fitness_tight >= self.config.search.min_contact * most]
+        return [a for a in attempts if a.scored.fitness_tight >= self.config.search.min_contact * most]
 
     # -- refining and scoring ---------------------------------------------------------------------
     def refine(
