@@ -41,7 +41,9 @@ class FeatureSearchConfig:
 
 @dataclass(frozen=True)
 class StartsConfig:
-    """The network from many starting rotations (:mod:`o3dsoft.strategies.starts`).
+    """The network from many starting rotations (:mod:`o3dsoft.strategies.starts`): the main
+    network from the 24 cube rotations where the feature match is off
+    (``FeatureSearchConfig.enabled``), and the search network from 15 around the pose as given.
 
     Attributes:
         points: points per cloud for the batch of network passes (default 256).
@@ -49,7 +51,7 @@ class StartsConfig:
             (``num_points``) before the most confident is verified (default 3).
         weights: a second network run from 15 starts around the pose as given (a file or a
             shipped model's name; default "partial", trained on cropped, noisy clouds); None:
-            only the main network, from the 24 cube rotations.
+            only the main network's cube starts (so none after the feature match).
     """
 
     points: int = 256
@@ -141,7 +143,8 @@ class SearchConfig:
         min_contact: an estimate is chosen only if it brings at least this share as many points
             into close contact (``fitness_tight``) as the estimate that brings most (0-1, default
             0.5; 0: any; docs/incongruent.md).
-        features, starts, votes, restart: the search's steps, in the order they run.
+        features, starts, votes, restart: the search's steps, in the order they run (the main
+            network's cube starts only where the feature match is off).
         screen: how the steps' estimates are tried first on large clouds.
     """
 

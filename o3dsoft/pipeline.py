@@ -148,8 +148,9 @@ def register(
         model: an already loaded model (else loaded from ``config.weights``).
         search_model: an already loaded search network (else loaded from
             ``config.search.starts.weights`` when the search needs it).
-        The second network (``config.second_network``) is loaded when first needed, once per
-        process (:func:`o3dsoft.coarse.cached_model`).
+        The networks this call loads itself (``config.weights``, the search's and
+        ``config.second_network``'s) are loaded once per process
+        (:func:`o3dsoft.coarse.cached_model`).
         source_name, target_name: how to call the clouds in error messages (e.g. file names).
     Returns:
         RegistrationResult.
@@ -177,8 +178,8 @@ def _register(
     """:func:`register` with the roles as given; also the (source, target) clouds the result was
     registered on (cleaned, on the grid)."""
     clock = StageClock()
-    if model is None:  # callers registering many pairs pass it in, loaded once
-        model = coarse_stage.load_model(config.weights, config.device)
+    if model is None:  # loaded once per process; callers may pass it in
+        model = coarse_stage.cached_model(config.weights, config.device)
         clock.lap("load_model")
     config.validate(model.config.k)
     search = config.search
@@ -270,13 +271,14 @@ def _inverted(result: RegistrationResult, source: np.ndarray, target: np.ndarray
 
 def _search(pair: PreparedPair, verifier: Verifier, model, search_model, features_done: bool) -> None:
     """The global search's strategies in turn, each while nothing is confident: the feature match
-    (unless done), the networks from many starts, translation votes, and the optional restart."""
+    (unless done), the networks from many starts (after the feature match, only the search
+    network's around the pose as given), translation votes, and the optional restart."""
     config = pair.config
     verifier.begin_search()
     if config.search.features_on and not features_done:
         _match_features(pair, verifier)
     if not verifier.confident():
-        NetworkStarts(model, search_model).propose(pair, verifier)
+        NetworkStarts(model, search_model, cube=not config.search.features_on).propose(pair, verifier)
     if config.search.features_on and not verifier.confident():
         TranslationVotes().propose(pair, verifier)
     if config.refine and config.search.restart.enabled and not verifier.settled():

@@ -90,12 +90,14 @@ class AlwaysWrongModel(StubModel):
 
         self.config = NetConfig(k=8)
         self.R_wrong = R_wrong
+        self.batches = []
 
     def run(self, source, target):
         import torch
 
         from o3dsoft.search import cube_rotations
 
+        self.batches.append(len(source))
         starts = cube_rotations() if len(source) == 24 else np.eye(3)[None]
         R = torch.as_tensor(self.R_wrong @ starts.transpose(0, 2, 1), dtype=torch.float32)
         t = target.mean(1) - torch.einsum("bij,bj->bi", R, source.mean(1))

@@ -510,3 +510,17 @@ def test_sparser_moves_is_validated(tiny_model_path):
     src, tgt, _ = blob_pair()
     with pytest.raises(InputError, match="sparser_moves"):
         register(src, tgt, RegisterConfig(weights=str(tiny_model_path), sparser_moves=0.5))
+
+
+def test_repeated_calls_load_the_network_once(monkeypatch):
+    from o3dsoft import coarse
+
+    loaded = []
+    real = coarse.load_model
+    monkeypatch.setattr(coarse, "_LOADED", {})
+    monkeypatch.setattr(coarse, "load_model", lambda path=None, device="cpu": loaded.append(path) or real(path, device))
+    src, tgt, _ = _turned_pair([10.0, 0.0, 0.0])
+    config = RegisterConfig(num_points=800, search=SearchConfig(mode="off"))
+    first, again = register(src, tgt, config), register(src, tgt, config)
+    assert loaded == [None] and "load_model" in first.timings_ms
+    np.testing.assert_array_equal(first.transformation, again.transformation)

@@ -14,7 +14,9 @@ from .conftest import apply, blob, random_transform
 from .fakes import NO_SECOND, AlwaysWrongModel, LocalModel, bundled_scan_pair, moved_bunny, record_icp, with_search
 
 
-def test_the_search_network_joins_the_ranking():
+def test_the_search_network_joins_the_ranking(monkeypatch):
+    from o3dsoft import search
+
     rng = np.random.default_rng(6)
     src = blob(rng, 800)
     T = random_transform(rng, 30.0, 0.2)
@@ -33,6 +35,11 @@ def test_the_search_network_joins_the_ranking():
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
     with pytest.raises(InputError, match="search.starts.points=400 is below the search network's neighbourhood size K=500"):
         register(src, tgt, config, model=wrong, search_model=LocalModel(T[:3, :3], k=500))
+    # After a feature match (here one that finds nothing), only the search network's starts run.
+    monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.empty((0, 4, 4)))
+    wrong, local = AlwaysWrongModel(wrong.R_wrong), LocalModel(T[:3, :3])
+    res = register(src, tgt, with_search(config, features=FeatureSearchConfig()), model=wrong, search_model=local)
+    assert wrong.batches == [1] and local.batches == [15] and not res.likely_failed and res.estimate_from == "network starts"
 
 
 def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(monkeypatch):
@@ -62,12 +69,17 @@ def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(mo
     assert asked == [(0, 20)] and res.attempts == 3 and not res.likely_failed
     assert described == [len(src), len(tgt)]  # the features are computed once
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
+    model.batches.clear()
     res = register(src, tgt, with_search(config, features=FeatureSearchConfig(candidates=1)), model=model)
-    # one wrong estimate, then the network's starts, also wrong
-    assert asked[-1] == (0, 1) and res.attempts == 3 and res.likely_failed
+    # one wrong estimate, and no cube starts after a feature match (and no search network here)
+    assert asked[-1] == (0, 1) and res.attempts == 2 and res.likely_failed and model.batches == [1]
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.empty((0, 4, 4)))
-    res = register(src, tgt, config, model=model)  # no feature estimate at all: on to the network's starts
-    assert res.attempts == 2 and res.likely_failed
+    res = register(src, tgt, config, model=model)  # no feature estimate at all: the network's own alone
+    assert res.attempts == 1 and res.likely_failed
+    model.batches.clear()
+    res = register(src, tgt, with_search(config, features=FeatureSearchConfig(enabled=False)), model=model)
+    # without the feature match, the main network's cube starts are the search
+    assert res.attempts == 2 and res.likely_failed and model.batches == [1, 24]
 
 
 def test_on_large_clouds_the_search_screens_its_estimates_and_refines_only_the_promising(monkeypatch):
@@ -164,8 +176,8 @@ def test_on_a_partial_overlap_the_feature_match_goes_before_the_network(monkeypa
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1e-3
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: wrong[None])
     res = register(src, tgt, replace(config, second_network=SecondNetworkConfig()), model=AlwaysWrongModel(np.eye(3)))
-    # nothing confident from the match: then the network's pass (not the second network's, after a feature match), then its starts
-    assert res.attempts == 3 and "coarse" in res.timings_ms and res.mean_weight is not None and "second_network" not in res.timings_ms
+    # nothing confident from the match: then the network's pass (not the second network's, after a feature match)
+    assert res.attempts == 2 and "coarse" in res.timings_ms and res.mean_weight is not None and "second_network" not in res.timings_ms
     res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="off")), model=AlwaysWrongModel(np.eye(3)))
     assert not res.searched and res.attempts == 1 and res.mean_weight is not None  # without the search: the network alone
 

@@ -24,25 +24,34 @@ class NetworkStarts:
         model: the main network.
         search_model: the search network, else loaded from ``search.starts.weights`` when needed
             (None there: the main network alone).
+        cube: the main network from the 24 cube rotations too. Where the feature match has
+            searched rotations all over the sphere, they never decided a pair and took half of
+            the starts' time; the search network's starts around the pose as given did, through
+            the rotations they give the translation votes (docs/incongruent.md).
     """
 
-    def __init__(self, model: coarse_stage.CoarseModel, search_model: Optional[coarse_stage.CoarseModel] = None) -> None:
+    def __init__(self, model: coarse_stage.CoarseModel, search_model: Optional[coarse_stage.CoarseModel] = None, cube: bool = True) -> None:
         self.model = model
         self.search_model = search_model
+        self.cube = cube
 
     def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
         config = pair.config
         settings = config.search.starts
         src_small = sample_points(pair.net_normalised[0], settings.points, seed=config.seed + 2)
         tgt_small = sample_points(pair.net_normalised[1], settings.points, seed=config.seed + 3)
-        candidates = search_stage.network_candidates(self.model, src_small, tgt_small, search_stage.cube_rotations())
+        candidates = np.empty((0, 4, 4))
+        if self.cube:
+            candidates = search_stage.network_candidates(self.model, src_small, tgt_small, search_stage.cube_rotations())
         if settings.weights is not None:
             if self.search_model is None:
-                self.search_model = coarse_stage.load_model(settings.weights, config.device)
+                self.search_model = coarse_stage.cached_model(settings.weights, config.device)
             if self.search_model.config.k > settings.points:
                 raise InputError(f"search.starts.points={settings.points} is below the search network's neighbourhood size K={self.search_model.config.k}")
             local = search_stage.network_candidates(self.search_model, src_small, tgt_small, search_stage.local_rotations())
             candidates = np.concatenate([candidates, local])
+        if len(candidates) == 0:
+            return
         plausible = [T for T in (denormalise_transform(T, pair.norm) for T in candidates) if verifier.plausible(T)]
         candidates = np.stack(plausible or [np.eye(4)])  # none within the prior: the pose as given
         chosen = search_stage.select(*pair.net, candidates, pair.distance, settings.refine, config.icp if config.refine else None, config.confidence)
