@@ -121,3 +121,25 @@ def test_a_stray_far_point_does_not_change_the_scene_size():
     rng = np.random.default_rng(1)
     cloud = _surface(rng, 5_000)
     assert scene_size(np.vstack([cloud, [[1000.0, 0.0, 0.0]]])) == pytest.approx(scene_size(cloud), rel=0.01)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 200), st.integers(0, 2**32 - 1))
+def test_first_of_each_row_equals_a_byte_exact_unique(n, seed):
+    from o3dsoft.preprocess import first_of_each_row
+
+    rng = np.random.default_rng(seed)
+    values = np.array([0.0, -0.0, 1.0, -1.5, 1e-300, 2.0**60])  # few values: many repeated rows
+    pts = values[rng.integers(0, len(values), size=(n, 3))]
+    expected = np.sort(np.unique(pts.view(np.dtype((np.void, 24))).ravel(), return_index=True)[1])
+    np.testing.assert_array_equal(first_of_each_row(pts), expected)
+
+
+def test_first_of_each_row_falls_back_on_a_hash_collision(monkeypatch):
+    from o3dsoft import preprocess
+
+    pts = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    real = np.unique
+    # Every row hashed alike: the rows' bytes decide.
+    monkeypatch.setattr(np, "unique", lambda a, **kw: real(np.zeros_like(a), **kw) if a.dtype == np.uint64 and a.ndim == 1 else real(a, **kw))
+    np.testing.assert_array_equal(preprocess.first_of_each_row(pts), [0, 1])
