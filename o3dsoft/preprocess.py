@@ -57,9 +57,9 @@ def first_of_each_row(points: np.ndarray) -> np.ndarray:
     """Indices of the first occurrence of each distinct row of an (N, 3) float64 array, ascending:
     (N',). Rows are compared by their bytes (so -0.0 and 0.0 differ, as they do in a file).
 
-    Each row is hashed to one 64-bit integer, whose sort is about 3 times faster than sorting
-    the rows' bytes; rows that share a hash are checked for equality, and if any differ the
-    rows' bytes are sorted after all."""
+    Each row is hashed to one 64-bit integer, and those are sorted (1.6 times as fast as sorting
+    the rows' bytes on 40,000 points, 2.5 times on 10^6); rows that share a hash are checked for
+    equality, and if any differ the rows' bytes are sorted after all."""
     rows = np.ascontiguousarray(points, dtype=np.float64).view(np.uint64).reshape(-1, 3)
     hashed = rows[:, 0] * np.uint64(0x9E3779B97F4A7C15) ^ rows[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F) ^ rows[:, 2] * np.uint64(0x165667B19E3779F9)
     _, first, inverse = np.unique(hashed, return_index=True, return_inverse=True)
