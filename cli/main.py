@@ -95,7 +95,7 @@ def _pipeline_options(fn):
                 type=click.Choice(SEARCH_MODES),
                 default="auto",
                 show_default=True,
-                help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the networks from 39 starting rotations): auto = when the first result looks wrong.",
+                help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the search network from 15 starting rotations; without the feature match, the networks from 39): auto = when the first result looks wrong.",
             ),
             click.option(
                 "--search-features/--no-search-features",

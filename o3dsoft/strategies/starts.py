@@ -1,5 +1,6 @@
 """The networks from many starting rotations: the main network from the 24 rotations of a cube
-(which cover SO(3)), the search network from 15 around the pose as given."""
+(which cover SO(3); where the feature match is off), the search network from 15 around the pose
+as given."""
 
 from __future__ import annotations
 
