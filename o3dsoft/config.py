@@ -173,7 +173,8 @@ class SecondNetworkConfig:
     as every two scans are), run from the pose as given when the first network's result is flagged,
     before the search (:class:`o3dsoft.strategies.NetworkPass`); not after the feature match, which
     runs first on a partial overlap when the search is on (there it changed no result,
-    docs/incongruent.md). Its estimate counts as the pipeline's own, so the search must find one
+    docs/incongruent.md), nor on clouds registered on a voxel grid (scans: of the 52 shared scan
+    pairs it ran on 4 and was wrong on each, where the search's feature match was right; docs/scans.md). Its estimate counts as the pipeline's own, so the search must find one
     clearly better to replace it (``replace_odds``).
 
     Attributes:

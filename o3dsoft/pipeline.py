@@ -3,7 +3,7 @@
     (a target much sparser than the source: the roles swapped, the result inverted)
     prepare the pair (clean, voxel grid, samples for the network, normalisation, work clouds)
     -> propose estimates (the network; when flagged, a second network trained on clouds that share
-       no point; when still flagged, the search's strategies in turn)
+       no point, except on scans; when still flagged, the search's strategies in turn)
     -> verify each (ICP on the work clouds, confidence)
     -> select the most trusted (within the rotation prior, if any; among those bringing at least
        half as many points into contact as the one that brings most)
@@ -192,14 +192,16 @@ def _register(
     # Propose: on a partial overlap the feature match first (the network, trained on complete
     # shapes, is seldom confident there); then the network, unless that was confident; then, while
     # nothing is and the feature match did not go first, the second network (the first matches
-    # points; two scans of a surface share none).
+    # points; two samplings of a surface share none). Not on scans (clouds on a voxel grid): the
+    # search's feature match solves those the first network leaves, and the second was never
+    # right there (docs/scans.md).
     features_first = search.features_on and pair.looks_partial()
     clock.lap("sample_normalise")
     if features_first:
         _match_features(pair, verifier)
     if not (features_first and verifier.confident()):
         network.propose(pair, verifier)
-    if config.second_network.weights is not None and not features_first and not verifier.confident():
+    if config.second_network.weights is not None and not features_first and pair.voxel is None and not verifier.confident():
         _second_network(pair, verifier)
 
     # Search while nothing is confident: feature match, networks from many starts, votes, restart.
@@ -305,12 +307,13 @@ def _match_features(pair: PreparedPair, verifier: Verifier) -> None:
 
 
 def _refine_full(pair: PreparedPair, verifier: Verifier, best: Attempt) -> Attempt:
-    """The kept estimate refined at full resolution, with only ICP's tight stages (the loose first
-    one would pull the converged estimate towards the parts with no partner, and cost the most),
-    and scored there; as it is when the work clouds are the full ones."""
+    """The kept estimate refined at full resolution, with only ICP's last stage (it has converged
+    through the whole schedule on the work clouds: the wider stages would pull it towards the
+    parts with no partner, and cost the most), and scored there; as it is when the work clouds are
+    the full ones."""
     if not pair.reduced:
         return best
-    return verifier.refine(best.fine.transformation, best.coarse, "full", pair.config.icp.tight(), by=best.by)
+    return verifier.refine(best.fine.transformation, best.coarse, "full", pair.config.icp.final(), by=best.by)
 
 
 def _select(verifier: Verifier) -> Attempt:

@@ -83,6 +83,14 @@ class ICPConfig:
         """The schedule's tight stages only: :meth:`starting_at` `tight_from`."""
         return self.starting_at(self.tight_from)
 
+    def final(self) -> "ICPConfig":
+        """For an estimate that has converged through the whole schedule on coarser clouds (the
+        work clouds' result, refined at full resolution): the last stage only, at its own
+        distance. The wider stages would pull it again towards the parts with no partner and cost
+        the most on many points; the noise floor, a point-to-point residual, is set by the
+        sampling's spacing on independently sampled clouds, not by their noise."""
+        return replace(self, schedule=self.schedule[-1:])
+
     def quick(self, max_iterations: int) -> "ICPConfig":
         """A cheaper ICP for ranking estimates: without the last stage (when there are several),
         the noise rounds and the polish, each stage at most `max_iterations`."""

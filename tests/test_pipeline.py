@@ -276,7 +276,7 @@ def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolu
     sizes = record_icp(monkeypatch)
     res = register(src, tgt, RegisterConfig(attempt_points=1000, search=SearchConfig(mode="off")), model=NearSightedModel(T[:3, :3]))
     assert sizes[0][0] <= 1000 and sizes[0][1] == (1.0, 0.3, 0.1)
-    assert sizes[-1] == (6000, (0.3, 0.1))  # the tight stages at full resolution
+    assert sizes[-1] == (6000, (0.1,))  # converged on the work clouds: only the last stage at full resolution
     assert res.num_source == 6000 and pair_errors(res.transformation, T).rotation_deg < 1e-3
     sizes.clear()
     register(src[:900], tgt[:900], RegisterConfig(attempt_points=1000, search=SearchConfig(mode="off")), model=NearSightedModel(T[:3, :3]))
@@ -460,6 +460,10 @@ def test_a_flagged_first_network_is_followed_by_the_second_one(monkeypatch):
     assert not res.likely_failed and res.attempts == 2 and pair_errors(res.transformation, T).rotation_deg < 1e-3
     assert res.estimate_from == "second network"
     assert rotation_angle_deg(res.network_transformation[:3, :3]) == pytest.approx(180.0)  # the first network's own estimate is still reported
+
+    asked.clear()
+    on_a_grid = register(src, tgt, replace(config, voxel=0.02), model=first)  # a scan's path: the search's feature match follows, not the second network
+    assert on_a_grid.voxel == 0.02 and on_a_grid.likely_failed and on_a_grid.attempts == 1 and asked == [] and "second_network" not in on_a_grid.timings_ms
 
     asked.clear()
     res = register(src, tgt, RegisterConfig(num_points=800, search=off, second_network=SecondNetworkConfig(weights=None)), model=first)

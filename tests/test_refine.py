@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 import o3dsoft
 from o3dsoft.config import RegisterConfig
@@ -114,6 +115,20 @@ def test_a_schedule_starts_where_the_estimate_is_known_to_be():
     assert config.starting_at(0.75).schedule == (0.75, 0.3, 0.1)
     assert config.starting_at(0.2).schedule == (0.2, 0.1)
     assert config.starting_at(1.5) is config  # never looser than the schedule's own start
+
+
+def test_the_final_icp_runs_the_last_stage_only(bunny_root, monkeypatch):
+    assert ICPConfig().final().schedule == (0.1,) and ICPConfig(schedule=(0.5,)).final().schedule == (0.5,)
+    # One Open3D call: a single stage has no noise rounds, whose floor (a point-to-point residual)
+    # independent samplings' spacing would set.
+    from o3dsoft import refine
+
+    points = o3dsoft.read_points(bunny_root / "bun000.ply")[::4]
+    calls = []
+    real = refine.o3d.pipelines.registration.registration_icp
+    monkeypatch.setattr(refine.o3d.pipelines.registration, "registration_icp", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+    refine.icp(points, points, np.eye(4), 0.01, ICPConfig(method="plane").final())
+    assert calls == [pytest.approx(0.001)]
 
 
 def test_the_quick_icp_ranks_with_the_loose_stages_only():
