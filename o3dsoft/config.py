@@ -194,19 +194,22 @@ class RegisterConfig:
 
     Attributes:
         voxel: register both clouds on a voxel grid of this size (cloud units), after cleaning;
-            None: from the data (default, :func:`o3dsoft.preprocess.data_grids`); 0: keep every
+            None: from the data (default, :func:`o3dsoft.preprocess.data_grid`); 0: keep every
             point.
         data_voxel: the grid from the data, as a share of the scene's size (the diagonal of the
-            box holding 98 % of the points), where the clouds are denser than that: 0.005, i.e.
-            2 cm on a 4 m room, 37 cm on a 75 m street, 1 mm on a 20 cm object (default); the
-            estimates are tried on a grid twice as coarse. Only for clouds of more than
-            `attempt_points`. 0: keep every point unless `voxel` is given.
+            box holding 98 % of the points), where the clouds are denser than half of that: 0.01,
+            i.e. 4 cm on a 4 m room, 75 cm on a 75 m street, 2 mm on a 20 cm object (default;
+            point-to-plane ICP on it is as accurate as on a grid half as coarse, docs/scans.md).
+            Only for clouds of more than `attempt_points`. 0: keep every point unless `voxel` is
+            given.
         num_points: points sampled from each cloud for the network (default 1024).
         coarse_iterations: network passes, each on the source moved by the estimate so far
             (default 1).
         attempt_points: every estimate is refined and scored on the clouds voxel-downsampled to at
             most this many points each; the kept one is refined again at full resolution
-            (default 5,000).
+            (default 10,000: RGB-D fragments on the data's grid, 5,000-9,000 points, are scored
+            whole, so that the trust that decides whether to search is the full clouds'). Clouds
+            of at most this many points get no grid from the data.
         max_rotation: the clouds are given within this many degrees of their true relative
             rotation (a prior, e.g. from odometry): estimates beyond it get confidence 0, and the
             result lies within it; None: any rotation (default).
@@ -232,10 +235,10 @@ class RegisterConfig:
     """
 
     voxel: Optional[float] = None
-    data_voxel: float = 0.005
+    data_voxel: float = 0.01
     num_points: int = 1024
     coarse_iterations: int = 1
-    attempt_points: int = 5_000
+    attempt_points: int = 10_000
     max_rotation: Optional[float] = None
     sparser_moves: float = 4.0
     refine: bool = True

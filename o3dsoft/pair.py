@@ -15,7 +15,7 @@ from . import refine as refine_stage
 from .clock import StageClock
 from .config import RegisterConfig
 from .errors import InputError
-from .preprocess import DataGrids, clean_points, data_grids, normalisation_for, normalise_pair, same_profile_pvalue, sample_points, scene_size, voxel_downsample
+from .preprocess import clean_points, data_grid, normalisation_for, normalise_pair, same_profile_pvalue, sample_points, scene_size, voxel_downsample
 from .search import FeatureMatch
 
 if TYPE_CHECKING:
@@ -46,10 +46,10 @@ class PreparedPair:
     """Both clouds at every resolution the pipeline uses, in their original frames:
 
     - ``full``: cleaned (no NaN/inf, no duplicates) and on the voxel grid ``voxel`` (the
-      config's, or one from the data, :func:`o3dsoft.preprocess.data_grids`; None: none): what
+      config's, or one from the data, :func:`o3dsoft.preprocess.data_grid`; None: none): what
       is registered, and where the kept estimate is refined and scored last;
-    - ``work``: ``full`` on the data's coarser grid (when no voxel is given) and voxel-downsampled
-      to at most ``config.attempt_points`` each, where every estimate is refined and scored;
+    - ``work``: ``full`` voxel-downsampled to at most ``config.attempt_points`` each, where every
+      estimate is refined and scored;
     - ``screen``: ``work`` on a grid of at most ``config.search.screen.points`` each (an even
       spacing, which the confidence relies on; smaller clouds whole, shuffled), where the
       search's estimates are tried first on large clouds;
@@ -83,15 +83,13 @@ class PreparedPair:
         self.cleaned = (clean_points(as_points(source, names[0]), names[0], min_points=k), clean_points(as_points(target, names[1]), names[1], min_points=k))
         self.full: Clouds = (self.cleaned[0].points, self.cleaned[1].points)
         if config.voxel is not None:
-            grids = DataGrids(config.voxel or None, None)
+            self.voxel = config.voxel or None
         elif max(map(len, self.full)) > config.attempt_points:  # clouds small enough are tried whole
-            grids = data_grids(*self.full, config.data_voxel)
+            self.voxel = data_grid(*self.full, config.data_voxel)
         else:
-            grids = DataGrids(None, None)
-        self.voxel = grids.result
-        if grids.result is not None:
-            self.full = self._grid(self.full, grids.result, names, k)
-        work = self.full if grids.work is None else self._grid(self.full, grids.work, names, k)
+            self.voxel = None
+        if self.voxel is not None:
+            self.full = self._grid(self.full, self.voxel, names, k)
         if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest
             config = replace(config, icp=replace(config.icp, method="point" if self.voxel is None else "plane"))
         self.config = config
@@ -106,7 +104,7 @@ class PreparedPair:
         src_norm, tgt_norm, _ = normalise_pair(*self.net, self.norm)
         self.net_normalised: Clouds = (src_norm, tgt_norm)
         clock.lap("sample_normalise")
-        self.work: Clouds = (refine_stage.downsample(work[0], config.attempt_points), refine_stage.downsample(work[1], config.attempt_points))
+        self.work: Clouds = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
         self._scorers: Dict[str, confidence_stage.Scorer] = {}
         self._normals: Dict[str, np.ndarray] = {}
 

@@ -70,7 +70,7 @@ class RegistrationResult:
         num_source, num_target: points registered (after cleaning and the voxel grid; the work
             clouds' for a flagged result left unrefined, ``refine_flagged=False``).
         voxel: the voxel grid the clouds were registered on (cloud units): the config's, or one
-            from the data (:func:`o3dsoft.preprocess.data_grids`); None: every point.
+            from the data (:func:`o3dsoft.preprocess.data_grid`); None: every point.
         icp_method: "point" (point-to-point) or "plane" (point-to-plane), as ICP ran.
         attempts: estimates refined and scored on the work clouds.
         screened: estimates refined and scored on the screen clouds first.
@@ -307,11 +307,14 @@ def _match_features(pair: PreparedPair, verifier: Verifier) -> None:
 
 
 def _refine_full(pair: PreparedPair, verifier: Verifier, best: Attempt) -> Attempt:
-    """The kept estimate refined at full resolution, with only ICP's last stage (it has converged
-    through the whole schedule on the work clouds: the wider stages would pull it towards the
-    parts with no partner, and cost the most), and scored there; as it is when the work clouds are
-    the full ones."""
-    if not pair.reduced:
+    """The kept estimate refined and scored on the clouds it is the answer for, by ICP's last stage
+    only (:meth:`~o3dsoft.refine.ICPConfig.final`: it has converged through the whole schedule on
+    the work clouds; the wider stages would pull it towards the parts with no partner, and cost
+    the most): at full resolution when the work clouds were reduced, and with point-to-plane ICP
+    (scans) in any case, since the schedule's noise floor, a point-to-point residual, is set by
+    the grid's spacing there. As it is otherwise (the paper's point-to-point ICP on clouds tried
+    whole)."""
+    if not (pair.reduced or pair.config.icp.method == "plane"):
         return best
     return verifier.refine(best.fine.transformation, best.coarse, "full", pair.config.icp.final(), by=best.by)
 

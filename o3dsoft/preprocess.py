@@ -121,35 +121,21 @@ def point_spacing(points: np.ndarray, sample: int = 2000, seed: int = 0) -> floa
     return float(np.median(d[:, 1]))
 
 
-class DataGrids(NamedTuple):
-    """The voxel grids a pair is registered on when none is given (cloud units; None: none).
-
-    result: where the result is refined and scored last. work: twice as coarse, where every
-    estimate is tried.
-    """
-
-    result: Optional[float]
-    work: Optional[float]
-
-
-def data_grids(source: np.ndarray, target: np.ndarray, share: float) -> DataGrids:
-    """Grids of `share` (result) and 2 x `share` (work) of the smaller scene's size
-    (:func:`scene_size`), each used only where one of the clouds is denser than half of it (its
-    :func:`point_spacing`); where only the work grid is, the result is refined on it too. Clouds
-    sparser than that are registered as they are.
+def data_grid(source: np.ndarray, target: np.ndarray, share: float) -> Optional[float]:
+    """A voxel grid of `share` of the smaller scene's size (:func:`scene_size`; cloud units) where
+    one of the clouds is denser than half of it (its :func:`point_spacing`); None where both are
+    sparser: they are registered as they are.
 
     So millimetre-spaced RGB-D fragments, LiDAR sweeps and dense object scans come down to a few
     thousand points each, in whatever unit, and sparse clouds (the network's 1,024-point shapes)
     keep every point.
     """
     if share <= 0:
-        return DataGrids(None, None)
+        return None
     size = min(scene_size(source), scene_size(target))  # clouds in different units: the grid leaves both whole
     spacing = min(point_spacing(source), point_spacing(target))
-    result, work = share * size, 2 * share * size
-    if spacing >= 0.5 * work:
-        return DataGrids(None, None)
-    return DataGrids(result if spacing < 0.5 * result else work, work)
+    voxel = share * size
+    return voxel if spacing < 0.5 * voxel else None
 
 
 def sample_points(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:

@@ -104,19 +104,17 @@ def test_clouds_left_barely_touching_are_not_trusted():
 
 @pytest.mark.slow
 def test_the_right_alignments_of_real_scans_overlap_well_beyond_the_minimum(bunny_root):
-    from o3dsoft import refine
     from o3dsoft.bench import scan_folder
     from o3dsoft.confidence import ConfidenceConfig, features
+    from o3dsoft.pair import PreparedPair
 
     MIN_OVERLAP = ConfidenceConfig().min_overlap
-    from o3dsoft.preprocess import normalisation_for
 
     # Every ordered pair of the ten scans, at its ground truth and on the pipeline's work clouds:
-    # the least overlapping share about 0.18 (over 30 % overlap: more), so the minimum leaves room.
+    # the least overlapping share about 0.17 (over 30 % overlap: more), so the minimum leaves room.
     for pair in scan_folder(bunny_root, 0.0).pairs:
-        distance = RegisterConfig().icp.distance_for(normalisation_for(pair.source, pair.target).scale)
-        src, tgt = (refine.downsample(c, RegisterConfig().attempt_points) for c in (pair.source, pair.target))
-        assert features(src, tgt, pair.transform, distance).overlap > 1.5 * MIN_OVERLAP
+        prepared = PreparedPair(pair.source, pair.target, RegisterConfig(), k=20)
+        assert features(*prepared.work, pair.transform, prepared.distance).overlap > 1.5 * MIN_OVERLAP
 
 
 def test_a_right_alignment_of_two_partial_scans_is_trusted():

@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 from o3dsoft.errors import InputError
 from o3dsoft.preprocess import (
     clean_points,
-    data_grids,
+    data_grid,
     denormalise_transform,
     normalisation_for,
     normalise_pair,
@@ -96,16 +96,14 @@ def _surface(rng, n, radii=(1.0, 0.6, 0.3)):
 def test_dense_scans_get_a_grid_of_their_own_size_and_sparse_clouds_none():
     rng = np.random.default_rng(0)
     dense, sparse = _surface(rng, 40_000), _surface(rng, 1_024)
-    size = scene_size(dense)
-    grids = data_grids(dense, dense[::2], 0.005)
-    assert grids.result == pytest.approx(0.005 * size, rel=0.02) and grids.work == pytest.approx(0.01 * size, rel=0.02)
-    assert data_grids(sparse, sparse, 0.005) == (None, None)  # ModelNet40-like: every point kept
-    assert data_grids(dense, dense, 0.0) == (None, None)
-    # Dense enough for the work grid only: the result is refined on it too.
+    assert data_grid(dense, dense[::2], 0.01) == pytest.approx(0.01 * scene_size(dense), rel=0.02)
+    assert data_grid(sparse, sparse, 0.01) is None  # ModelNet40-like: every point kept
+    assert data_grid(dense, dense, 0.0) is None
+    # A grid only where a cloud is denser than half of it.
     middle = _surface(rng, 12_000)
     assert point_spacing(middle) < 0.5 * 0.01 * scene_size(middle) < point_spacing(middle) * 2
-    grids = data_grids(middle, middle, 0.005)
-    assert grids.result == grids.work == pytest.approx(0.01 * scene_size(middle))
+    assert data_grid(middle, middle, 0.01) == pytest.approx(0.01 * scene_size(middle))
+    assert data_grid(middle, middle, 0.005) is None
 
 
 @settings(max_examples=15, deadline=None)
@@ -113,8 +111,7 @@ def test_dense_scans_get_a_grid_of_their_own_size_and_sparse_clouds_none():
 def test_the_grid_follows_the_units(units, seed):
     rng = np.random.default_rng(seed)
     cloud = _surface(rng, 40_000)
-    metres, other = data_grids(cloud, cloud, 0.005), data_grids(units * cloud, units * cloud, 0.005)
-    assert other.result == pytest.approx(units * metres.result) and other.work == pytest.approx(units * metres.work)
+    assert data_grid(units * cloud, units * cloud, 0.01) == pytest.approx(units * data_grid(cloud, cloud, 0.01))
 
 
 def test_a_stray_far_point_does_not_change_the_scene_size():

@@ -89,7 +89,9 @@ def test_on_large_clouds_the_search_screens_its_estimates_and_refines_only_the_p
     wrong = [T @ rigid(euler_to_matrix(angles), np.zeros(3)) for angles in ([180.0, 0.0, 0.0], [0.0, 180.0, 0.0], [0.0, 0.0, 180.0])]
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.stack(wrong + [T] + wrong))
     calls = record_icp(monkeypatch)
-    config = RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="always", starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0)))
+    config = RegisterConfig(
+        second_network=NO_SECOND, attempt_points=5_000, search=SearchConfig(mode="always", starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0))
+    )
     res = register(src, tgt, config, model=AlwaysWrongModel(wrong[0][:3, :3]))
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5
     # The network's estimate on the work clouds; the feature match's screened until the right
