@@ -150,8 +150,8 @@ def kiss_matcher(source: np.ndarray, target: np.ndarray, voxel: float) -> np.nda
     import kiss_matcher as km  # optional: o3dsoft[peers]
 
     magnify = max(1.0, _KISS_MIN_VOXEL / voxel)
-    matcher = km.KISSMatcher(km.KISSMatcherConfig(voxel * magnify))
     with quiet_c_output("stdout"):  # it prints warnings about its noise bounds on every call
+        matcher = km.KISSMatcher(km.KISSMatcherConfig(voxel * magnify))
         solution = matcher.estimate((magnify * source).astype(np.float32), (magnify * target).astype(np.float32))
     T = np.eye(4)
     T[:3, :3] = np.asarray(solution.rotation)
