@@ -81,7 +81,7 @@ def _pipeline_options(fn):
                 "--voxel",
                 type=click.FloatRange(min=0),
                 default=None,
-                help="Register both clouds on a voxel grid of this size (their units); default: 0.5 % of the scene's size for clouds denser than that (estimates tried on 1 %); 0: every point.",
+                help="Register both clouds on a voxel grid of this size (their units); default: 1 % of the scene's size for clouds of over 10,000 points denser than half of that; 0: every point.",
             ),
             click.option(
                 "--coarse-iterations",

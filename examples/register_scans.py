@@ -6,7 +6,7 @@
     ... --render DIR                                           # one picture per pair
 
 No setting depends on the scans' units or size: o3dsoft registers dense scans on a voxel grid of
-0.5 % of the scene's size (tries its estimates on 1 %), refines with point-to-plane ICP, and
+1 % of the scene's size, refines with point-to-plane ICP, and
 decides whether to trust the result on the clouds it is the answer for. A pairs.txt lists one
 pair per line, ``source target transform`` (paths relative to its folder, the transform a 4x4
 T_target_source); see ../shared/data/real_scans/README.md.
