@@ -38,6 +38,10 @@ class ICPConfig:
         early_relative: the stages before the last stop when their fitness and RMSE change by
             less than this share from one iteration to the next (only the last, which goes on
             from there, needs to converge tightly).
+        plane_relative: point-to-plane ICP's last stage stops at this share instead of
+            `relative_fitness` / `relative_rmse`: it converges in a few iterations, and at 1e-7
+            the pairs that flicker in and out at the tight distance keep it iterating up to
+            `max_iterations` (docs/scans.md).
         max_points: clouds above this size are voxel-downsampled before ICP.
         polish: end with one float64 point-to-point step at the last distance (:func:`polish`).
         noise_factor: the last stage's distance is at least this many times the residual of the
@@ -60,6 +64,7 @@ class ICPConfig:
     relative_fitness: float = 1e-7
     relative_rmse: float = 1e-7
     early_relative: float = 1e-4
+    plane_relative: float = 1e-5
     max_points: int = 100_000
     polish: bool = True
     noise_factor: float = 2.5
@@ -163,14 +168,15 @@ def icp(
     reg = o3d.pipelines.registration
     src = to_open3d(downsample(source, config.max_points))
     tgt = to_open3d(downsample(target, config.max_points))
-    last = reg.ICPConvergenceCriteria(relative_fitness=config.relative_fitness, relative_rmse=config.relative_rmse, max_iteration=config.max_iterations)
+    plane = config.method == "plane"
+    fitness, rmse = (config.plane_relative, config.plane_relative) if plane else (config.relative_fitness, config.relative_rmse)
+    last = reg.ICPConvergenceCriteria(relative_fitness=fitness, relative_rmse=rmse, max_iteration=config.max_iterations)
     early = reg.ICPConvergenceCriteria(relative_fitness=config.early_relative, relative_rmse=config.early_relative, max_iteration=config.max_iterations)
     T = np.asarray(init, dtype=np.float64)
     distances = [distance * factor for factor in config.schedule]
     src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
     tree = cKDTree(tgt_points)
 
-    plane = config.method == "plane"
     if plane:
         given = target_normals is not None and len(target_normals) == len(target) and len(target) <= config.max_points
         tgt.normals = o3d.utility.Vector3dVector(target_normals if given else normals(tgt_points, config.normal_neighbours))

@@ -131,6 +131,20 @@ def test_the_final_icp_runs_the_last_stage_only(bunny_root, monkeypatch):
     assert calls == [pytest.approx(0.001)]
 
 
+def test_point_to_plane_stops_at_its_own_tolerance(bunny_root, monkeypatch):
+    # It converges in a few iterations; at 1e-7 the pairs that flicker at the tight distance keep
+    # it going up to max_iterations. Point-to-point keeps the tighter tolerance its polish needs.
+    from o3dsoft import refine
+
+    points = o3dsoft.read_points(bunny_root / "bun000.ply")[::8]
+    stops = []
+    real = refine.o3d.pipelines.registration.registration_icp
+    monkeypatch.setattr(refine.o3d.pipelines.registration, "registration_icp", lambda *a, **k: stops.append(a[5].relative_fitness) or real(*a, **k))
+    for method in ("plane", "point"):
+        refine.icp(points, points, np.eye(4), 0.01, ICPConfig(method=method, noise_factor=0.0))
+    assert stops == [pytest.approx(1e-4)] * 2 + [pytest.approx(1e-5)] + [pytest.approx(1e-4)] * 2 + [pytest.approx(1e-7)]
+
+
 def test_the_quick_icp_ranks_with_the_loose_stages_only():
     quick = ICPConfig().quick(20)
     assert quick.schedule == (1.0, 0.3) and not quick.polish and quick.noise_factor == 0 and quick.max_iterations == 20
