@@ -133,7 +133,7 @@ def _pipeline_options(fn):
                 "--second-weights",
                 default="incongruent",
                 show_default=True,
-                help="A second network, for clouds that share no point (scans), run when the first network's result is flagged: a model file or a shipped model's name; 'none': off.",
+                help="A second network, for clouds that share no point, run when the first network's result is flagged (not on scans, where it was never right): a model file or a shipped model's name; 'none': off.",
             ),
             click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP),
         ],
@@ -214,7 +214,7 @@ def _register_config(
     type=click.Choice(["auto", "point", "plane"]),
     default="auto",
     show_default=True,
-    help="ICP's error: point-to-point, point-to-plane, or auto (point-to-plane for clouds registered on a voxel grid).",
+    help="ICP's error: point-to-point, point-to-plane, or auto (point-to-plane on scans: clouds registered on a voxel grid, or of more than 4,096 points).",
 )
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")

@@ -133,7 +133,7 @@ class SearchConfig:
         prior_margin_deg: under ``RegisterConfig.max_rotation``, estimates are screened against
             the bound with this margin (degrees) before ICP, which can still move them into it
             (default 10).
-        kiss: on clouds registered on a voxel grid (scans), KISS-Matcher's estimate is tried
+        kiss: on scans (``PreparedPair.scans``), KISS-Matcher's estimate is tried
             before the feature match, where the optional package ``kiss-matcher`` is installed
             (``o3dsoft[peers]``; default True).
         kiss_voxel: KISS-Matcher's voxel, as a share of the larger scene's size (default 0.01).
@@ -173,8 +173,9 @@ class SecondNetworkConfig:
     as every two scans are), run from the pose as given when the first network's result is flagged,
     before the search (:class:`o3dsoft.strategies.NetworkPass`); not after the feature match, which
     runs first on a partial overlap when the search is on (there it changed no result,
-    docs/incongruent.md), nor on clouds registered on a voxel grid (scans: of the 52 shared scan
-    pairs it ran on 4 and was wrong on each, where the search's feature match was right; docs/scans.md). Its estimate counts as the pipeline's own, so the search must find one
+    docs/incongruent.md), nor on scans (clouds on a voxel grid or of more than 4,096 points,
+    ``PreparedPair.scans``: of the 52 shared scan pairs it ran on 4 and was wrong on each, where the
+    search's feature match was right; docs/scans.md). Its estimate counts as the pipeline's own, so the search must find one
     clearly better to replace it (``replace_odds``).
 
     Attributes:
@@ -207,6 +208,7 @@ class RegisterConfig:
             (default 1).
         attempt_points: every estimate is refined and scored on the clouds voxel-downsampled to at
             most this many points each; the kept one is refined again at full resolution
+            (``pipeline._refine_full``)
             (default 10,000: RGB-D fragments on the data's grid, 5,000-9,000 points, are scored
             whole, so that the trust that decides whether to search is the full clouds'). Clouds
             of at most this many points get no grid from the data.

@@ -24,6 +24,9 @@ if TYPE_CHECKING:
 CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud"]
 Clouds = Tuple[np.ndarray, np.ndarray]  # (N, 3) source, (M, 3) target
 
+# Clouds with more points than this are scans even off a grid: above any ModelNet40 release (2,048 per shape).
+SCAN_POINTS = 4096
+
 
 def as_points(cloud: CloudLike, name: str) -> np.ndarray:
     """An Open3D PointCloud or an (N, 3) array-like -> (N, 3) float64 array."""
@@ -56,8 +59,10 @@ class PreparedPair:
     - ``net``: ``config.num_points`` random samples of ``full`` for the network, and
       ``net_normalised`` the same centred on their own centroids and divided by one scale.
 
+    ``scans``: the clouds are scans, registered on a voxel grid or of more than
+    :data:`SCAN_POINTS` points (point-to-plane ICP, KISS-Matcher in the search, no second network).
     ``config`` is the pipeline's settings with ICP's method decided for this pair (``"auto"``:
-    point-to-plane on clouds registered on a voxel grid).
+    point-to-plane on scans).
 
     Args:
         source: (N, 3) array or Open3D PointCloud; target: (M, 3), in the same units.
@@ -90,8 +95,11 @@ class PreparedPair:
             self.voxel = None
         if self.voxel is not None:
             self.full = self._grid(self.full, self.voxel, names, k)
+        # Scans: on a voxel grid, or more points than any ModelNet40 shape has (clouds a user
+        # downsampled already: the data's grid leaves them as they are).
+        self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
         if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest
-            config = replace(config, icp=replace(config.icp, method="point" if self.voxel is None else "plane"))
+            config = replace(config, icp=replace(config.icp, method="plane" if self.scans else "point"))
         self.config = config
         clock.lap("clean")
         # The network's samples, normalised together (own centroids, one common scale).

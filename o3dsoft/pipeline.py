@@ -7,7 +7,8 @@
     -> verify each (ICP on the work clouds, confidence)
     -> select the most trusted (within the rotation prior, if any; among those bringing at least
        half as many points into contact as the one that brings most)
-    -> refine it at full resolution (when the work clouds were reduced).
+    -> refine it again on the clouds it is the answer for (at full resolution when the work
+       clouds were reduced; ICP's last stage with point-to-plane ICP).
 
 Where each stage lives: :class:`o3dsoft.pair.PreparedPair`, :mod:`o3dsoft.strategies`,
 :class:`o3dsoft.verify.Verifier`, :mod:`o3dsoft.refine`, :mod:`o3dsoft.confidence`. The settings
@@ -192,16 +193,16 @@ def _register(
     # Propose: on a partial overlap the feature match first (the network, trained on complete
     # shapes, is seldom confident there); then the network, unless that was confident; then, while
     # nothing is and the feature match did not go first, the second network (the first matches
-    # points; two samplings of a surface share none). Not on scans (clouds on a voxel grid): the
-    # search's feature match solves those the first network leaves, and the second was never
-    # right there (docs/scans.md).
+    # points; two samplings of a surface share none). Not on scans (``pair.scans``): the search's
+    # feature match solves those the first network leaves, and the second was never right there
+    # (docs/scans.md).
     features_first = search.features_on and pair.looks_partial()
     clock.lap("sample_normalise")
     if features_first:
         _match_features(pair, verifier)
     if not (features_first and verifier.confident()):
         network.propose(pair, verifier)
-    if config.second_network.weights is not None and not features_first and pair.voxel is None and not verifier.confident():
+    if config.second_network.weights is not None and not features_first and not pair.scans and not verifier.confident():
         _second_network(pair, verifier)
 
     # Search while nothing is confident: feature match, networks from many starts, votes, restart.
@@ -299,7 +300,7 @@ def _second_network(pair: PreparedPair, verifier: Verifier) -> None:
 def _match_features(pair: PreparedPair, verifier: Verifier) -> None:
     """The search's matching strategies: KISS-Matcher's estimate on scans (where installed), then
     FPFH + RANSAC's while none is trusted enough to end the feature match."""
-    kiss = pair.config.search.kiss and pair.voxel is not None and kiss_available()
+    kiss = pair.config.search.kiss and pair.scans and kiss_available()
     if kiss:
         KissMatcherProposal().propose(pair, verifier)
     if not (kiss and verifier.settled()):
@@ -307,16 +308,19 @@ def _match_features(pair: PreparedPair, verifier: Verifier) -> None:
 
 
 def _refine_full(pair: PreparedPair, verifier: Verifier, best: Attempt) -> Attempt:
-    """The kept estimate refined and scored on the clouds it is the answer for, by ICP's last stage
-    only (:meth:`~o3dsoft.refine.ICPConfig.final`: it has converged through the whole schedule on
-    the work clouds; the wider stages would pull it towards the parts with no partner, and cost
-    the most): at full resolution when the work clouds were reduced, and with point-to-plane ICP
-    (scans) in any case, since the schedule's noise floor, a point-to-point residual, is set by
-    the grid's spacing there. As it is otherwise (the paper's point-to-point ICP on clouds tried
-    whole)."""
-    if not (pair.reduced or pair.config.icp.method == "plane"):
+    """The kept estimate refined again and scored on the clouds it is the answer for: with
+    point-to-plane ICP (scans), by ICP's last stage only (:meth:`~o3dsoft.refine.ICPConfig.final`:
+    it has converged through the whole schedule on the work clouds; the wider stages would pull it
+    towards the parts with no partner, and the noise floor, a point-to-point residual, is set by
+    the sampling's spacing on independently sampled scans), on the full clouds when the work
+    clouds were reduced and on the work clouds otherwise; with point-to-point ICP, by the tight
+    stages at full resolution when the work clouds were reduced (their noise rounds keep a noisy
+    pair's true partners), and as it is otherwise."""
+    plane = pair.config.icp.method == "plane"
+    if not pair.config.refine or not (pair.reduced or plane):
         return best
-    return verifier.refine(best.fine.transformation, best.coarse, "full", pair.config.icp.final(), by=best.by)
+    icp = pair.config.icp.final() if plane else pair.config.icp.tight()
+    return verifier.refine(best.fine.transformation, best.coarse, "full" if pair.reduced else "work", icp, by=best.by)
 
 
 def _select(verifier: Verifier) -> Attempt:

@@ -38,7 +38,8 @@ class ICPConfig:
         early_relative: the stages before the last stop when their fitness and RMSE change by
             less than this share from one iteration to the next (only the last, which goes on
             from there, needs to converge tightly).
-        plane_relative: point-to-plane ICP's last stage stops at this share instead of
+        plane_relative: point-to-plane ICP's last stage (of the schedule in use, also the
+            quick one's) stops at this share instead of
             `relative_fitness` / `relative_rmse`: it converges in a few iterations, and at 1e-7
             the pairs that flicker in and out at the tight distance keep it iterating up to
             `max_iterations` (docs/scans.md).
@@ -53,8 +54,9 @@ class ICPConfig:
         method: "point" (point-to-point, the paper's), "plane" (point-to-plane, against the
             target's normals from `normal_neighbours` neighbours: far fewer iterations on sampled
             surfaces, and not limited by their sampling; Open3D sums it in threads, so results
-            repeat to about 1e-15, not to the bit), or "auto": plane for clouds registered on a
-            voxel grid (scans), point otherwise (:class:`o3dsoft.pair.PreparedPair` decides).
+            repeat to about 1e-15, not to the bit), or "auto": plane on scans (clouds
+            registered on a voxel grid, or of more than 4,096 points), point otherwise
+            (:class:`o3dsoft.pair.PreparedPair` decides).
     """
 
     distance: float = 0.1

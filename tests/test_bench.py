@@ -549,3 +549,26 @@ def test_the_source_commit_is_read_without_writing_to_the_checkout(tmp_path):
     (tmp_path / "a.py").write_text("x = 2\n")
     assert bench.source_commit(tmp_path).endswith("+changes")
     assert (index.stat().st_mtime_ns, index.read_bytes()) == before and not (tmp_path / ".git" / "index.lock").exists()
+
+
+def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):
+    # Its constructor and its solver print warnings about their noise bounds to C's stdout (here:
+    # a scan in millimetres against one in metres); o3dsoft's output is its own.
+    import subprocess
+    import sys
+
+    from o3dsoft import baselines
+
+    if not baselines.installed("kiss_matcher"):
+        pytest.skip("the optional package kiss-matcher is not installed")
+    code = (
+        "import numpy as np, o3dsoft\n"
+        "from o3dsoft import baselines\n"
+        f"s = o3dsoft.read_points({str(bunny_root / 'bun000.ply')!r})\n"
+        f"t = o3dsoft.read_points({str(bunny_root / 'bun045.ply')!r})\n"
+        "from o3dsoft.preprocess import scene_size\n"
+        "baselines.kiss_matcher(1000 * s, t, 0.01 * max(scene_size(1000 * s), scene_size(t)))\n"
+        "print('done')\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, check=True)
+    assert run.stdout.decode() == "done\n" and b"Warning" not in run.stderr

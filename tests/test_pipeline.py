@@ -281,6 +281,10 @@ def test_estimates_are_refined_on_reduced_clouds_and_the_kept_one_at_full_resolu
     sizes.clear()
     register(src[:900], tgt[:900], RegisterConfig(attempt_points=1000, search=SearchConfig(mode="off")), model=NearSightedModel(T[:3, :3]))
     assert sizes == [(900, (1.0, 0.3, 0.1))]  # small clouds: refined once, as they are
+    sizes.clear()
+    on_a_grid = RegisterConfig(voxel=1e-6, attempt_points=1000, search=SearchConfig(mode="off"))  # a scan: point-to-plane
+    res = register(src[:900], tgt[:900], on_a_grid, model=NearSightedModel(T[:3, :3]))
+    assert res.icp_method == "plane" and sizes == [(900, (1.0, 0.3, 0.1)), (900, (0.1,))]  # then its last stage alone
 
 
 def test_a_flagged_result_is_left_unrefined_when_asked(monkeypatch):
@@ -415,10 +419,12 @@ def test_kiss_matchers_estimate_comes_before_the_feature_match_on_scans(monkeypa
     assert kiss_runs[0] == pytest.approx(0.01 * max(scene_size(src), scene_size(tgt)), rel=0.05)
     assert not res.likely_failed and pair_errors(res.transformation, truth).rotation_deg < 0.5
     register(src, tgt, replace(config, search=replace(config.search, kiss=False)))
-    register(src, tgt, replace(config, voxel=None))  # not on a grid: the ModelNet40 protocols' path
+    register(src[::2], tgt[::2], replace(config, voxel=None))  # 3,500 points, no grid: the ModelNet40 protocols' path
+    register(src, tgt, replace(config, voxel=0))  # every point of 7,000: a scan a user downsampled already
+    assert len(kiss_runs) == 2 and len(feature_runs) == 2
     monkeypatch.setattr("o3dsoft.pipeline.kiss_available", lambda: False)  # o3dsoft without its [peers] extra
     register(src, tgt, config)
-    assert len(kiss_runs) == 1 and len(feature_runs) == 3
+    assert len(kiss_runs) == 2 and len(feature_runs) == 3
 
 
 def _turned_pair(euler_deg):

@@ -59,10 +59,11 @@ def test_the_feature_match_estimates_are_tried_in_turn_until_one_is_confident(mo
     real_features = baselines.fpfh_features
     monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale, config: described.append(len(points)) or real_features(points, scale, config))
     model = AlwaysWrongModel(upside_down[:3, :3])
-    # No votes (the last resort, tested on its own), no screen (every estimate on the work clouds).
+    # No votes (the last resort, tested on its own), no screen (every estimate on the work clouds),
+    # no KISS-Matcher (which goes first on scans such as this pair).
     config = RegisterConfig(
         second_network=NO_SECOND,
-        search=SearchConfig(mode="always", starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0), screen=ScreenConfig(points=10**6)),
+        search=SearchConfig(mode="always", kiss=False, starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0), screen=ScreenConfig(points=10**6)),
     )
     res = register(src, tgt, config, model=model)
     # the network's estimate, then the feature match's first two; the right one ends the search
@@ -90,7 +91,9 @@ def test_on_large_clouds_the_search_screens_its_estimates_and_refines_only_the_p
     monkeypatch.setattr(search.FeatureMatch, "candidates", lambda self, seed, count: np.stack(wrong + [T] + wrong))
     calls = record_icp(monkeypatch)
     config = RegisterConfig(
-        second_network=NO_SECOND, attempt_points=5_000, search=SearchConfig(mode="always", starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0))
+        second_network=NO_SECOND,
+        attempt_points=5_000,
+        search=SearchConfig(mode="always", kiss=False, starts=StartsConfig(weights=None), votes=VotesConfig(rotations=0)),
     )
     res = register(src, tgt, config, model=AlwaysWrongModel(wrong[0][:3, :3]))
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 0.5
