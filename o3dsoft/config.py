@@ -174,9 +174,9 @@ class SecondNetworkConfig:
     before the search (:class:`o3dsoft.strategies.NetworkPass`); not after the feature match, which
     runs first on a partial overlap when the search is on (there it changed no result,
     docs/incongruent.md), nor on scans (clouds on a voxel grid or of more than 4,096 points,
-    ``PreparedPair.scans``: of the 52 shared scan pairs it ran on 4 and was wrong on each, where the
-    search's feature match was right; docs/scans.md). Its estimate counts as the pipeline's own, so the search must find one
-    clearly better to replace it (``replace_odds``).
+    ``PreparedPair.scans``: of the 52 shared scan pairs it ran on 4 and was wrong on each, where
+    the search's feature match was right; docs/scans.md). Its estimate counts as the pipeline's
+    own, so the search must find one clearly better to replace it (``replace_odds``).
 
     Attributes:
         weights: a model file or a shipped model's name (default "incongruent", trained on
@@ -208,10 +208,10 @@ class RegisterConfig:
             (default 1).
         attempt_points: every estimate is refined and scored on the clouds voxel-downsampled to at
             most this many points each; the kept one is refined again at full resolution
-            (``pipeline._refine_full``)
-            (default 10,000: RGB-D fragments on the data's grid, 5,000-9,000 points, are scored
-            whole, so that the trust that decides whether to search is the full clouds'). Clouds
-            of at most this many points get no grid from the data.
+            (``pipeline._refine_full``). Default 10,000: RGB-D fragments on the data's grid,
+            5,000-9,000 points, are scored whole, so that the trust that decides whether to
+            search is the full clouds'. Clouds of at most this many points get no grid from the
+            data.
         max_rotation: the clouds are given within this many degrees of their true relative
             rotation (a prior, e.g. from odometry): estimates beyond it get confidence 0, and the
             result lies within it; None: any rotation (default).

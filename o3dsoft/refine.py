@@ -38,11 +38,10 @@ class ICPConfig:
         early_relative: the stages before the last stop when their fitness and RMSE change by
             less than this share from one iteration to the next (only the last, which goes on
             from there, needs to converge tightly).
-        plane_relative: point-to-plane ICP's last stage (of the schedule in use, also the
-            quick one's) stops at this share instead of
-            `relative_fitness` / `relative_rmse`: it converges in a few iterations, and at 1e-7
-            the pairs that flicker in and out at the tight distance keep it iterating up to
-            `max_iterations` (docs/scans.md).
+        plane_relative: point-to-plane ICP's last stage (of the schedule in use, also the quick
+            one's) stops at this share instead of `relative_fitness` / `relative_rmse`: it
+            converges in a few iterations, and at 1e-7 the pairs that flicker in and out at the
+            tight distance keep it iterating up to `max_iterations` (docs/scans.md).
         max_points: clouds above this size are voxel-downsampled before ICP.
         polish: end with one float64 point-to-point step at the last distance (:func:`polish`).
         noise_factor: the last stage's distance is at least this many times the residual of the

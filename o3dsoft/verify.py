@@ -99,10 +99,11 @@ class Verifier:
     def in_contact(self, attempts: List[Attempt]) -> List[Attempt]:
         """Those of `attempts` that bring at least ``search.min_contact`` times as many points
         within the tight distance (``Features.fitness_tight``) as the attempt of the pair that
-        brings most: the others are not chosen. The confidence judges how well the part in contact fits, so that partial
-        overlaps are not penalised; a pose that slides one shape off the other until a small
-        patch fits scores as high as the right one, and among the estimates of one pair the one
-        that explains more of the clouds at that quality is the likelier."""
+        brings most: the others are not chosen. The confidence judges how well the part in
+        contact fits, so that partial overlaps are not penalised; a pose that slides one shape off
+        the other until a small patch fits scores as high as the right one, and among the
+        estimates of one pair the one that explains more of the clouds at that quality is the
+        likelier."""
         most = max(a.scored.fitness_tight for a in self.attempts)
         return [a for a in attempts if a.scored.fitness_tight >= self.config.search.min_contact * most]
 

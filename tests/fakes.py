@@ -147,6 +147,23 @@ def record_icp(monkeypatch) -> list:
     return calls
 
 
+def record_open3d_icp(monkeypatch) -> list:
+    """Make every Open3D ICP call record (correspondence distance, relative_fitness criterion)
+    in the list returned."""
+    from o3dsoft import refine
+
+    calls = []
+    reg = refine.o3d.pipelines.registration
+    real = reg.registration_icp
+
+    def recording(source, target, distance, init, estimation, criteria):
+        calls.append((distance, criteria.relative_fitness))
+        return real(source, target, distance, init, estimation, criteria)
+
+    monkeypatch.setattr(reg, "registration_icp", recording)
+    return calls
+
+
 def moved_bunny(seed):
     src = o3dsoft.read_points(EXAMPLES / "bun000.ply")[::4]
     T = random_transform(np.random.default_rng(seed), 150.0, 0.1)

@@ -5,9 +5,10 @@ import o3dsoft
 from o3dsoft.config import RegisterConfig
 from o3dsoft.metrics import rotation_error_deg
 from o3dsoft.pipeline import register
-from o3dsoft.refine import ICPConfig, downsample
+from o3dsoft.refine import ICPConfig, downsample, icp
 
 from .conftest import blob, random_transform
+from .fakes import record_open3d_icp
 
 
 def test_downsample_bounds_large_clouds():
@@ -19,7 +20,7 @@ def test_downsample_bounds_large_clouds():
 
 def test_icp_ends_at_the_least_squares_optimum(modelnet_root):
     from o3dsoft.data import get_protocol, load_pairs
-    from o3dsoft.refine import icp, polish
+    from o3dsoft.refine import polish
 
     # The first `paper` test pair (identical points, shuffled) from the shipped network's estimate:
     # there Open3D's ICP stopped at 1.7e-5 degrees; the float64 step reaches the optimum (~4e-8).
@@ -36,7 +37,6 @@ def test_icp_ends_at_the_least_squares_optimum(modelnet_root):
 
 def test_only_icps_last_stage_needs_to_converge_tightly(modelnet_root, monkeypatch):
     from o3dsoft.data import get_protocol, load_pairs
-    from o3dsoft.refine import icp, o3d
 
     # Stages before the last stop at a relative change of 1e-4 (ICPConfig.early_relative): from 8
     # degrees off, the first `paper` pairs (identical points) still end at the optimum, where
@@ -50,11 +50,9 @@ def test_only_icps_last_stage_needs_to_converge_tightly(modelnet_root, monkeypat
             T = icp(source, target, start, 0.1, config).transformation
             assert rotation_error_deg(T[:3, :3], pair.transform[:3, :3]) < 1e-6
     # The criteria as Open3D receives them: loose in the stages before the last, tight in it.
-    reg, criteria = o3d.pipelines.registration, []
-    run_icp = reg.registration_icp
-    monkeypatch.setattr(reg, "registration_icp", lambda *a: criteria.append(a[-1].relative_fitness) or run_icp(*a))
+    calls = record_open3d_icp(monkeypatch)
     icp(source, target, start, 0.1, ICPConfig(schedule=(1.0, 0.3, 0.1), noise_factor=0.0))
-    assert criteria == [1e-4, 1e-4, 1e-7]
+    assert [criterion for _, criterion in calls] == [1e-4, 1e-4, 1e-7]
 
 
 def test_icp_keeps_the_true_pairs_of_noisy_partial_clouds(modelnet_root):
@@ -121,28 +119,20 @@ def test_the_final_icp_runs_the_last_stage_only(bunny_root, monkeypatch):
     assert ICPConfig().final().schedule == (0.1,) and ICPConfig(schedule=(0.5,)).final().schedule == (0.5,)
     # One Open3D call: a single stage has no noise rounds, whose floor (a point-to-point residual)
     # independent samplings' spacing would set.
-    from o3dsoft import refine
-
     points = o3dsoft.read_points(bunny_root / "bun000.ply")[::4]
-    calls = []
-    real = refine.o3d.pipelines.registration.registration_icp
-    monkeypatch.setattr(refine.o3d.pipelines.registration, "registration_icp", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
-    refine.icp(points, points, np.eye(4), 0.01, ICPConfig(method="plane").final())
-    assert calls == [pytest.approx(0.001)]
+    calls = record_open3d_icp(monkeypatch)
+    icp(points, points, np.eye(4), 0.01, ICPConfig(method="plane").final())
+    assert [distance for distance, _ in calls] == [pytest.approx(0.001)]
 
 
 def test_point_to_plane_stops_at_its_own_tolerance(bunny_root, monkeypatch):
     # It converges in a few iterations; at 1e-7 the pairs that flicker at the tight distance keep
     # it going up to max_iterations. Point-to-point keeps the tighter tolerance its polish needs.
-    from o3dsoft import refine
-
     points = o3dsoft.read_points(bunny_root / "bun000.ply")[::8]
-    stops = []
-    real = refine.o3d.pipelines.registration.registration_icp
-    monkeypatch.setattr(refine.o3d.pipelines.registration, "registration_icp", lambda *a, **k: stops.append(a[5].relative_fitness) or real(*a, **k))
+    calls = record_open3d_icp(monkeypatch)
     for method in ("plane", "point"):
-        refine.icp(points, points, np.eye(4), 0.01, ICPConfig(method=method, noise_factor=0.0))
-    assert stops == [pytest.approx(1e-4)] * 2 + [pytest.approx(1e-5)] + [pytest.approx(1e-4)] * 2 + [pytest.approx(1e-7)]
+        icp(points, points, np.eye(4), 0.01, ICPConfig(method=method, noise_factor=0.0))
+    assert [criterion for _, criterion in calls] == [pytest.approx(1e-4)] * 2 + [pytest.approx(1e-5)] + [pytest.approx(1e-4)] * 2 + [pytest.approx(1e-7)]
 
 
 def test_the_quick_icp_ranks_with_the_loose_stages_only():
@@ -152,7 +142,7 @@ def test_the_quick_icp_ranks_with_the_loose_stages_only():
 
 
 def test_point_to_plane_with_the_normals_given_once_is_the_same_icp():
-    from o3dsoft.refine import icp, normals
+    from o3dsoft.refine import normals
 
     rng = np.random.default_rng(9)
     src = blob(rng, 3_000)
