@@ -186,8 +186,16 @@ class CoarseModel:
 
     def run(self, source: torch.Tensor, target: torch.Tensor):
         """Raw network call: (B, N, 3), (B, M, 3) normalised clouds -> (R, t, w)."""
-        with torch.no_grad():
+        with self.inference():
             return self.module(source.to(self.device), target.to(self.device))
+
+    @contextmanager
+    def inference(self) -> Iterator[None]:
+        """No gradients, and on the CPU no optimising graph executor: TorchScript's profiling
+        runs cost 0.1-0.2 s on each of the first two calls per input shape (most of a CLI
+        ``register`` call's network time) and make later calls no faster there (docs/speed.md)."""
+        with torch.no_grad(), torch.jit.optimized_execution(self.device.type != "cpu"):
+            yield
 
     def neighbours(self, points: torch.Tensor) -> torch.Tensor:
         """(B, N, 3) -> (B, N, K) int64 neighbour indices, the sets of the network's ball query.
@@ -230,7 +238,7 @@ class CoarseModel:
         def run(source: torch.Tensor, idx: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
             source = source.to(self.device)
             idx = self.neighbours(source) if idx is None else idx.to(self.device).expand(source.shape[0], -1, -1)
-            with torch.no_grad():
+            with self.inference():
                 if not target_descriptors and self.config.shared_encoder and source.shape[0] == 1 and source.shape == target.shape:
                     # One encoder call on the pair: faster on the CPU than two calls of one cloud each.
                     both = self.module.describe_target(torch.cat([target, source]), torch.cat([self.neighbours(target), idx]))

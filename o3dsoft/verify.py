@@ -37,8 +37,9 @@ class Attempt(NamedTuple):
 
 class Verifier:
     """Refines and scores estimates of one pair, and keeps them: ``attempts``, scored on the work
-    clouds, among which the result is chosen; ``screened``, the search's estimates as the screen
-    clouds scored them first (on large clouds only the most promising are promoted to attempts).
+    clouds, among which the result is chosen; ``screened``, the search's estimates (and on scans the
+    network's) as the screen clouds scored them first (on large clouds only the most promising
+    are promoted to attempts).
 
     The stop rule of every strategy reads :meth:`confident` and :meth:`settled`.
     """
@@ -88,6 +89,8 @@ class Verifier:
         def rank(a: Attempt):
             return (self.admissible(a.fine.transformation), a.trust)
 
+        if not self.attempts:  # every estimate was screened and none promoted: the screen's best
+            self.promote(max(self.screened, key=rank))
         best = max(self.in_contact(self.attempts), key=rank)
         own = self.in_contact(self.attempts[: self.search_from]) if self.search_from is not None else []
         if not own or any(a is best for a in own):
@@ -152,6 +155,17 @@ class Verifier:
         attempt = self.refine(screened.fine.transformation, screened.coarse, icp=self.config.icp.tight(), by=screened.by)._replace(start=screened.start)
         self.attempts.append(attempt)
         return attempt
+
+    def screen_first(self, start: np.ndarray, by: str) -> None:
+        """The pipeline's own estimate of a scan pair, screened first: refined and scored on the
+        screen clouds, and kept among the attempts only when the screen trusts it (else the search
+        follows, and it is kept only if nothing else is). A wrong estimate costs ICP on the work
+        clouds most from far away (docs/scans.md)."""
+        quick = self.config.search.screen.max_iterations
+        s = self.refine(start, start, "screen", self.config.icp.quick(quick) if quick else self.config.icp, by=by)
+        self.screened.append(s)
+        if s.trust >= self.config.confidence.likely_failed_below:
+            self.promote(s)
 
     def try_estimate(self, start: np.ndarray, icp: refine_stage.ICPConfig, by: str) -> None:
         """One of the search's estimates: on small clouds refined and kept at once; on large ones

@@ -199,3 +199,12 @@ def test_a_file_whose_card_describes_another_network_is_refused(tmp_path, module
     torch.jit.script(module).save(str(tmp_path / "impostor.pt"), _extra_files={META_NAME: json.dumps(meta)})
     with pytest.raises(InputError, match=f"impostor.pt: {match}"):
         load_model(tmp_path / "impostor.pt")
+
+
+def test_cpu_inference_runs_without_the_optimising_graph_executor(tiny_model_path):
+    # Its profiling runs cost 0.1-0.2 s on each of the first two calls per input shape on the CPU.
+    model = load_model(tiny_model_path)
+    before = torch._C._get_graph_executor_optimize()
+    with model.inference():
+        assert not torch._C._get_graph_executor_optimize() and not torch.is_grad_enabled()
+    assert torch._C._get_graph_executor_optimize() == before

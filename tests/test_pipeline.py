@@ -190,9 +190,22 @@ def test_the_search_can_add_a_feature_based_estimate():
     )
     assert without.likely_failed and pair_errors(without.transformation, T).rotation_deg > 90
     res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="always")), model=model)  # features on by default
-    # The feature match comes first and is confident: the network's starts are not needed.
-    assert res.attempts == 2 and not res.likely_failed
+    # The network's wrong estimate of these scans is screened and not kept; the feature match (here
+    # KISS-Matcher's) comes next and is confident: the network's starts are not needed.
+    assert res.screened == 2 and res.attempts == 1 and not res.likely_failed and res.estimate_from != "network starts"
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
+
+
+def test_the_networks_estimate_of_scans_is_screened_first_and_kept_when_nothing_else_is():
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    model = AlwaysWrongModel(T[:3, :3] @ euler_to_matrix([180.0, 0.0, 0.0]))
+    res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="off")), model=model)
+    # Untrusted on the screen clouds, so not refined on the work clouds then; with no other
+    # estimate it is the answer after all, refined and scored there, and flagged.
+    assert res.screened == 1 and res.attempts == 1 and res.estimate_from == "network" and res.likely_failed
+    assert pair_errors(res.transformation, T).rotation_deg > 90
 
 
 def test_search_settings_are_checked():

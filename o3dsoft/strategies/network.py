@@ -14,7 +14,8 @@ from ..verify import Verifier
 
 class NetworkPass:
     """The soft-alignment network on the normalised samples (``coarse_iterations`` passes, each
-    from the estimate so far), mapped back to the clouds' frames and verified.
+    from the estimate so far), mapped back to the clouds' frames and verified (on scans, screened
+    first: :meth:`~o3dsoft.verify.Verifier.screen_first`).
 
     After :meth:`propose`: ``estimate`` (the network's output in the normalised frame, with its
     per-point weights) and ``transformation`` ((4, 4) T_target_source in the clouds' frames).
@@ -32,4 +33,7 @@ class NetworkPass:
         self.estimate = coarse_stage.estimate(self.model, *pair.net_normalised, self.iterations)
         verifier.clock.lap(self.stage)
         self.transformation = denormalise_transform(self.estimate.transform, pair.norm)
-        verifier.add(self.transformation, self.transformation, self.name)
+        if pair.scans and pair.screening:
+            verifier.screen_first(self.transformation, self.name)
+        else:
+            verifier.add(self.transformation, self.transformation, self.name)
