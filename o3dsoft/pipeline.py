@@ -7,8 +7,8 @@
     -> verify each (ICP on the work clouds, confidence)
     -> select the most trusted (within the rotation prior, if any; among those bringing at least
        half as many points into contact as the one that brings most)
-    -> refine it again on the clouds it is the answer for (at full resolution when the work
-       clouds were reduced; ICP's last stage with point-to-plane ICP).
+    -> refine it again at full resolution when the work clouds were reduced (ICP's last stage
+       with point-to-plane ICP, its tight stages with point-to-point).
 
 Where each stage lives: :class:`o3dsoft.pair.PreparedPair`, :mod:`o3dsoft.strategies`,
 :class:`o3dsoft.verify.Verifier`, :mod:`o3dsoft.refine`, :mod:`o3dsoft.confidence`. The settings
@@ -308,19 +308,16 @@ def _match_features(pair: PreparedPair, verifier: Verifier) -> None:
 
 
 def _refine_full(pair: PreparedPair, verifier: Verifier, best: Attempt) -> Attempt:
-    """The kept estimate refined again and scored on the clouds it is the answer for: with
-    point-to-plane ICP (scans), by ICP's last stage only (:meth:`~o3dsoft.refine.ICPConfig.final`:
-    it has converged through the whole schedule on the work clouds; the wider stages would pull it
-    towards the parts with no partner, and the noise floor, a point-to-point residual, is set by
-    the sampling's spacing on independently sampled scans), on the full clouds when the work
-    clouds were reduced and on the work clouds otherwise; with point-to-point ICP, by the tight
-    stages at full resolution when the work clouds were reduced (their noise rounds keep a noisy
-    pair's true partners), and as it is otherwise."""
-    plane = pair.config.icp.method == "plane"
-    if not pair.config.refine or not (pair.reduced or plane):
+    """The kept estimate refined again and scored at full resolution when the work clouds were
+    reduced (as it is otherwise: its ICP ended on these clouds): with point-to-plane ICP (scans),
+    by ICP's last stage only (:meth:`~o3dsoft.refine.ICPConfig.final`: it has converged through
+    the whole schedule on the work clouds, and the wider stages would pull it towards the parts
+    with no partner); with point-to-point ICP, by the tight stages (their noise rounds keep a noisy
+    pair's true partners)."""
+    if not pair.config.refine or not pair.reduced:
         return best
-    icp = pair.config.icp.final() if plane else pair.config.icp.tight()
-    return verifier.refine(best.fine.transformation, best.coarse, "full" if pair.reduced else "work", icp, by=best.by)
+    icp = pair.config.icp.final() if pair.config.icp.method == "plane" else pair.config.icp.tight()
+    return verifier.refine(best.fine.transformation, best.coarse, "full", icp, by=best.by)
 
 
 def _select(verifier: Verifier) -> Attempt:

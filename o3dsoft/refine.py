@@ -4,7 +4,7 @@ ICP (point-to-point, or point-to-plane for scans) runs coarse to fine over a dis
 pulls in an estimate a few degrees off; the last ones keep only close pairs, so that parts of one
 cloud with no partner in the other (partial overlap) stop biasing the result. The last stage's
 distance never falls below ``noise_factor`` times the residual of the stage before it
-(:func:`residual`), so that noisy clouds keep their true pairs. ICP ends with one float64
+(:func:`residual`), so that noisy clouds keep their true pairs (point-to-point ICP). ICP ends with one float64
 Procrustes step on its final pairs (:func:`polish`), since Open3D's ICP stops about 1e-5 degrees
 short of the least-squares optimum. Clouds above ``max_points`` are voxel-downsampled first.
 The measurements behind these choices are in docs/pipeline.md.
@@ -44,8 +44,10 @@ class ICPConfig:
             tight distance keep it iterating up to `max_iterations` (docs/scans.md).
         max_points: clouds above this size are voxel-downsampled before ICP.
         polish: end with one float64 point-to-point step at the last distance (:func:`polish`).
-        noise_factor: the last stage's distance is at least this many times the residual of the
-            stage before it (:func:`residual`), so that noisy clouds keep their true pairs; 0: off.
+        noise_factor: point-to-point ICP's last stage's distance is at least this many times the
+            residual of the stage before it (:func:`residual`), so that noisy clouds keep their
+            true pairs; 0: off. Not for point-to-plane ICP: the residual is a point-to-point
+            distance, on independently sampled scans set by their spacing, not by their noise.
         noise_rounds: the last stage re-runs up to this many times while that bound tightens.
         tight_from: the tight stages (:meth:`tight`) are those from this share of the distance on;
             they refine an estimate that is already nearly right without the loose first stage,
@@ -189,7 +191,7 @@ def icp(
 
     for stage, stage_distance in enumerate(distances):
         last_stage = stage == len(distances) - 1
-        if last_stage and stage > 0 and config.noise_factor > 0:
+        if last_stage and stage > 0 and config.noise_factor > 0 and not plane:
             # The residual is the noise plus what is left of the misalignment: as the fit
             # tightens, so does the distance, while it shrinks by more than a tenth.
             wider = distances[stage - 1]

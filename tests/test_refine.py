@@ -93,6 +93,28 @@ def test_the_noise_aware_stage_tightens_as_the_fit_does(bunny_root, monkeypatch)
     assert rotation_error_deg(T[:3, :3], truth[:3, :3]) > 1.5
 
 
+def test_point_to_plane_icp_runs_no_noise_rounds(bunny_root, monkeypatch):
+    from o3dsoft import refine
+    from o3dsoft.preprocess import normalisation_for
+    from o3dsoft.scans import read_conf, relative_pose
+    from o3dsoft.transforms import euler_to_matrix, rigid
+
+    # Two scans placed 5 degrees off: after the loose stages the point-to-point residual puts
+    # point-to-point ICP's last stage above the schedule's distance; point-to-plane ICP's last
+    # stage stays at it.
+    source = o3dsoft.read_points(bunny_root / "bun090.ply")[::4]
+    target = o3dsoft.read_points(bunny_root / "bun180.ply")[::4]
+    truth = relative_pose(read_conf(bunny_root / "bun.conf"), "bun090.ply", "bun180.ply")
+    start = truth @ rigid(euler_to_matrix([5.0, 0.0, 0.0]), np.zeros(3))
+    distance = 0.1 * normalisation_for(source, target).scale
+    calls = record_open3d_icp(monkeypatch)
+    refine.icp(source, target, start, distance, refine.ICPConfig(method="point"))
+    assert len(calls) > 3 and calls[3][0] > 0.1 * distance  # a noise round, wider than the schedule's last
+    calls.clear()
+    refine.icp(source, target, start, distance, refine.ICPConfig(method="plane"))
+    assert [d for d, _ in calls] == pytest.approx([distance, 0.3 * distance, 0.1 * distance])
+
+
 def test_residual_is_the_noise_level():
     from scipy.spatial import cKDTree
 
