@@ -12,7 +12,7 @@ import hashlib
 import json
 import warnings
 import zipfile
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -193,8 +193,10 @@ class CoarseModel:
     def inference(self) -> Iterator[None]:
         """No gradients, and on the CPU no optimising graph executor: TorchScript's profiling
         runs cost 0.1-0.2 s on each of the first two calls per input shape (most of a CLI
-        ``register`` call's network time) and make later calls no faster there (docs/speed.md)."""
-        with torch.no_grad(), torch.jit.optimized_execution(self.device.type != "cpu"):
+        ``register`` call's network time) and make later calls no faster there (docs/speed.md).
+        Elsewhere the executor is left as the caller set it."""
+        executor = torch.jit.optimized_execution(False) if self.device.type == "cpu" else nullcontext()
+        with torch.no_grad(), executor:
             yield
 
     def neighbours(self, points: torch.Tensor) -> torch.Tensor:

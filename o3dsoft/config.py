@@ -98,19 +98,20 @@ class RestartConfig:
 
 @dataclass(frozen=True)
 class ScreenConfig:
-    """Screening of the search's estimates on large clouds (:class:`o3dsoft.verify.Verifier`).
+    """Screening of estimates on large clouds (:class:`o3dsoft.verify.Verifier`).
 
     Attributes:
         points: the screen clouds are the work clouds on a voxel grid of at most this many
             points each; on work clouds larger than that, the feature match's and the votes'
-            estimates (and the restart's starts) are refined and scored there first (default 1024).
+            estimates (and the restart's starts), and on scans the network's, are refined and
+            scored there first (default 1024).
         min_trust: ... and on the work clouds only when the screen trusts it more than every
             estimate before it and at least this much, or confidently (default 1e-3).
         max_iterations: the screen ranks estimates with a cheaper ICP (:meth:`ICPConfig.quick`:
             without the last stage, the noise rounds and the polish), each stage at most this
             many iterations (default 20); 0: the full ICP.
-        budget: at most this many estimates are screened per pair; the search's later estimates
-            are dropped (default 20; 0: no limit). On real scans the right estimate, when the
+        budget: at most this many estimates are screened per pair (the network's among them, on
+            scans); the search's later estimates are dropped (default 20; 0: no limit). On real scans the right estimate, when the
             search finds one, is among its first few (docs/scans.md).
     """
 

@@ -134,7 +134,8 @@ class PreparedPair:
 
     @property
     def screening(self) -> bool:
-        """The search's estimates are tried on the screen clouds first (large work clouds)."""
+        """The search's estimates, and the network's on scans, are tried on the screen clouds
+        first (large work clouds)."""
         return self.config.refine and max(map(len, self.work)) > self.config.search.screen.points
 
     @cached_property

@@ -48,7 +48,8 @@ class ICPConfig:
             residual of the stage before it (:func:`residual`), so that noisy clouds keep their
             true pairs; 0: off. Not for point-to-plane ICP: the residual is a point-to-point
             distance, on independently sampled scans set by their spacing, not by their noise.
-        noise_rounds: the last stage re-runs up to this many times while that bound tightens.
+        noise_rounds: the last stage re-runs up to this many times while that bound tightens
+            (point-to-point ICP).
         tight_from: the tight stages (:meth:`tight`) are those from this share of the distance on;
             they refine an estimate that is already nearly right without the loose first stage,
             which pulls it towards parts with no partner.
@@ -95,8 +96,7 @@ class ICPConfig:
         """For an estimate that has converged through the whole schedule on coarser clouds (the
         work clouds' result, refined at full resolution): the last stage only, at its own
         distance. The wider stages would pull it again towards the parts with no partner and cost
-        the most on many points; the noise floor, a point-to-point residual, is set by the
-        sampling's spacing on independently sampled clouds, not by their noise."""
+        the most on many points."""
         return replace(self, schedule=self.schedule[-1:])
 
     def quick(self, max_iterations: int) -> "ICPConfig":

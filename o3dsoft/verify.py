@@ -81,7 +81,8 @@ class Verifier:
 
     def most_trusted(self) -> Attempt:
         """The attempt to answer with: among those :meth:`in_contact`, the most trusted, those
-        within the rotation prior first. One the search proposed replaces the most trusted of the
+        within the rotation prior first (when no estimate was kept, the one the screen trusted
+        most is promoted first: refined and scored on the work clouds, and kept). One the search proposed replaces the most trusted of the
         pipeline's own only when its odds of being right are ``search.replace_odds`` times higher:
         on sparse, independently sampled clouds a right pose and a turn onto a near-symmetric copy
         of the shape score alike, and the search would trade the first estimate for one no better."""
@@ -90,6 +91,7 @@ class Verifier:
             return (self.admissible(a.fine.transformation), a.trust)
 
         if not self.attempts:  # every estimate was screened and none promoted: the screen's best
+            assert self.screened, "no estimate was proposed"
             self.promote(max(self.screened, key=rank))
         best = max(self.in_contact(self.attempts), key=rank)
         own = self.in_contact(self.attempts[: self.search_from]) if self.search_from is not None else []
@@ -144,10 +146,14 @@ class Verifier:
         return attempt
 
     def distrust(self, attempt: Attempt, trust: float) -> None:
-        """Lower a kept attempt's trust to what the full clouds gave it (no-op for one not kept)."""
+        """Lower a kept attempt's trust to what the full clouds gave it (no-op for one not kept),
+        and that of its screening, if it was promoted from one (the screen's record)."""
         for i, a in enumerate(self.attempts):
             if a is attempt:
                 self.attempts[i] = a._replace(trust=min(a.trust, trust))
+        for i, s in enumerate(self.screened):
+            if s.start is attempt.start:
+                self.screened[i] = s._replace(trust=min(s.trust, trust))
 
     def promote(self, screened: Attempt) -> Attempt:
         """An estimate converged on the screen clouds, refined (tight ICP stages, from where the
@@ -158,9 +164,11 @@ class Verifier:
 
     def screen_first(self, start: np.ndarray, by: str) -> None:
         """The pipeline's own estimate of a scan pair, screened first: refined and scored on the
-        screen clouds, and kept among the attempts only when the screen trusts it (else the search
-        follows, and it is kept only if nothing else is). A wrong estimate costs ICP on the work
-        clouds most from far away (docs/scans.md)."""
+        screen clouds, and kept among the attempts (as the pipeline's own) only when the screen
+        trusts it. Otherwise the search follows, this screening counts in its record and budget
+        like any of its own, and an estimate the search promotes replaces it freely (it is not the
+        pipeline's own). A wrong estimate costs ICP on the work clouds most from far away
+        (docs/scans.md)."""
         quick = self.config.search.screen.max_iterations
         s = self.refine(start, start, "screen", self.config.icp.quick(quick) if quick else self.config.icp, by=by)
         self.screened.append(s)

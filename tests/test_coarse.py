@@ -204,7 +204,13 @@ def test_a_file_whose_card_describes_another_network_is_refused(tmp_path, module
 def test_cpu_inference_runs_without_the_optimising_graph_executor(tiny_model_path):
     # Its profiling runs cost 0.1-0.2 s on each of the first two calls per input shape on the CPU.
     model = load_model(tiny_model_path)
+    module, seen = model.module, []
+
+    def recording(*args):
+        seen.append((torch._C._get_graph_executor_optimize(), torch.is_grad_enabled()))
+        return module(*args)
+
+    model.module = recording  # type: ignore[assignment]
     before = torch._C._get_graph_executor_optimize()
-    with model.inference():
-        assert not torch._C._get_graph_executor_optimize() and not torch.is_grad_enabled()
-    assert torch._C._get_graph_executor_optimize() == before
+    model.run(torch.rand(1, 40, 3) - 0.5, torch.rand(1, 40, 3) - 0.5)
+    assert seen == [(False, False)] and torch._C._get_graph_executor_optimize() == before

@@ -190,9 +190,9 @@ def test_the_search_can_add_a_feature_based_estimate():
     )
     assert without.likely_failed and pair_errors(without.transformation, T).rotation_deg > 90
     res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="always")), model=model)  # features on by default
-    # The network's wrong estimate of these scans is screened and not kept; the feature match (here
-    # KISS-Matcher's) comes next and is confident: the network's starts are not needed.
-    assert res.screened == 2 and res.attempts == 1 and not res.likely_failed and res.estimate_from != "network starts"
+    # The network's wrong estimate of these scans is screened and not kept; the feature match
+    # (KISS-Matcher's, where installed) comes next and is confident: the network's starts are not needed.
+    assert res.screened >= 2 and res.attempts == 1 and not res.likely_failed and res.estimate_from != "network starts"
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
 
 
@@ -392,7 +392,7 @@ def test_the_screen_tries_at_most_its_budget_of_estimates():
     T = random_transform(np.random.default_rng(4), 150.0, 0.05)
     search = SearchConfig(mode="always", screen=ScreenConfig(points=512, budget=3))
     res = register(src, apply(T, src), RegisterConfig(attempt_points=2_000, search=search))
-    assert res.searched and 1 <= res.screened <= 3
+    assert res.searched and 2 <= res.screened <= 3  # the network's (these are scans) and the search's
 
 
 def test_scans_with_a_stray_far_point_or_in_other_units_are_right_or_flagged():

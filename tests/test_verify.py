@@ -71,3 +71,22 @@ def test_min_contact_is_validated():
 
     with pytest.raises(InputError, match="min_contact"):
         RegisterConfig(search=SearchConfig(min_contact=1.5)).validate(20)
+
+
+def test_distrust_lowers_a_promoted_estimate_and_its_screening():
+    verifier = Verifier(SimpleNamespace(config=RegisterConfig()), StageClock())
+    screened = _attempt(0.8)
+    promoted = _attempt(0.9)._replace(start=screened.start)  # as Verifier.promote keeps it
+    other = _attempt(0.7, 90.0)
+    verifier.screened, verifier.attempts = [screened, other], [promoted]
+    verifier.distrust(promoted, 0.1)
+    assert [a.trust for a in verifier.attempts] == [0.1]
+    assert [s.trust for s in verifier.screened] == [0.1, 0.7]  # the screen's record no longer holds it
+
+
+def test_with_no_estimate_kept_the_screens_best_is_promoted(monkeypatch):
+    verifier = Verifier(SimpleNamespace(config=RegisterConfig()), StageClock())
+    low, high = _attempt(0.1), _attempt(0.3, 30.0)
+    verifier.screened = [low, high]
+    monkeypatch.setattr(verifier, "promote", lambda s: verifier.attempts.append(s) or s)
+    assert verifier.most_trusted() is high and verifier.attempts == [high]
