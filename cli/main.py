@@ -206,7 +206,7 @@ def _register_config(
     type=click.FloatRange(min=0, min_open=True),
     default=0.1,
     show_default=True,
-    help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute.",
+    help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute (the confidence measures at 0.1 of the radius whatever this).",
 )
 @click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
 @click.option(

@@ -41,6 +41,10 @@ class ConfidenceConfig:
     """Settings of the confidence (:class:`Scorer`, :func:`confidence`).
 
     Attributes:
+        distance: d, as a share of the pair's scale (the larger radius): the pipeline measures at
+            the distance the coefficients were fitted at, whatever ICP's distance
+            (``--icp-distance``, ``--icp-absolute``): a wider one would widen the tight distance
+            with it and trust wrong alignments (docs/scans.md).
         coefficients: the logistic function's intercept, then one weight per name of
             :data:`FEATURE_NAMES` (fitted by ``python -m benchmarks.fit_confidence``).
         likely_failed_below: results less confident than this are flagged likely failed (0-1).
@@ -56,6 +60,7 @@ class ConfidenceConfig:
             that reaches beyond d.
     """
 
+    distance: float = 0.1
     coefficients: Tuple[float, ...] = (-52.98, 58.54, 0.0)
     likely_failed_below: float = 0.5
     tight: float = 0.3
@@ -68,6 +73,8 @@ class ConfidenceConfig:
     def validate(self) -> None:
         if len(self.coefficients) != len(FEATURE_NAMES) + 1:
             raise ValueError(f"coefficients: expected {len(FEATURE_NAMES) + 1} (intercept, {', '.join(FEATURE_NAMES)}), got {len(self.coefficients)}")
+        if not self.distance > 0:
+            raise ValueError(f"distance must be positive, got {self.distance}")
         if not 0 < self.likely_failed_below < 1:
             raise ValueError(f"likely_failed_below must be in (0, 1), got {self.likely_failed_below}")
 

@@ -58,11 +58,12 @@ class RegistrationResult:
         failure_reason: why it is flagged, in words; None when it is not.
         fitness_tight: share of source points within `tight_distance` of a target point, or of
             target points near the source when the target is much sparser (0-1, higher is better).
-        tight_distance: max(0.3 x correspondence_distance, 1.5 x the point spacing of the
-            cloud compared with) (cloud units).
-        consistency: of the points counted by `fitness_tight` that lie within
-            `correspondence_distance` of the other cloud, the share within `tight_distance` (0-1,
-            higher is better; partial overlap does not lower it).
+        tight_distance: max(0.3 x the confidence's distance d (``confidence.distance`` x `scale`,
+            `correspondence_distance` by default), 1.5 x the point spacing of the cloud compared
+            with) (cloud units).
+        consistency: of the points counted by `fitness_tight` that lie within d of the other
+            cloud, the share within `tight_distance` (0-1, higher is better; partial overlap does
+            not lower it).
         mean_weight: mean of the network's per-point weights w_i = max_j W_ij in its first pass
             (0-1); None when the network did not run.
         correspondence_distance: the ICP / scoring distance used (cloud units).

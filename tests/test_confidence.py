@@ -145,3 +145,38 @@ def test_the_balanced_fit_puts_one_half_between_the_classes_whatever_their_sizes
     boundary = {b: -w[0] / w[1] for b in (True, False) for w in [fit_logistic(X, y, balanced=b)]}
     assert 1.2 < boundary[True] < 1.8  # midway between the class means 0 and 3
     assert boundary[False] > boundary[True] + 0.3  # the larger class pushes the plain fit's boundary away
+
+
+def test_the_confidence_measures_at_its_own_distance_whatever_icps():
+    from dataclasses import replace
+
+    from o3dsoft.config import RegisterConfig
+    from o3dsoft.pair import PreparedPair
+
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(600, 3)) * [1.0, 0.6, 0.3]
+    default, wide = RegisterConfig(), RegisterConfig()
+    wide = replace(wide, icp=replace(wide.icp, distance=5.0, absolute=True))
+    pairs = [PreparedPair(src, src + 0.01, config, 8) for config in (default, wide)]
+    assert pairs[1].distance == 5.0 and pairs[0].distance == pytest.approx(0.1 * pairs[0].norm.scale)
+    scorers = [p.scorer("work") for p in pairs]
+    assert scorers[1].tight == scorers[0].tight and scorers[1].reach == scorers[0].reach
+
+
+def test_a_wide_icp_distance_does_not_trust_a_wrong_alignment_of_real_scans(real_scans_root):
+    from dataclasses import replace
+
+    import o3dsoft
+    from o3dsoft.config import RegisterConfig
+    from o3dsoft.metrics import pair_errors
+
+    # A 3DLoMatch pair (about 15 % overlap) with 5 cm voxels and a 0.5 m ICP distance: measured
+    # at that distance, a wrong result (100 degrees off) scored 0.85.
+    folder = real_scans_root / "3dmatch_redkitchen"
+    src, tgt = o3dsoft.read_points(folder / "cloud_bin_34.ply"), o3dsoft.read_points(folder / "cloud_bin_6.ply")
+    truth = o3dsoft.read_transform(folder / "gt_34_to_6.txt")
+    config = RegisterConfig(voxel=0.05)
+    config = replace(config, icp=replace(config.icp, distance=0.5, absolute=True))
+    res = o3dsoft.register(src, tgt, config)
+    errors = pair_errors(res.transformation, truth)
+    assert res.likely_failed or (errors.rotation_deg < 15.0 and errors.translation < 0.3)
