@@ -385,6 +385,36 @@ def test_a_result_the_full_clouds_reject_sends_the_pair_to_the_search(monkeypatc
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1.0
 
 
+def test_a_screened_network_estimate_the_full_clouds_reject_no_longer_holds_the_screens_record(monkeypatch):
+    from o3dsoft import pipeline, verify
+    from o3dsoft.config import ScreenConfig
+
+    src = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = random_transform(np.random.default_rng(2), 20.0, 0.01)
+    # Work clouds of 2,000 points, screens of 512: the network's estimate of these scans is screened
+    # first, trusted there and on the work clouds, then rejected at full resolution.
+    config = RegisterConfig(attempt_points=2_000, search=SearchConfig(screen=ScreenConfig(points=512)))
+    real, calls, records = pipeline._refine_full, [], []
+
+    def rejected_at_first(pair, verifier, best):
+        refined = real(pair, verifier, best)
+        calls.append(refined)
+        return refined._replace(trust=0.0) if len(calls) == 1 else refined
+
+    real_distrust = verify.Verifier.distrust
+
+    def distrust(self, attempt, trust):
+        real_distrust(self, attempt, trust)
+        records.append(max(s.trust for s in self.screened))
+
+    monkeypatch.setattr(pipeline, "_refine_full", rejected_at_first)
+    monkeypatch.setattr(verify.Verifier, "distrust", distrust)
+    res = register(src, apply(T, src), config)
+    assert len(calls) == 2 and res.searched and res.screened > 1
+    assert records == [0.0]  # the search's estimates are promoted against a record of 0, not the rejected pose's
+    assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1.0
+
+
 def test_the_screen_tries_at_most_its_budget_of_estimates():
     from o3dsoft.config import ScreenConfig
 
