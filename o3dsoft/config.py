@@ -111,8 +111,9 @@ class ScreenConfig:
             without the last stage, the noise rounds and the polish), each stage at most this
             many iterations (default 20); 0: the full ICP.
         budget: at most this many estimates are screened per pair (the network's among them, on
-            scans); the search's later estimates are dropped (default 20; 0: no limit). On real scans the right estimate, when the
-            search finds one, is among its first few (docs/scans.md).
+            scans); the search's later estimates are dropped (default 20; 0: no limit). On real
+            scans the right estimate, when the search finds one, is among its first few
+            (docs/scans.md).
     """
 
     points: int = 1024

@@ -105,7 +105,6 @@ class PreparedPair:
         # The network's samples, normalised together (own centroids, one common scale).
         self.norm = normalisation_for(*self.full)
         self.distance = config.icp.distance_for(self.norm.scale)  # ICP's d, cloud units
-        self.score_distance = config.confidence.distance * self.norm.scale  # the confidence's d
         self.net: Clouds = (
             sample_points(self.full[0], config.num_points, seed=config.seed),
             sample_points(self.full[1], config.num_points, seed=config.seed + 1),
@@ -166,7 +165,8 @@ class PreparedPair:
     def scorer(self, level: str) -> confidence_stage.Scorer:
         """The confidence's scorer of the clouds at `level`, built once."""
         if level not in self._scorers:
-            self._scorers[level] = confidence_stage.Scorer(*self.clouds(level), self.score_distance, self.config.icp.max_points, self.config.confidence)
+            d = self.config.confidence.distance * self.norm.scale  # the confidence's own d, whatever ICP's
+            self._scorers[level] = confidence_stage.Scorer(*self.clouds(level), d, self.config.icp.max_points, self.config.confidence)
         return self._scorers[level]
 
     @cached_property

@@ -1,12 +1,13 @@
 """Fine stage: Open3D ICP, and scoring of a transform.
 
-ICP (point-to-point, or point-to-plane for scans) runs coarse to fine over a distance schedule (by default d, 0.3 d, 0.1 d): the first stage
-pulls in an estimate a few degrees off; the last ones keep only close pairs, so that parts of one
-cloud with no partner in the other (partial overlap) stop biasing the result. The last stage's
-distance never falls below ``noise_factor`` times the residual of the stage before it
-(:func:`residual`), so that noisy clouds keep their true pairs (point-to-point ICP). ICP ends with one float64
-Procrustes step on its final pairs (:func:`polish`), since Open3D's ICP stops about 1e-5 degrees
-short of the least-squares optimum. Clouds above ``max_points`` are voxel-downsampled first.
+ICP (point-to-point, or point-to-plane for scans) runs coarse to fine over a distance schedule
+(by default d, 0.3 d, 0.1 d): the first stage pulls in an estimate a few degrees off; the last ones
+keep only close pairs, so that parts of one cloud with no partner in the other (partial overlap)
+stop biasing the result. With point-to-point ICP the last stage's distance never falls below
+``noise_factor`` times the residual of the stage before it (:func:`residual`), so that noisy
+clouds keep their true pairs, and ICP ends with one float64 Procrustes step on its final pairs
+(:func:`polish`), since Open3D's ICP stops about 1e-5 degrees short of the least-squares optimum.
+Clouds above ``max_points`` are voxel-downsampled first.
 The measurements behind these choices are in docs/pipeline.md.
 """
 
@@ -178,7 +179,7 @@ def icp(
     T = np.asarray(init, dtype=np.float64)
     distances = [distance * factor for factor in config.schedule]
     src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
-    tree = cKDTree(tgt_points)
+    tree = None if plane else cKDTree(tgt_points)  # for the noise rounds and the polish, point-to-point only
 
     if plane:
         given = target_normals is not None and len(target_normals) == len(target) and len(target) <= config.max_points

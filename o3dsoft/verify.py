@@ -82,10 +82,11 @@ class Verifier:
     def most_trusted(self) -> Attempt:
         """The attempt to answer with: among those :meth:`in_contact`, the most trusted, those
         within the rotation prior first (when no estimate was kept, the one the screen trusted
-        most is promoted first: refined and scored on the work clouds, and kept). One the search proposed replaces the most trusted of the
-        pipeline's own only when its odds of being right are ``search.replace_odds`` times higher:
-        on sparse, independently sampled clouds a right pose and a turn onto a near-symmetric copy
-        of the shape score alike, and the search would trade the first estimate for one no better."""
+        most is promoted first: refined and scored on the work clouds, and kept). One the search
+        proposed replaces the most trusted of the pipeline's own only when its odds of being
+        right are ``search.replace_odds`` times higher: on sparse, independently sampled clouds a
+        right pose and a turn onto a near-symmetric copy of the shape score alike, and the search
+        would trade the first estimate for one no better."""
 
         def rank(a: Attempt):
             return (self.admissible(a.fine.transformation), a.trust)
@@ -169,9 +170,7 @@ class Verifier:
         like any of its own, and an estimate the search promotes replaces it freely (it is not the
         pipeline's own). A wrong estimate costs ICP on the work clouds most from far away
         (docs/scans.md)."""
-        quick = self.config.search.screen.max_iterations
-        s = self.refine(start, start, "screen", self.config.icp.quick(quick) if quick else self.config.icp, by=by)
-        self.screened.append(s)
+        s = self._screen(start, self.config.icp, by)
         if s.trust >= self.config.confidence.likely_failed_below:
             self.promote(s)
 
@@ -185,12 +184,18 @@ class Verifier:
         budget = self.config.search.screen.budget
         if budget and len(self.screened) >= budget:
             return
-        quick = self.config.search.screen.max_iterations
-        s = self.refine(start, start, "screen", icp.quick(quick) if quick else icp, by=by)
         record = max((a.trust for a in self.screened), default=0.0)
-        self.screened.append(s)
+        s = self._screen(start, icp, by)
         if (s.trust > record and s.trust >= self.config.search.screen.min_trust) or s.trust >= self.config.confidence.likely_failed_below:
             self.promote(s)
+
+    def _screen(self, start: np.ndarray, icp: refine_stage.ICPConfig, by: str) -> Attempt:
+        """An estimate refined on the screen clouds (by the screen's quicker ICP,
+        ``screen.max_iterations``), scored there, and kept among the screened."""
+        quick = self.config.search.screen.max_iterations
+        s = self.refine(start, start, "screen", icp.quick(quick) if quick else icp, by=by)
+        self.screened.append(s)
+        return s
 
 
 def _log_odds(p: float) -> float:
