@@ -55,7 +55,7 @@ class PreparedPair:
       estimate is refined and scored;
     - ``screen``: ``work`` on a grid of at most ``config.search.screen.points`` each (an even
       spacing, which the confidence relies on; smaller clouds whole, shuffled), where the
-      search's estimates are tried first on large clouds;
+      search's estimates, and the network's on scans, are tried first on large clouds;
     - ``net``: ``config.num_points`` random samples of ``full`` for the network, and
       ``net_normalised`` the same centred on their own centroids and divided by one scale.
 
