@@ -36,8 +36,9 @@ def thresholds(doc: dict, protocol: str) -> List[dict]:
 
 def compared(doc: dict, ours: str, theirs: str) -> list:
     """Lines of a short table, one row per protocol (all categories): recall at the first and the
-    last threshold and median time of `ours` and `theirs`, the time ratio, and ours' confidence
-    AUC. Empty when the run lacks either method."""
+    last threshold and median time of `ours` and `theirs`, the time ratio, ours' confidence AUC,
+    and how many of ours' failures fit the clouds as well as the truth (runs with the oracle).
+    Empty when the run lacks either method."""
     rows = {(s["protocol"], s["method"]): s for s in doc["summaries"] if s["subset"] == "all"}
     protocols = list(dict.fromkeys(p for p, _ in rows))
     if not all((p, m) in rows for p in protocols for m in (ours, theirs)):
@@ -51,8 +52,8 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
         "(higher is better), median time per pair (lower is better):",
         "",
         f"| protocol | {name[ours]} recall | {name[theirs]} recall | {name[ours]} time (ms) | {name[theirs]} time (ms) | "
-        f"time ratio | {name[ours]} confidence ROC AUC |",
-        "|---|---|---|---|---|---|---|",
+        f"time ratio | {name[ours]} confidence ROC AUC | {name[ours]} failures that fit as the truth does |",
+        "|---|---|---|---|---|---|---|---|",
     ]
 
     def recall(s: dict) -> str:
@@ -62,9 +63,10 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
     for p in protocols:
         a, b = rows[p, ours], rows[p, theirs]
         auc = a.get("confidence_auc")
+        copies = f"{a['failures_as_truth']} of {a['failures']}" if a.get("failures") else "-"
         lines.append(
             f"| `{p}` | {recall(a)} | {recall(b)} | {a['time_ms_median']:.0f} | {b['time_ms_median']:.0f} | "
-            f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {'-' if auc is None else f'{auc:.3f}'} |"
+            f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {'-' if auc is None else f'{auc:.3f}'} | {copies} |"
         )
     return lines
 

@@ -515,6 +515,32 @@ def test_incongruent_pairs_share_no_point_and_the_oracle_shows_the_floor(modelne
         assert 0 < e.rotation_deg < 5  # ICP from the truth moves off it, but not far
 
 
+def test_failures_that_fit_as_the_truth_are_counted_apart_from_the_others():
+    from .test_metrics import _box_surface
+
+    rng = np.random.default_rng(2)
+    T = np.eye(4)
+    T[:3, 3] = (0.2, 0.1, -0.3)
+    pairs = [bench.BenchPair("incongruent", i, _box_surface(rng, 500), bench.apply_transform(T, _box_surface(rng, 500)), T, "box") for i in range(3)]
+    half_turn, quarter_turn = T @ np.diag([-1.0, -1.0, 1.0, 1.0]), T @ np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+    # o3dsoft's answers: a symmetric copy trusted, a distinct wrong pose flagged, the truth trusted.
+    answers = [(half_turn, 0.9), (quarter_turn, 0.1), (T, 0.8)]
+    rows, errors = [], []
+    for pair, (estimate, confidence) in zip(pairs, answers):
+        for result in (bench.MethodResult("o3dsoft", estimate, {"total": 1.0}, confidence, True), bench.MethodResult("oracle", T, {"total": 1.0})):
+            row, e = bench.score(pair, result)
+            rows.append(row)
+            errors.append(e)
+    config = bench.BenchConfig(methods=("o3dsoft", "oracle"))
+    ours = next(s for s in bench.summarise_rows(rows, errors, config) if s["method"] == "o3dsoft")
+    assert ours["failures"] == 2 and ours["failures_as_truth"] == 1
+    assert ours["confidence_auc"] == pytest.approx(0.5) and ours["confidence_auc_distinct"] == pytest.approx(1.0)
+    assert "symmetric copies): 1 of 2; ROC AUC without them: 1.000" in bench.format_table([ours])
+    # Without the oracle's rows there is nothing to compare with.
+    alone = bench.summarise_rows([r for r in rows if r["method"] == "o3dsoft"], errors[::2], bench.BenchConfig(methods=("o3dsoft",)))
+    assert "failures_as_truth" not in alone[0]
+
+
 @pytest.mark.parametrize("command", ["bench", "train"])
 def test_an_output_folder_that_cannot_be_created_is_a_one_line_error(modelnet_root, tmp_path, command):
     from o3dsoft.cli.main import main

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from o3dsoft.metrics import modified_chamfer_distance, pair_errors, rotation_error_deg, summarise
+from o3dsoft.metrics import input_chamfer_distance, modified_chamfer_distance, pair_errors, rotation_error_deg, summarise
 from o3dsoft.transforms import euler_to_matrix, matrix_to_euler_deg, random_rotation
 
 from .conftest import apply, blob
@@ -54,3 +54,38 @@ def test_chamfer_zero_at_ground_truth_and_grows():
     T_off = T.copy()
     T_off[:3, 3] += 0.1
     assert modified_chamfer_distance(src, tgt, T_off, T) > 0.005
+
+
+def _box_surface(rng, n, size=(2.0, 1.0, 0.5)):
+    """(n, 3) points drawn uniformly on the faces of a centred box (a shape with three half-turn symmetries)."""
+    half = np.asarray(size) / 2
+    p = rng.uniform(-half, half, size=(n, 3))
+    axis = rng.integers(0, 3, n)
+    p[np.arange(n), axis] = np.where(rng.random(n) < 0.5, -1, 1) * half[axis]
+    return p
+
+
+def test_input_chamfer_sees_only_the_inputs_a_half_turn_of_a_box_fits_as_the_truth():
+    rng = np.random.default_rng(1)
+    src, other = _box_surface(rng, 600), _box_surface(rng, 600)  # two independent samplings
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = random_rotation(rng), (0.3, -0.2, 0.1)
+    tgt = apply(T, other)
+    truth = input_chamfer_distance(src, tgt, T)
+    half_turn = T @ np.diag([-1.0, -1.0, 1.0, 1.0])  # about the box's z axis
+    quarter_turn = T.copy()
+    quarter_turn[:3, :3] = T[:3, :3] @ euler_to_matrix([90.0, 0.0, 0.0])
+    assert 0 < truth < 0.01  # independent samplings: about a squared point spacing, not 0
+    assert input_chamfer_distance(src, tgt, half_turn) == pytest.approx(truth, rel=0.25)
+    assert input_chamfer_distance(src, tgt, quarter_turn) > 5 * truth
+    assert input_chamfer_distance(src, apply(T, src), T) == pytest.approx(0.0, abs=1e-20)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000))
+def test_input_chamfer_is_the_same_seen_from_either_cloud(seed):
+    rng = np.random.default_rng(seed)
+    src, tgt = blob(rng, 80), blob(rng, 50) + rng.normal(size=3)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = random_rotation(rng), rng.normal(size=3)
+    assert input_chamfer_distance(tgt, src, np.linalg.inv(T)) == pytest.approx(input_chamfer_distance(src, tgt, T), rel=1e-9)
