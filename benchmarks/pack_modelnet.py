@@ -1,7 +1,7 @@
 """A compact copy of ModelNet40 for the GPU machine, whose transfers hold at most 64 MiB.
 
     python -m benchmarks.pack_modelnet [--data ../shared/data/modelnet40_ply_hdf5_1024]
-        [--out .carry/modelnet40_f16] [--test-shapes 400]
+        [--out .carry/modelnet40_f16] [--test-shapes 400] [--train-shapes N]
 
 Writes the official HDF5 layout (``ply_data_train0.h5``, ``ply_data_test0.h5``,
 ``shape_names.txt``) that ``o3dsoft.data`` reads: every training shape, the first
@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import shutil
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -40,20 +41,26 @@ def write_split(path: Path, data: np.ndarray, label: np.ndarray) -> None:
         h5.create_dataset("label", data=label)
 
 
+def pack(data: Path, out: Path, test_shapes: int = 400, train_shapes: Optional[int] = None) -> float:
+    """Write the compact copy of the ModelNet40 folder `data` into `out` (the first
+    `train_shapes` training shapes, None: all); returns its size in MiB."""
+    out.mkdir(parents=True, exist_ok=True)
+    points, label = read_split(data, "train")
+    write_split(out / "ply_data_train0.h5", points[:train_shapes], label[:train_shapes])
+    points, label = read_split(data, "test")
+    write_split(out / "ply_data_test0.h5", points[:test_shapes], label[:test_shapes])
+    shutil.copy(data / "shape_names.txt", out / "shape_names.txt")
+    return sum(f.stat().st_size for f in out.iterdir()) / 2**20
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path, default=Path(".carry/modelnet40_f16"))
     ap.add_argument("--test-shapes", type=int, default=400)
+    ap.add_argument("--train-shapes", type=int, default=None, help="only the first N training shapes (default: all)")
     args = ap.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    data, label = read_split(args.data, "train")
-    write_split(args.out / "ply_data_train0.h5", data, label)
-    data, label = read_split(args.data, "test")
-    write_split(args.out / "ply_data_test0.h5", data[: args.test_shapes], label[: args.test_shapes])
-    shutil.copy(args.data / "shape_names.txt", args.out / "shape_names.txt")
-    size = sum(f.stat().st_size for f in args.out.iterdir()) / 2**20
-    print(f"{args.out}: {size:.1f} MiB")
+    print(f"{args.out}: {pack(args.data, args.out, args.test_shapes, args.train_shapes):.1f} MiB")
 
 
 if __name__ == "__main__":
