@@ -4,7 +4,8 @@
         [--out .carry/modelnet40_f16] [--test-shapes 400] [--train-shapes N]
 
 Writes the official HDF5 layout (``ply_data_train0.h5``, ``ply_data_test0.h5``,
-``shape_names.txt``) that ``o3dsoft.data`` reads: every training shape, the first
+``shape_names.txt``) that ``o3dsoft.data`` reads: every training shape (or the first
+``--train-shapes``), the first
 ``--test-shapes`` test shapes (the per-epoch evaluation), coordinates as float16 (at most 2.4e-4
 off on radius-1 shapes, a two-hundredth of the 1,024-point spacing) with gzip. The full 1,024-point
 training split comes to about 53 MB.
@@ -53,12 +54,19 @@ def pack(data: Path, out: Path, test_shapes: int = 400, train_shapes: Optional[i
     return sum(f.stat().st_size for f in out.iterdir()) / 2**20
 
 
+def _positive(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive number of shapes, got {text}")
+    return n
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path, default=Path(".carry/modelnet40_f16"))
-    ap.add_argument("--test-shapes", type=int, default=400)
-    ap.add_argument("--train-shapes", type=int, default=None, help="only the first N training shapes (default: all)")
+    ap.add_argument("--test-shapes", type=_positive, default=400)
+    ap.add_argument("--train-shapes", type=_positive, default=None, help="only the first N training shapes (default: all)")
     args = ap.parse_args()
     print(f"{args.out}: {pack(args.data, args.out, args.test_shapes, args.train_shapes):.1f} MiB")
 

@@ -51,7 +51,8 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
         f"({r1['rotation_deg']:g} deg, {r1['translation']:g}) / ({r5['rotation_deg']:g} deg, {r5['translation']:g}) "
         "(higher is better), median time per pair (lower is better). Failures that fit as the truth does: "
         "failures whose pose fits the two clouds as well as ICP from the ground truth (input Chamfer distance "
-        "at most 1.1 times the oracle's), symmetric copies the clouds cannot tell from the truth "
+        "at most 1.1 times the oracle's), which the clouds cannot tell from the truth (mostly symmetric copies; "
+        "on cropped clouds the count says less) "
         "(- : a run without the oracle or before this count):",
         "",
         f"| protocol | {name[ours]} recall | {name[theirs]} recall | {name[ours]} time (ms) | {name[theirs]} time (ms) | "
@@ -66,7 +67,7 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
     for p in protocols:
         a, b = rows[p, ours], rows[p, theirs]
         auc = a.get("confidence_auc")
-        copies = f"{a['failures_as_truth']} of {a['failures']}" if a.get("failures") else "-"
+        copies = f"{a['failures_as_truth']} of {a['failures']}" if "failures" in a else "-"
         lines.append(
             f"| `{p}` | {recall(a)} | {recall(b)} | {a['time_ms_median']:.0f} | {b['time_ms_median']:.0f} | "
             f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {'-' if auc is None else f'{auc:.3f}'} | {copies} |"

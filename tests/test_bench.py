@@ -516,28 +516,44 @@ def test_incongruent_pairs_share_no_point_and_the_oracle_shows_the_floor(modelne
 
 
 def test_failures_that_fit_as_the_truth_are_counted_apart_from_the_others():
+    from benchmarks.results_table import compared
+
     from .test_metrics import _box_surface
 
     rng = np.random.default_rng(2)
     T = np.eye(4)
     T[:3, 3] = (0.2, 0.1, -0.3)
-    pairs = [bench.BenchPair("incongruent", i, _box_surface(rng, 500), bench.apply_transform(T, _box_surface(rng, 500)), T, "box") for i in range(3)]
     half_turn, quarter_turn = T @ np.diag([-1.0, -1.0, 1.0, 1.0]), T @ np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+
+    def symmetric_box(n):  # a sampling the box's half turn about z maps onto itself
+        q = _box_surface(rng, n)
+        return np.vstack([q, q * (-1.0, -1.0, 1.0)])
+
+    # One index for all three pairs, as a file of pairs from another tool may have: each row is
+    # compared with its own pair's oracle all the same.
+    pairs = [bench.BenchPair("incongruent", 0, symmetric_box(250), bench.apply_transform(T, symmetric_box(250)), T, "box") for _ in range(3)]
     # o3dsoft's answers: a symmetric copy trusted, a distinct wrong pose flagged, the truth trusted.
     answers = [(half_turn, 0.9), (quarter_turn, 0.1), (T, 0.8)]
     rows, errors = [], []
     for pair, (estimate, confidence) in zip(pairs, answers):
-        for result in (bench.MethodResult("o3dsoft", estimate, {"total": 1.0}, confidence, True), bench.MethodResult("oracle", T, {"total": 1.0})):
-            row, e = bench.score(pair, result)
+        results = [bench.MethodResult("o3dsoft", estimate, {"total": 1.0}, confidence, True), bench.MethodResult("oracle", T, {"total": 1.0})]
+        for row, e in bench.score_pair(pair, results):
             rows.append(row)
             errors.append(e)
     config = bench.BenchConfig(methods=("o3dsoft", "oracle"))
-    ours = next(s for s in bench.summarise_rows(rows, errors, config) if s["method"] == "o3dsoft")
+    summaries = bench.summarise_rows(rows, errors, config)
+    ours = next(s for s in summaries if s["method"] == "o3dsoft")
     assert ours["failures"] == 2 and ours["failures_as_truth"] == 1
     assert ours["confidence_auc"] == pytest.approx(0.5) and ours["confidence_auc_distinct"] == pytest.approx(1.0)
-    assert "symmetric copies): 1 of 2; ROC AUC without them: 1.000" in bench.format_table([ours])
+    assert "1 of 2; ROC AUC without them: 1.000" in bench.format_table([ours])
+    # On the right pair alone o3dsoft has no failure: the short table reads 0 of 0, not "no count".
+    recall = [{"rotation_deg": d, "translation": t} for d, t in config.recall]
+    doc = {"summaries": bench.summarise_rows(rows[4:], errors[4:], config), "methods": {"o3dsoft": "o3dsoft", "oracle": "oracle"}, "recall_thresholds": recall}
+    assert "| 0 of 0 |" in "\n".join(compared(doc, "o3dsoft", "oracle"))
     # Without the oracle's rows there is nothing to compare with.
-    alone = bench.summarise_rows([r for r in rows if r["method"] == "o3dsoft"], errors[::2], bench.BenchConfig(methods=("o3dsoft",)))
+    alone = bench.summarise_rows(
+        [{**r, "oracle_input_chamfer": ""} for r in rows if r["method"] == "o3dsoft"], errors[::2], bench.BenchConfig(methods=("o3dsoft",))
+    )
     assert "failures_as_truth" not in alone[0]
 
 

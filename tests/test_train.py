@@ -296,9 +296,9 @@ def test_a_time_limit_ends_the_run_with_a_checkpoint_and_a_model(modelnet_root, 
         _config(modelnet_root, tmp_path, max_minutes=0).validate()
 
 
-def test_the_gpu_machines_path_trains_from_packed_data_without_open3d_or_an_install(modelnet_root, tmp_path):
+def test_the_gpu_machines_path_trains_from_packed_data_from_the_source_tree_without_open3d(modelnet_root, tmp_path):
     """benchmarks/device_train.py from the source tree, on data packed by benchmarks.pack_modelnet,
-    with Open3D unimportable (the lent GPU machine has neither it nor o3dsoft installed)."""
+    with Open3D unimportable (the lent GPU machine has no Open3D)."""
     import os
     import subprocess
     import sys
