@@ -88,16 +88,12 @@ def modified_chamfer_distance(
     Args:
         source: (N, 3); target: (M, 3); clean_target: (L, 3) in the target frame.
     """
-    from scipy.spatial import cKDTree  # noqa: WPS433 - optional, only metrics need it
-
     clean = target if clean_target is None else clean_target
     T_est = _as_transform(T_est)
     src_est = apply_transform(T_est, np.asarray(source, np.float64))
-    d_src, _ = cKDTree(clean).query(src_est)
     T_rel = T_est @ np.linalg.inv(np.asarray(T_gt, np.float64))
     clean_moved = apply_transform(T_rel, np.asarray(clean, np.float64))
-    d_tgt, _ = cKDTree(clean_moved).query(np.asarray(target, np.float64))
-    return float(np.mean(d_src**2) + np.mean(d_tgt**2))
+    return _mean_squared_nearest(src_est, clean) + _mean_squared_nearest(np.asarray(target, np.float64), clean_moved)
 
 
 def input_chamfer_distance(source: np.ndarray, target: np.ndarray, T: np.ndarray) -> float:
@@ -108,13 +104,17 @@ def input_chamfer_distance(source: np.ndarray, target: np.ndarray, T: np.ndarray
     Args:
         source: (N, 3); target: (M, 3); T: (4, 4) T_target_source.
     """
-    from scipy.spatial import cKDTree  # noqa: WPS433 - optional, only metrics need it
-
     moved = apply_transform(_as_transform(T), np.asarray(source, np.float64))
     target = np.asarray(target, np.float64)
-    d_src, _ = cKDTree(target).query(moved)
-    d_tgt, _ = cKDTree(moved).query(target)
-    return float(np.mean(d_src**2) + np.mean(d_tgt**2))
+    return _mean_squared_nearest(moved, target) + _mean_squared_nearest(target, moved)
+
+
+def _mean_squared_nearest(points: np.ndarray, cloud: np.ndarray) -> float:
+    """Mean over the (N, 3) `points` of the squared distance to the nearest point of the (M, 3) `cloud`."""
+    from scipy.spatial import cKDTree  # noqa: WPS433 - optional, only metrics need it
+
+    d, _ = cKDTree(cloud).query(points)
+    return float(np.mean(d**2))
 
 
 MODELNET_RECALL = ((1.0, 0.01), (2.0, 0.02), (5.0, 0.05))
