@@ -12,7 +12,15 @@ of the final alignment that overlap does not change (:class:`Features`):
   overlap) and is not counted either way; on a wrong alignment no such closer partner exists. When
   the target is much sparser than the source, the roles swap.
 - ``spacing_ratio``: the median distance to the nearest partner over the other cloud's spacing,
-  about 1 for two independent samplings of one surface at the right pose (weight 0 for now).
+  about 1 for two independent samplings of one surface at the right pose, 0 for identical points.
+
+That function is strict: a right alignment of two independent samplings of a surface (no shared
+point) has about a fifth of its points beyond the tight distance, and scores low. Where both clouds
+look like complete samplings of one shape (not scans, no partial overlap) and the pose shows no
+shared point (spacing ratio at least ``independent_from``), :func:`complete_confidence` judges it
+instead, by a second logistic function that also weighs the ``overlap``: on complete shapes a right
+pose leaves few points without a partner, and a wrong one that fits a part closely leaves many.
+The pipeline searches and chooses by the strict function, and reports the larger of the two.
 
 An alignment that leaves the clouds barely touching (counted points under ``min_overlap`` of the
 smaller cloud) gets confidence 0. The coefficients are fitted by logistic regression
@@ -34,6 +42,8 @@ from .transforms import apply_transform
 
 # The measurements the confidence is a logistic function of, in the order of its coefficients.
 FEATURE_NAMES = ("consistency", "spacing_ratio")
+# ... and those of :func:`complete_confidence`.
+COMPLETE_FEATURE_NAMES = ("consistency", "overlap", "spacing_ratio")
 
 
 @dataclass(frozen=True)
@@ -58,6 +68,11 @@ class ConfidenceConfig:
         ratio_cap: the spacing ratio enters the logistic capped at this value.
         wide_spacings: the spacing ratio looks for partners within this many point spacings when
             that reaches beyond d.
+        complete_coefficients: intercept, then one weight per name of
+            :data:`COMPLETE_FEATURE_NAMES`: :func:`complete_confidence` (fitted by
+            ``python -m benchmarks.fit_complete_confidence``).
+        independent_from: a pose whose spacing ratio is at least this shows no shared point:
+            :func:`complete_confidence` judges it where both clouds look complete.
     """
 
     distance: float = 0.1
@@ -69,10 +84,16 @@ class ConfidenceConfig:
     min_overlap: float = 0.1
     ratio_cap: float = 5.0
     wide_spacings: float = 3.0
+    complete_coefficients: Tuple[float, ...] = (-20.95, 12.52, 18.19, -5.11)
+    independent_from: float = 0.6
 
     def validate(self) -> None:
-        if len(self.coefficients) != len(FEATURE_NAMES) + 1:
-            raise ValueError(f"coefficients: expected {len(FEATURE_NAMES) + 1} (intercept, {', '.join(FEATURE_NAMES)}), got {len(self.coefficients)}")
+        for name, coefficients, names in (
+            ("coefficients", self.coefficients, FEATURE_NAMES),
+            ("complete_coefficients", self.complete_coefficients, COMPLETE_FEATURE_NAMES),
+        ):
+            if len(coefficients) != len(names) + 1:
+                raise ValueError(f"{name}: expected {len(names) + 1} (intercept, {', '.join(names)}), got {len(coefficients)}")
         if not self.distance > 0:
             raise ValueError(f"distance must be positive, got {self.distance}")
         if not 0 < self.likely_failed_below < 1:
@@ -193,8 +214,23 @@ def feature_vector(f: Features, config: ConfidenceConfig = ConfidenceConfig()) -
 
 
 def confidence(f: Features, config: ConfidenceConfig = ConfidenceConfig()) -> float:
-    """Estimated probability (0-1, higher is better) that the alignment is right."""
+    """Estimated probability (0-1, higher is better) that the alignment is right: the strict
+    function, which any kind of pair may be judged by."""
     if f.overlap < config.min_overlap:
         return 0.0
-    z = config.coefficients[0] + float(np.dot(config.coefficients[1:], feature_vector(f, config)))
+    return _logistic(config.coefficients, feature_vector(f, config))
+
+
+def complete_confidence(f: Features, config: ConfidenceConfig = ConfidenceConfig()) -> float:
+    """Estimated probability (0-1, higher is better) that an alignment of two clouds that both
+    look like complete samplings of one shape is right, weighing how much of them has a partner
+    (``overlap``). 0 where the pose shows shared points (spacing ratio under ``independent_from``:
+    the strict :func:`confidence` judges those) or the clouds barely touch."""
+    if f.overlap < config.min_overlap or f.spacing_ratio < config.independent_from:
+        return 0.0
+    return _logistic(config.complete_coefficients, np.array([f.consistency, f.overlap, min(f.spacing_ratio, config.ratio_cap)]))
+
+
+def _logistic(coefficients: Tuple[float, ...], x: np.ndarray) -> float:
+    z = coefficients[0] + float(np.dot(coefficients[1:], x))
     return 1.0 / (1.0 + math.exp(-min(max(z, -700.0), 700.0)))
