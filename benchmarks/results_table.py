@@ -36,8 +36,8 @@ def thresholds(doc: dict, protocol: str) -> List[dict]:
 
 def compared(doc: dict, ours: str, theirs: str) -> list:
     """Lines of a short table, one row per protocol (all categories): recall at the first and the
-    last threshold and median time of `ours` and `theirs`, the time ratio, ours' confidence AUC,
-    and how many of ours' failures fit the clouds as well as the truth (runs with the oracle).
+    last threshold and median time of `ours` and `theirs`, the time ratio, ours' confidence AUC
+    and false alarms (right results flagged), and how many of ours' failures fit the clouds as well as the truth (runs with the oracle).
     Empty when the run lacks either method."""
     rows = {(s["protocol"], s["method"]): s for s in doc["summaries"] if s["subset"] == "all"}
     protocols = list(dict.fromkeys(p for p, _ in rows))
@@ -49,14 +49,15 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
         "",
         f"{name[ours]} against {name[theirs]}, measured in the same run: recall within "
         f"({r1['rotation_deg']:g} deg, {r1['translation']:g}) / ({r5['rotation_deg']:g} deg, {r5['translation']:g}) "
-        "(higher is better), median time per pair (lower is better). Failures that fit as the truth does: "
+        "(higher is better), median time per pair (lower is better); false alarms: right results (at the last "
+        "threshold) flagged likely failed (lower is better). Failures that fit as the truth does: "
         "failures whose pose fits the two clouds as well as ICP from the ground truth (input Chamfer distance "
         "at most 1.1 times the oracle's), which the clouds cannot tell from the truth (mostly symmetric copies; "
         "on cropped clouds the count says less) "
         "(- : a run without the oracle or before this count):",
         "",
         f"| protocol | {name[ours]} recall | {name[theirs]} recall | {name[ours]} time (ms) | {name[theirs]} time (ms) | "
-        f"time ratio | {name[ours]} confidence ROC AUC | {name[ours]} failures that fit as the truth does |",
+        f"time ratio | {name[ours]} confidence ROC AUC, false alarms | {name[ours]} failures that fit as the truth does |",
         "|---|---|---|---|---|---|---|---|",
     ]
 
@@ -66,11 +67,12 @@ def compared(doc: dict, ours: str, theirs: str) -> list:
 
     for p in protocols:
         a, b = rows[p, ours], rows[p, theirs]
-        auc = a.get("confidence_auc")
+        auc, alarms = a.get("confidence_auc"), a.get("false_alarm_share")
+        trust = f"{'-' if auc is None else f'{auc:.3f}'}, {'-' if alarms is None else f'{100 * alarms:.0f} %'}"
         copies = f"{a['failures_as_truth']} of {a['failures']}" if "failures" in a else "-"
         lines.append(
             f"| `{p}` | {recall(a)} | {recall(b)} | {a['time_ms_median']:.0f} | {b['time_ms_median']:.0f} | "
-            f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {'-' if auc is None else f'{auc:.3f}'} | {copies} |"
+            f"{a['time_ms_median'] / b['time_ms_median']:.2f} | {trust} | {copies} |"
         )
     return lines
 

@@ -180,3 +180,35 @@ def test_a_wide_icp_distance_does_not_trust_a_wrong_alignment_of_real_scans(real
     res = o3dsoft.register(src, tgt, config)
     errors = pair_errors(res.transformation, truth)
     assert res.likely_failed or (errors.rotation_deg < 15.0 and errors.translation < 0.3)
+
+
+def test_the_complete_confidence_judges_only_poses_that_show_no_shared_point():
+    config = confidence.ConfidenceConfig()
+    f = confidence.Features(fitness_tight=0.8, tight_distance=0.1, consistency=0.85, overlap=0.95, spacing_ratio=1.0)
+    z = config.complete_coefficients[0] + np.dot(config.complete_coefficients[1:], [0.85, 0.95, 1.0])
+    assert confidence.complete_confidence(f) == pytest.approx(1 / (1 + np.exp(-z)))
+    assert len(config.complete_coefficients) == len(confidence.COMPLETE_FEATURE_NAMES) + 1
+    # A right alignment of two independent samplings (about a fifth of the points beyond the tight
+    # distance) is flagged by the strict function and trusted by this one.
+    assert confidence.confidence(f) < 0.5 < confidence.complete_confidence(f)
+    assert confidence.complete_confidence(f._replace(spacing_ratio=0.3)) == 0.0  # shared points: the strict one's
+    assert confidence.complete_confidence(f._replace(overlap=0.05)) == 0.0  # barely touching
+    # A wrong pose that fits a part of the shape closely and leaves half of it without a partner.
+    assert confidence.complete_confidence(f._replace(consistency=0.92, overlap=0.45)) < 0.5
+    with pytest.raises(ValueError, match="complete_coefficients"):
+        confidence.ConfidenceConfig(complete_coefficients=(1.0, 2.0)).validate()
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(
+    consistency=st.floats(0, 1),
+    overlap=st.floats(0.1, 1),
+    ratio=st.floats(0.6, 6),
+    more=st.floats(0, 1),
+)
+def test_more_points_with_a_partner_or_closer_ones_never_lower_the_complete_confidence(consistency, overlap, ratio, more):
+    f = confidence.Features(fitness_tight=0.5, tight_distance=0.1, consistency=consistency, overlap=overlap, spacing_ratio=ratio)
+    c = confidence.complete_confidence(f)
+    assert confidence.complete_confidence(f._replace(overlap=overlap + more * (1 - overlap))) >= c
+    assert confidence.complete_confidence(f._replace(consistency=consistency + more * (1 - consistency))) >= c
+    assert confidence.complete_confidence(f._replace(spacing_ratio=max(0.6, ratio - more))) >= c

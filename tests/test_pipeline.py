@@ -12,7 +12,7 @@ from o3dsoft.metrics import pair_errors, rotation_error_deg
 from o3dsoft.pipeline import register
 from o3dsoft.preprocess import scene_size
 from o3dsoft.refine import ICPConfig
-from o3dsoft.transforms import euler_to_matrix, rotation_angle_deg
+from o3dsoft.transforms import euler_to_matrix, rigid, rotation_angle_deg
 
 from .conftest import EXAMPLES, apply, blob, random_transform
 from .fakes import NO_SECOND, AlwaysWrongModel, NearSightedModel, blob_pair, record_icp
@@ -577,3 +577,38 @@ def test_repeated_calls_load_the_network_once(monkeypatch):
     first, again = register(src, tgt, config), register(src, tgt, config)
     assert loaded == [None] and "load_model" in first.timings_ms
     np.testing.assert_array_equal(first.transformation, again.transformation)
+
+
+def test_right_alignments_of_independent_samplings_of_a_complete_shape_are_reported_trusted(modelnet_root):
+    from o3dsoft import confidence
+    from o3dsoft.data import get_protocol, load_pairs
+
+    pairs = load_pairs(modelnet_root, "test", get_protocol("incongruent"), 0)
+    strict_flags = 0
+    for i in (2, 3, 4):  # each cloud 512 of a shape's 1,024 points, none shared
+        result = o3dsoft.register(pairs[i].source, pairs[i].target)
+        errors = pair_errors(result.transformation, pairs[i].transform)
+        assert errors.rotation_deg < 2 and errors.translation < 0.02, i
+        assert not result.likely_failed and result.failure_reason is None, (i, result.confidence)
+        f = confidence.features(pairs[i].source, pairs[i].target, result.transformation, 0.1 * result.scale)
+        strict_flags += confidence.confidence(f) < 0.5
+        # A wrong pose of the same pair, turned 40 degrees about a vertical axis, is not trusted.
+        turned = rigid(euler_to_matrix(np.array([0.0, 0.0, 40.0])), np.zeros(3)) @ result.transformation
+        assert confidence.complete_confidence(confidence.features(pairs[i].source, pairs[i].target, turned, 0.1 * result.scale)) < 0.5
+    assert strict_flags >= 2  # the strict function alone would flag them
+
+
+def test_only_complete_looking_clouds_that_are_not_scans_count_as_complete():
+    from o3dsoft.pair import PreparedPair
+
+    rng = np.random.default_rng(4)
+
+    def ellipsoid(n):  # n points on the surface of an ellipsoid of semi-axes 1, 0.6 and 0.3
+        p = rng.normal(size=(n, 3))
+        return p / np.linalg.norm(p, axis=1, keepdims=True) * [1.0, 0.6, 0.3]
+
+    config = RegisterConfig()
+    assert PreparedPair(ellipsoid(800), ellipsoid(800), config, 8).complete  # two samplings of one shape
+    cut = ellipsoid(1600)
+    assert not PreparedPair(ellipsoid(800), cut[cut[:, 0] > 0.3], config, 8).complete  # a partial overlap
+    assert not PreparedPair(ellipsoid(30_000), ellipsoid(30_000), config, 8).complete  # scans
