@@ -350,8 +350,10 @@ def _reported(best: Attempt, pair: PreparedPair) -> Attempt:
     return best._replace(trust=max(best.trust, confidence_stage.complete_confidence(best.scored, pair.config.confidence)))
 
 
-def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool) -> Optional[str]:
-    """Why a result is flagged likely failed, in words (None when it is not)."""
+def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, complete: bool = False) -> Optional[str]:
+    """Why a result is flagged likely failed, in words (None when it is not). `complete`: both
+    clouds look complete (:attr:`PreparedPair.complete`), so the share of them near each other
+    counts too."""
     if best.trust >= config.confidence.likely_failed_below:
         return None
     bound = config.max_rotation
@@ -364,6 +366,8 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool) -> Op
         why = f"the clouds barely touch: the points near the other cloud are {100 * best.scored.overlap:.0f} % of the smaller one"
     else:
         why = f"of the points near the other cloud, only {100 * best.scored.consistency:.0f} % lie within {best.scored.tight_distance:.3g} units of it"
+        if complete and best.scored.spacing_ratio >= config.confidence.independent_from:
+            why += f", and both clouds look complete but those points are only {100 * best.scored.overlap:.0f} % of the smaller one"
     return why + ("; the global search found nothing clearly better" if searched else "")
 
 
@@ -380,7 +384,7 @@ def _result(
     config = pair.config
     (src, tgt), (src_report, tgt_report) = pair.clouds(final_level), pair.cleaned
     trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
-    reason = geometry.reason or _failure_reason(best, config, searched)
+    reason = geometry.reason or _failure_reason(best, config, searched, pair.complete)
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
         reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units?); {reason}"
     return RegistrationResult(

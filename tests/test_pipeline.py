@@ -596,6 +596,10 @@ def test_right_alignments_of_independent_samplings_of_a_complete_shape_are_repor
         turned = rigid(euler_to_matrix(np.array([0.0, 0.0, 40.0])), np.zeros(3)) @ result.transformation
         assert confidence.complete_confidence(confidence.features(pairs[i].source, pairs[i].target, turned, 0.1 * result.scale)) < 0.5
     assert strict_flags >= 2  # the strict function alone would flag them
+    # A sink's half turn leaves half of it without a partner: flagged, and the reason says so.
+    result = o3dsoft.register(pairs[15].source, pairs[15].target)
+    assert pair_errors(result.transformation, pairs[15].transform).rotation_deg > 90 and result.likely_failed
+    assert "both clouds look complete but those points are only" in result.failure_reason
 
 
 def test_only_complete_looking_clouds_that_are_not_scans_count_as_complete():
