@@ -45,15 +45,15 @@ def record(data: str, per_protocol: int):
         for p_index, name in enumerate(PROTOCOLS):
             pairs = load_pairs(data, "train", get_protocol(name), 0)
             for i in range(min(per_protocol, len(pairs))):
-                register(pairs[i].source, pairs[i].target)
-                if not kept["complete"]:
+                result = register(pairs[i].source, pairs[i].target)
+                if not kept["complete"] or result.sparser_moved:  # the attempts of a swapped pair map target onto source
                     continue
                 for a in kept["attempts"]:
                     f = a.scored
                     if f.spacing_ratio < conf.ConfidenceConfig().independent_from:
                         continue
                     e = pair_errors(a.fine.transformation, pairs[i].transform)
-                    rows.append([f.consistency, f.overlap, min(f.spacing_ratio, conf.ConfidenceConfig().ratio_cap)])
+                    rows.append(conf.complete_feature_vector(f))
                     right.append(e.rotation_deg < 5 and e.translation < 0.05)
                     pair_of.append(p_index * 100_000 + i)
             print(f"{name}: {len(rows)} estimates so far", flush=True)

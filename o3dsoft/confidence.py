@@ -18,7 +18,7 @@ That function is strict: a right alignment of two independent samplings of a sur
 point) has about a fifth of its points beyond the tight distance, and scores low. Where both clouds
 look like complete samplings of one shape (not scans, no partial overlap) and the pose shows no
 shared point (spacing ratio at least ``independent_from``), :func:`complete_confidence` judges it
-instead, by a second logistic function that also weighs the ``overlap``: on complete shapes a right
+too, by a second logistic function that also weighs the ``overlap``: on complete shapes a right
 pose leaves few points without a partner, and a wrong one that fits a part closely leaves many.
 The pipeline searches and chooses by the strict function, and reports the larger of the two.
 
@@ -48,7 +48,7 @@ COMPLETE_FEATURE_NAMES = ("consistency", "overlap", "spacing_ratio")
 
 @dataclass(frozen=True)
 class ConfidenceConfig:
-    """Settings of the confidence (:class:`Scorer`, :func:`confidence`).
+    """Settings of the confidence (:class:`Scorer`, :func:`confidence`, :func:`complete_confidence`).
 
     Attributes:
         distance: d, as a share of the pair's scale (the larger radius): the pipeline measures at
@@ -96,6 +96,8 @@ class ConfidenceConfig:
                 raise ValueError(f"{name}: expected {len(names) + 1} (intercept, {', '.join(names)}), got {len(coefficients)}")
         if not self.distance > 0:
             raise ValueError(f"distance must be positive, got {self.distance}")
+        if not self.independent_from >= 0:
+            raise ValueError(f"independent_from must be at least 0, got {self.independent_from}")
         if not 0 < self.likely_failed_below < 1:
             raise ValueError(f"likely_failed_below must be in (0, 1), got {self.likely_failed_below}")
 
@@ -226,9 +228,15 @@ def complete_confidence(f: Features, config: ConfidenceConfig = ConfidenceConfig
     look like complete samplings of one shape is right, weighing how much of them has a partner
     (``overlap``). 0 where the pose shows shared points (spacing ratio under ``independent_from``:
     the strict :func:`confidence` judges those) or the clouds barely touch."""
-    if f.overlap < config.min_overlap or f.spacing_ratio < config.independent_from:
+    if f.overlap < config.min_overlap or not f.spacing_ratio >= config.independent_from:  # NaN: not judged
         return 0.0
-    return _logistic(config.complete_coefficients, np.array([f.consistency, f.overlap, min(f.spacing_ratio, config.ratio_cap)]))
+    return _logistic(config.complete_coefficients, complete_feature_vector(f, config))
+
+
+def complete_feature_vector(f: Features, config: ConfidenceConfig = ConfidenceConfig()) -> np.ndarray:
+    """The measurements of :data:`COMPLETE_FEATURE_NAMES` as :func:`complete_confidence` takes
+    them: (3,)."""
+    return np.array([f.consistency, f.overlap, min(f.spacing_ratio, config.ratio_cap)])
 
 
 def _logistic(coefficients: Tuple[float, ...], x: np.ndarray) -> float:

@@ -54,7 +54,10 @@ class RegistrationResult:
             the network's, or one the search proposed.
         estimate_from: what proposed that estimate: "network", "second network", "KISS-Matcher",
             "feature match", "network starts", "translation votes" or "pose as given".
-        confidence: estimated probability that the alignment is right (0-1, higher is better).
+        confidence: estimated probability that the alignment is right (0-1, higher is better); on
+            two complete-looking clouds whose pose shows no shared point, the larger of the strict
+            function and :func:`~o3dsoft.confidence.complete_confidence` (two fits, each balanced
+            on its own data: a score to rank and threshold by, not a calibrated probability).
         likely_failed: confidence below the threshold (0.5): treat the transform as wrong.
         failure_reason: why it is flagged, in words; None when it is not.
         fitness_tight: share of source points within `tight_distance` of a target point, or of
@@ -214,7 +217,7 @@ def _register(
 
     # Select the most trusted, then refine it at full resolution, where it is trusted or not.
     chosen = _select(verifier)
-    unrefined = not config.refine_flagged and chosen.trust < config.confidence.likely_failed_below  # left as the work clouds gave it
+    unrefined = not config.refine_flagged and _reported(chosen, pair).trust < config.confidence.likely_failed_below  # left as the work clouds gave it
     best = chosen if unrefined else _refine_full(pair, verifier, chosen)
     if search.mode == "auto" and not searched and best.trust < config.confidence.likely_failed_below:
         # Trusted on the work clouds, not on the clouds it is the answer for: search after all.
@@ -366,7 +369,8 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, compl
         why = f"the clouds barely touch: the points near the other cloud are {100 * best.scored.overlap:.0f} % of the smaller one"
     else:
         why = f"of the points near the other cloud, only {100 * best.scored.consistency:.0f} % lie within {best.scored.tight_distance:.3g} units of it"
-        if complete and best.scored.spacing_ratio >= config.confidence.independent_from:
+        full_overlap = best.scored._replace(overlap=1.0)  # would the pose be trusted with a partner for every point?
+        if complete and confidence_stage.complete_confidence(full_overlap, config.confidence) >= config.confidence.likely_failed_below:
             why += f", and both clouds look complete but those points are only {100 * best.scored.overlap:.0f} % of the smaller one"
     return why + ("; the global search found nothing clearly better" if searched else "")
 
