@@ -406,7 +406,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     if result.sparser_moved:
         lines.append("  roles        the target is much sparser: it was registered onto the source, and the result inverted")
     if result.searched:
-        why = "the first result looked wrong" if search_mode == "auto" else "--search always"
+        why = "the strict confidence flagged the first result, or the clouds look partial" if search_mode == "auto" else "--search always"
         screened = f" ({result.screened} screened on at most {config.search.screen.points:,} points per cloud first)" if result.screened else ""
         lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}")
     if errors is not None:
