@@ -40,6 +40,7 @@ def record(data: str, per_protocol: int):
         return most_trusted(self)
 
     verify.Verifier.most_trusted = keep
+    independent_from = conf.ConfidenceConfig().independent_from
     rows, right, pair_of = [], [], []
     try:
         for p_index, name in enumerate(PROTOCOLS):
@@ -50,7 +51,7 @@ def record(data: str, per_protocol: int):
                     continue
                 for a in kept["attempts"]:
                     f = a.scored
-                    if f.spacing_ratio < conf.ConfidenceConfig().independent_from:
+                    if f.spacing_ratio < independent_from:
                         continue
                     e = pair_errors(a.fine.transformation, pairs[i].transform)
                     rows.append(conf.complete_feature_vector(f))

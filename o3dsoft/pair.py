@@ -174,16 +174,13 @@ class PreparedPair:
         """FPFH features of the full clouds, matched by the search's RANSAC (computed once)."""
         return FeatureMatch(*self.full, self.norm.scale, self.config.search.features.match)
 
+    @cached_property
     def looks_partial(self) -> bool:
         """The clouds' distances to their centroids differ (a partial overlap, most likely)."""
-        return self._partial
-
-    @cached_property
-    def _partial(self) -> bool:
         return same_profile_pvalue(*self.net) < self.config.search.partial_pvalue
 
     @property
     def complete(self) -> bool:
         """Both clouds look like complete samplings of one shape: not scans, and the same profile
-        of distances to their centroids (:meth:`looks_partial` false)."""
-        return not self.scans and not self.looks_partial()
+        of distances to their centroids (:attr:`looks_partial` false)."""
+        return not self.scans and not self.looks_partial

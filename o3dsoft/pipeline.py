@@ -201,7 +201,7 @@ def _register(
     # points; two samplings of a surface share none). Not on scans (``pair.scans``): the search's
     # feature match solves those the first network leaves, and the second was never right there
     # (docs/scans.md).
-    features_first = search.features_on and pair.looks_partial()
+    features_first = search.features_on and pair.looks_partial
     clock.lap("sample_normalise")
     if features_first:
         _match_features(pair, verifier)
