@@ -142,6 +142,15 @@ class SearchConfig:
         replace_odds: an estimate of the search replaces the pipeline's own (the network's, and the
             feature match's where it ran first) only when its confidence's odds, p / (1 - p), are
             this many times higher (default 30; 1: the most trusted wins).
+        independent_odds: the same where the clouds are two independent samplings of a complete
+            shape (:meth:`o3dsoft.verify.Verifier.independent`), where the choice ranks by the
+            confidence the result reports (default 5; docs/incongruent.md).
+        independent_contact: there the strict confidence's choice, as above, still replaces the
+            first estimate among those that bring at least this share as many points into close
+            contact as the one that brings most (0-1, default 0.9).
+        shared_below: an estimate whose spacing ratio is under this shows points the clouds
+            share (right poses of noisy clouds that share their points reach 0.9, those of
+            independent samplings seldom fall under it; default 0.85).
         min_contact: an estimate is chosen only if it brings at least this share as many points
             into close contact (``fitness_tight``) as the estimate that brings most (0-1, default
             0.5; 0: any; docs/incongruent.md).
@@ -156,6 +165,9 @@ class SearchConfig:
     kiss: bool = True
     kiss_voxel: float = 0.01
     replace_odds: float = 30.0
+    independent_odds: float = 5.0
+    independent_contact: float = 0.9
+    shared_below: float = 0.85
     min_contact: float = 0.5
     features: FeatureSearchConfig = field(default_factory=FeatureSearchConfig)
     starts: StartsConfig = field(default_factory=StartsConfig)
@@ -280,12 +292,14 @@ class RegisterConfig:
         threshold = self.confidence.likely_failed_below
         if not threshold <= search.features.stop <= 1:
             raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
-        if not search.replace_odds >= 1:
-            raise InputError(f"search.replace_odds must be at least 1, got {search.replace_odds}")
+        for name in ("replace_odds", "independent_odds"):
+            if not getattr(search, name) >= 1:
+                raise InputError(f"search.{name} must be at least 1, got {getattr(search, name)}")
         if not (self.sparser_moves == 0 or self.sparser_moves >= 1):
             raise InputError(f"sparser_moves must be 0 (never) or at least 1, got {self.sparser_moves}")
-        if not 0 <= search.min_contact <= 1:
-            raise InputError(f"search.min_contact must be in [0, 1], got {search.min_contact}")
+        for name in ("min_contact", "independent_contact"):
+            if not 0 <= getattr(search, name) <= 1:
+                raise InputError(f"search.{name} must be in [0, 1], got {getattr(search, name)}")
         if self.second_network.iterations < 1:
             raise InputError(f"second_network.iterations must be at least 1, got {self.second_network.iterations}")
         if search.starts.refine < 1:

@@ -217,17 +217,17 @@ def _register(
 
     # Select the most trusted, then refine it at full resolution, where it is trusted or not.
     chosen = _select(verifier)
-    unrefined = not config.refine_flagged and _reported(chosen, pair).trust < config.confidence.likely_failed_below  # left as the work clouds gave it
+    unrefined = not config.refine_flagged and verifier.reported(chosen).trust < config.confidence.likely_failed_below  # left as the work clouds gave it
     best = chosen if unrefined else _refine_full(pair, verifier, chosen)
-    if search.mode == "auto" and not searched and best.trust < config.confidence.likely_failed_below:
+    if search.mode == "auto" and not searched and verifier.reported(best).trust < config.confidence.likely_failed_below:
         # Trusted on the work clouds, not on the clouds it is the answer for: search after all.
         verifier.distrust(chosen, best.trust)
         searched = True
         _search(pair, verifier, model, search_model, features_done=False)
         best = _refine_full(pair, verifier, _select(verifier))
     # Report: where both clouds look complete and the pose shows no shared point, the confidence
-    # that weighs the overlap too (the search and the choice above are the strict one's).
-    best = _reported(best, pair)
+    # that weighs the overlap too (the search ran by the strict one).
+    best = verifier.reported(best)
     # On the screen clouds (evenly spaced, at most search.screen.points): a test that can only flag.
     geometry = degeneracy_stage.assess(
         *pair.clouds("screen"), best.fine.transformation, pair.distance, pair.norm.scale, best.scored.spacing_ratio, config.degeneracy, pair.scorer("screen")
@@ -340,17 +340,6 @@ def _select(verifier: Verifier) -> Attempt:
         return best
     # ICP leaves the bound from there too: the clouds disagree with the prior.
     return verifier.refine(identity, identity, refine=False, by="pose as given")._replace(trust=0.0)
-
-
-def _reported(best: Attempt, pair: PreparedPair) -> Attempt:
-    """`best` with the confidence to report: on a pair whose clouds both look complete
-    (:attr:`PreparedPair.complete`), the larger of the strict one and
-    :func:`~o3dsoft.confidence.complete_confidence`; a 0 (beyond the rotation prior, or the clouds
-    barely touch) stays 0. The strict one flags about nine in ten right alignments of two
-    independent samplings of a shape, whose points are never closer than the samplings' spacing."""
-    if best.trust == 0.0 or not pair.complete:
-        return best
-    return best._replace(trust=max(best.trust, confidence_stage.complete_confidence(best.scored, pair.config.confidence)))
 
 
 def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, complete: bool = False) -> Optional[str]:

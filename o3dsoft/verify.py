@@ -4,7 +4,7 @@ and kept in one list from which the result is chosen (:class:`Verifier`)."""
 from __future__ import annotations
 
 import math
-from typing import List, NamedTuple, Optional
+from typing import Callable, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 
@@ -86,32 +86,86 @@ class Verifier:
         proposed replaces the most trusted of the pipeline's own only when its odds of being
         right are ``search.replace_odds`` times higher: on sparse, independently sampled clouds a
         right pose and a turn onto a near-symmetric copy of the shape score alike, and the search
-        would trade the first estimate for one no better."""
+        would trade the first estimate for one no better.
 
-        def rank(a: Attempt):
-            return (self.admissible(a.fine.transformation), a.trust)
+        Where the clouds are two independent samplings of a complete shape (:meth:`independent`),
+        the attempts are ranked by the confidence the result reports (:meth:`reported`) instead,
+        with ``search.independent_odds``: the strict confidence flags most right poses there, and
+        trusts some that fit a part of the shape closely and leave the rest without a partner.
+        The strict ranking still has the search's estimate replace the first among those that
+        bring nearly as many points into close contact as any (``search.independent_contact``):
+        noisy crops of one point set can pass for independent samplings, and the strict
+        confidence knows their right pose."""
+
+        def strict(a: Attempt) -> float:
+            return a.trust
+
+        def reported(a: Attempt) -> float:
+            return self.reported(a).trust
 
         if not self.attempts:  # every estimate was screened and none promoted: the screen's best
             assert self.screened, "no estimate was proposed"
-            self.promote(max(self.screened, key=rank))
-        best = max(self.in_contact(self.attempts), key=rank)
-        own = self.in_contact(self.attempts[: self.search_from]) if self.search_from is not None else []
-        if not own or any(a is best for a in own):
-            return best
-        first = max(own, key=rank)
-        gain = _log_odds(best.trust) - _log_odds(first.trust)
-        return first if rank(first)[0] == rank(best)[0] and gain < math.log(self.config.search.replace_odds) else best
+            self.promote(max(self.screened, key=lambda a: (self.admissible(a.fine.transformation), a.trust)))
+        search = self.config.search
+        chosen, _ = self._choose(strict, search.replace_odds, search.min_contact)
+        if not self.independent():
+            return chosen
+        by_reported, searched = self._choose(reported, search.independent_odds, search.min_contact)
+        if searched:
+            return by_reported
+        close, searched = self._choose(strict, search.replace_odds, search.independent_contact)
+        return close if searched else by_reported
 
-    def in_contact(self, attempts: List[Attempt]) -> List[Attempt]:
-        """Those of `attempts` that bring at least ``search.min_contact`` times as many points
-        within the tight distance (``Features.fitness_tight``) as the attempt of the pair that
-        brings most: the others are not chosen. The confidence judges how well the part in
-        contact fits, so that partial overlaps are not penalised; a pose that slides one shape off
-        the other until a small patch fits scores as high as the right one, and among the
-        estimates of one pair the one that explains more of the clouds at that quality is the
-        likelier."""
+    def _choose(self, trust: Callable[[Attempt], float], odds: float, min_contact: float) -> Tuple[Attempt, bool]:
+        """The most trusted by `trust` of the attempts :meth:`in_contact` at `min_contact`, a
+        search's estimate replacing the most trusted of the pipeline's own only at `odds`; and
+        whether it is one of the search's estimates."""
+
+        def rank(a: Attempt):
+            return (self.admissible(a.fine.transformation), trust(a))
+
+        candidates = self.in_contact(self.attempts, min_contact)
+        own = self.in_contact(self.attempts[: self.search_from], min_contact) if self.search_from is not None else candidates
+        best = max(candidates, key=rank)
+        if any(a is best for a in own):
+            return best, False
+        if not own:
+            return best, True
+        first = max(own, key=rank)
+        gain = _log_odds(trust(best)) - _log_odds(trust(first))
+        if rank(first)[0] == rank(best)[0] and gain < math.log(odds):
+            return first, False
+        return best, True
+
+    def independent(self) -> bool:
+        """Both clouds look complete (:attr:`PreparedPair.complete`) and no attempt shows a point
+        they share (every spacing ratio at least ``search.shared_below``): two independent
+        samplings of one shape, as far as the attempts tell."""
+        shared_below = self.config.search.shared_below
+        return self.pair.complete and all(a.scored.spacing_ratio >= shared_below for a in self.attempts)
+
+    def reported(self, attempt: Attempt) -> Attempt:
+        """`attempt` with the confidence a result reports: on a pair whose clouds both look
+        complete (:attr:`PreparedPair.complete`), the larger of the strict one and
+        :func:`~o3dsoft.confidence.complete_confidence`; a 0 (beyond the rotation prior, or the
+        clouds barely touch) stays 0. The strict one flags about nine in ten right alignments of
+        two independent samplings of a shape, whose points are never closer than the samplings'
+        spacing."""
+        if attempt.trust == 0.0 or not self.pair.complete:
+            return attempt
+        return attempt._replace(trust=max(attempt.trust, confidence_stage.complete_confidence(attempt.scored, self.config.confidence)))
+
+    def in_contact(self, attempts: List[Attempt], min_contact: Optional[float] = None) -> List[Attempt]:
+        """Those of `attempts` that bring at least `min_contact` (default ``search.min_contact``)
+        times as many points within the tight distance (``Features.fitness_tight``) as the
+        attempt of the pair that brings most: the others are not chosen. The confidence judges
+        how well the part in contact fits, so that partial overlaps are not penalised; a pose
+        that slides one shape off the other until a small patch fits scores as high as the right
+        one, and among the estimates of one pair the one that explains more of the clouds at that
+        quality is the likelier."""
+        share = self.config.search.min_contact if min_contact is None else min_contact
         most = max(a.scored.fitness_tight for a in self.attempts)
-        return [a for a in attempts if a.scored.fitness_tight >= self.config.search.min_contact * most]
+        return [a for a in attempts if a.scored.fitness_tight >= share * most]
 
     # -- refining and scoring ---------------------------------------------------------------------
     def refine(

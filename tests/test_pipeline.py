@@ -598,6 +598,21 @@ def test_right_alignments_of_independent_samplings_of_a_complete_shape_are_repor
     assert strict_flags >= 2  # the strict function alone would flag them
 
 
+def test_on_independent_samplings_of_a_complete_shape_the_choice_weighs_the_overlap(modelnet_root, monkeypatch):
+    from o3dsoft import verify
+    from o3dsoft.data import get_protocol, load_pairs
+
+    pairs = load_pairs(modelnet_root, "test", get_protocol("incongruent-so3"), 0)
+    for i in (51, 89):  # a bathtub and a sink, any rotation, no point shared
+        result = o3dsoft.register(pairs[i].source, pairs[i].target)
+        errors = pair_errors(result.transformation, pairs[i].transform)
+        assert errors.rotation_deg < 5 and errors.translation < 0.05 and not result.likely_failed, (i, errors, result.confidence)
+    # Ranked by the strict confidence alone, the sink's search ends on its half turn, trusted.
+    monkeypatch.setattr(verify.Verifier, "independent", lambda self: False)
+    strict_choice = o3dsoft.register(pairs[89].source, pairs[89].target)
+    assert pair_errors(strict_choice.transformation, pairs[89].transform).rotation_deg > 170 and not strict_choice.likely_failed
+
+
 def test_only_complete_looking_clouds_that_are_not_scans_count_as_complete():
     from o3dsoft.pair import PreparedPair
 

@@ -3,7 +3,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from o3dsoft.clock import StageClock
-from o3dsoft.confidence import Features
+from o3dsoft.confidence import Features, complete_confidence
 from o3dsoft.config import RegisterConfig, SearchConfig
 from o3dsoft.refine import ICPResult
 from o3dsoft.transforms import euler_to_matrix, rigid
@@ -15,8 +15,13 @@ def _attempt(trust, turn_deg=0.0):
     return Attempt(trust, Features(0.0, 0.0, 0.0, 0.0), ICPResult(T, 1.0, 0.0), T, T)
 
 
-def _verifier(own, searched, config=RegisterConfig()):
-    verifier = Verifier(SimpleNamespace(config=config), StageClock())
+def _pair(config=RegisterConfig(), complete=False):
+    """As much of a PreparedPair as the choice reads: `complete`, two complete-looking clouds."""
+    return SimpleNamespace(config=config, complete=complete)
+
+
+def _verifier(own, searched, config=RegisterConfig(), complete=False):
+    verifier = Verifier(_pair(config, complete), StageClock())
     verifier.attempts = list(own)
     verifier.begin_search()
     verifier.attempts += list(searched)
@@ -37,7 +42,7 @@ def test_a_search_estimate_replaces_the_first_only_when_far_more_trusted():
 
 def test_without_a_search_the_most_trusted_wins_and_the_prior_comes_first():
     low, high = _attempt(0.2), _attempt(0.7)
-    verifier = Verifier(SimpleNamespace(config=RegisterConfig()), StageClock())
+    verifier = Verifier(_pair(), StageClock())
     verifier.attempts = [low, high]
     assert verifier.most_trusted() is high
     bounded = RegisterConfig(max_rotation=30.0)
@@ -64,6 +69,33 @@ def test_an_estimate_that_brings_under_half_the_points_into_contact_is_not_chose
     assert _verifier([whole], [patch], anything).most_trusted() is patch
 
 
+def _fitting(trust, consistency, overlap, spacing_ratio=1.0, turn_deg=0.0, contact=0.8):
+    """An attempt whose points near the other cloud are a share `overlap` of the smaller one, a
+    share `consistency` of them close (its strict confidence `trust`; `contact`: fitness_tight)."""
+    T = rigid(euler_to_matrix([0.0, 0.0, turn_deg]), np.zeros(3))
+    return Attempt(trust, Features(contact, 0.07, consistency, overlap, spacing_ratio), ICPResult(T, 1.0, 0.0), T, T)
+
+
+def test_on_two_independent_samplings_of_a_complete_shape_the_choice_weighs_the_overlap():
+    part = _fitting(0.4, consistency=0.86, overlap=0.55, turn_deg=180.0)  # a part fits closely, the rest has no partner
+    whole = _fitting(0.05, consistency=0.87, overlap=0.97)  # every point has a partner, none closer than the spacing
+    assert complete_confidence(part.scored) < 0.5 <= complete_confidence(whole.scored)
+    assert _verifier([part], [whole], complete=True).most_trusted() is whole
+    assert _verifier([whole], [part], complete=True).most_trusted() is whole
+    # scans, or a partial overlap: the strict confidence ranks, and the first estimate stays
+    assert _verifier([part], [whole], complete=False).most_trusted() is part
+    # an attempt shows points the clouds share: the strict confidence judges that pair
+    shared = _fitting(0.01, consistency=0.6, overlap=0.9, spacing_ratio=0.3, turn_deg=90.0)
+    assert _verifier([part], [whole, shared], complete=True).most_trusted() is part
+    # the search's estimate replaces the first only at search.independent_odds
+    demanding = RegisterConfig(search=SearchConfig(independent_odds=50.0))  # confidence 0.92 against 0.4: odds 11.9 against 0.67, 18 times
+    assert _verifier([part], [whole], demanding, complete=True).most_trusted() is part
+    # the strict confidence's choice still replaces the first where it brings nearly as many points into contact
+    tight = _fitting(0.95, consistency=0.95, overlap=0.8, turn_deg=90.0)  # odds 19 against 11.9 reported, 361 times strictly
+    assert _verifier([whole], [tight], complete=True).most_trusted() is tight
+    assert _verifier([whole], [tight._replace(scored=tight.scored._replace(fitness_tight=0.6))], complete=True).most_trusted() is whole
+
+
 def test_min_contact_is_validated():
     import pytest
 
@@ -71,10 +103,12 @@ def test_min_contact_is_validated():
 
     with pytest.raises(InputError, match="min_contact"):
         RegisterConfig(search=SearchConfig(min_contact=1.5)).validate(20)
+    with pytest.raises(InputError, match="independent_odds"):
+        RegisterConfig(search=SearchConfig(independent_odds=0.5)).validate(20)
 
 
 def test_distrust_lowers_a_promoted_estimate_and_its_screening():
-    verifier = Verifier(SimpleNamespace(config=RegisterConfig()), StageClock())
+    verifier = Verifier(_pair(), StageClock())
     screened = _attempt(0.8)
     promoted = _attempt(0.9)._replace(start=screened.start)  # as Verifier.promote keeps it
     other = _attempt(0.7, 90.0)
@@ -85,7 +119,7 @@ def test_distrust_lowers_a_promoted_estimate_and_its_screening():
 
 
 def test_with_no_estimate_kept_the_screens_best_is_promoted(monkeypatch):
-    verifier = Verifier(SimpleNamespace(config=RegisterConfig()), StageClock())
+    verifier = Verifier(_pair(), StageClock())
     low, high = _attempt(0.1), _attempt(0.3, 30.0)
     verifier.screened = [low, high]
     monkeypatch.setattr(verifier, "promote", lambda s: verifier.attempts.append(s) or s)
