@@ -21,7 +21,8 @@ shared point (spacing ratio at least ``independent_from``), :func:`complete_conf
 too, by a second logistic function that also weighs the ``overlap``: on complete shapes a right
 pose leaves few points without a partner, and a wrong one that fits a part closely leaves many.
 The pipeline searches by the strict function, and reports the larger of the two; it chooses by
-the larger too where no estimate of the pair shows a shared point (:meth:`o3dsoft.verify.Verifier.independent`).
+the larger too where no estimate of the pair has a spacing ratio under 0.85
+(:meth:`o3dsoft.verify.Verifier.independent`).
 
 An alignment that leaves the clouds barely touching (counted points under ``min_overlap`` of the
 smaller cloud) gets confidence 0. The coefficients are fitted by logistic regression

@@ -145,12 +145,13 @@ class SearchConfig:
         independent_odds: the same where the clouds are two independent samplings of a complete
             shape (:meth:`o3dsoft.verify.Verifier.independent`), where the choice ranks by the
             confidence the result reports (default 5; docs/incongruent.md).
-        independent_contact: there the strict confidence's choice, as above, still replaces the
-            first estimate among those that bring at least this share as many points into close
-            contact as the one that brings most (0-1, default 0.9).
-        shared_below: an estimate whose spacing ratio is under this shows points the clouds
-            share (right poses of noisy clouds that share their points reach 0.9, those of
-            independent samplings seldom fall under it; default 0.85).
+        independent_contact: there the search's estimate the strict confidence trusts most among
+            those that bring at least this share as many points into close contact as the one
+            that brings most still replaces that choice at ``replace_odds`` (0-1, default 0.9).
+        independent_spacing: the choice takes the clouds for two independent samplings only where
+            every estimate's spacing ratio is at least this (stricter than the confidence's
+            ``independent_from``: right poses of noisy clouds that share their points reach 0.9,
+            those of independent samplings seldom fall under 0.85; default 0.85).
         min_contact: an estimate is chosen only if it brings at least this share as many points
             into close contact (``fitness_tight``) as the estimate that brings most (0-1, default
             0.5; 0: any; docs/incongruent.md).
@@ -167,7 +168,7 @@ class SearchConfig:
     replace_odds: float = 30.0
     independent_odds: float = 5.0
     independent_contact: float = 0.9
-    shared_below: float = 0.85
+    independent_spacing: float = 0.85
     min_contact: float = 0.5
     features: FeatureSearchConfig = field(default_factory=FeatureSearchConfig)
     starts: StartsConfig = field(default_factory=StartsConfig)
@@ -297,6 +298,8 @@ class RegisterConfig:
                 raise InputError(f"search.{name} must be at least 1, got {getattr(search, name)}")
         if not (self.sparser_moves == 0 or self.sparser_moves >= 1):
             raise InputError(f"sparser_moves must be 0 (never) or at least 1, got {self.sparser_moves}")
+        if not search.independent_spacing >= 0:
+            raise InputError(f"search.independent_spacing must be at least 0, got {search.independent_spacing}")
         for name in ("min_contact", "independent_contact"):
             if not 0 <= getattr(search, name) <= 1:
                 raise InputError(f"search.{name} must be in [0, 1], got {getattr(search, name)}")

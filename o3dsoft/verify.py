@@ -92,34 +92,35 @@ class Verifier:
         the attempts are ranked by the confidence the result reports (:meth:`reported`) instead,
         with ``search.independent_odds``: the strict confidence flags most right poses there, and
         trusts some that fit a part of the shape closely and leave the rest without a partner.
-        The strict ranking still has the search's estimate replace the first among those that
-        bring nearly as many points into close contact as any (``search.independent_contact``):
-        noisy crops of one point set can pass for independent samplings, and the strict
+        Failing that, the search's estimate the strict confidence trusts most among those that
+        bring nearly as many points into close contact as any (``search.independent_contact``)
+        still replaces that choice where its strict odds are ``search.replace_odds`` times
+        higher: noisy crops of one point set can pass for independent samplings, and the strict
         confidence knows their right pose."""
 
         def strict(a: Attempt) -> float:
             return a.trust
 
-        def reported(a: Attempt) -> float:
+        def reported_trust(a: Attempt) -> float:
             return self.reported(a).trust
 
         if not self.attempts:  # every estimate was screened and none promoted: the screen's best
             assert self.screened, "no estimate was proposed"
             self.promote(max(self.screened, key=lambda a: (self.admissible(a.fine.transformation), a.trust)))
         search = self.config.search
-        chosen, _ = self._choose(strict, search.replace_odds, search.min_contact)
         if not self.independent():
+            return self._choose(strict, search.replace_odds, search.min_contact)[0]
+        chosen, replaced = self._choose(reported_trust, search.independent_odds, search.min_contact)
+        if replaced:
             return chosen
-        by_reported, searched = self._choose(reported, search.independent_odds, search.min_contact)
-        if searched:
-            return by_reported
-        close, searched = self._choose(strict, search.replace_odds, search.independent_contact)
-        return close if searched else by_reported
+        close = max(self.in_contact(self.attempts, search.independent_contact), key=lambda a: (self.admissible(a.fine.transformation), a.trust))
+        own = self.search_from is not None and any(a is close for a in self.attempts[: self.search_from])
+        return close if not own and self._replaces(close, chosen, strict, search.replace_odds) else chosen
 
     def _choose(self, trust: Callable[[Attempt], float], odds: float, min_contact: float) -> Tuple[Attempt, bool]:
         """The most trusted by `trust` of the attempts :meth:`in_contact` at `min_contact`, a
         search's estimate replacing the most trusted of the pipeline's own only at `odds`; and
-        whether it is one of the search's estimates."""
+        whether a search's estimate replaced the pipeline's own."""
 
         def rank(a: Attempt):
             return (self.admissible(a.fine.transformation), trust(a))
@@ -132,17 +133,22 @@ class Verifier:
         if not own:
             return best, True
         first = max(own, key=rank)
-        gain = _log_odds(trust(best)) - _log_odds(trust(first))
-        if rank(first)[0] == rank(best)[0] and gain < math.log(odds):
-            return first, False
-        return best, True
+        return (best, True) if self._replaces(best, first, trust, odds) else (first, False)
+
+    def _replaces(self, new: Attempt, old: Attempt, trust: Callable[[Attempt], float], odds: float) -> bool:
+        """`new` is chosen over `old`: it lies within the rotation prior where `old` does not, or
+        both on the same side and its odds by `trust` are `odds` times higher."""
+        new_within, old_within = self.admissible(new.fine.transformation), self.admissible(old.fine.transformation)
+        if new_within != old_within:
+            return new_within
+        return _log_odds(trust(new)) - _log_odds(trust(old)) >= math.log(odds)
 
     def independent(self) -> bool:
         """Both clouds look complete (:attr:`PreparedPair.complete`) and no attempt shows a point
-        they share (every spacing ratio at least ``search.shared_below``): two independent
+        they share (every spacing ratio at least ``search.independent_spacing``): two independent
         samplings of one shape, as far as the attempts tell."""
-        shared_below = self.config.search.shared_below
-        return self.pair.complete and all(a.scored.spacing_ratio >= shared_below for a in self.attempts)
+        spacing = self.config.search.independent_spacing
+        return self.pair.complete and all(a.scored.spacing_ratio >= spacing for a in self.attempts)
 
     def reported(self, attempt: Attempt) -> Attempt:
         """`attempt` with the confidence a result reports: on a pair whose clouds both look
@@ -155,17 +161,16 @@ class Verifier:
             return attempt
         return attempt._replace(trust=max(attempt.trust, confidence_stage.complete_confidence(attempt.scored, self.config.confidence)))
 
-    def in_contact(self, attempts: List[Attempt], min_contact: Optional[float] = None) -> List[Attempt]:
-        """Those of `attempts` that bring at least `min_contact` (default ``search.min_contact``)
-        times as many points within the tight distance (``Features.fitness_tight``) as the
+    def in_contact(self, attempts: List[Attempt], min_contact: float) -> List[Attempt]:
+        """Those of `attempts` that bring at least `min_contact` (``search.min_contact`` for the
+        choice) times as many points within the tight distance (``Features.fitness_tight``) as the
         attempt of the pair that brings most: the others are not chosen. The confidence judges
         how well the part in contact fits, so that partial overlaps are not penalised; a pose
         that slides one shape off the other until a small patch fits scores as high as the right
         one, and among the estimates of one pair the one that explains more of the clouds at that
         quality is the likelier."""
-        share = self.config.search.min_contact if min_contact is None else min_contact
         most = max(a.scored.fitness_tight for a in self.attempts)
-        return [a for a in attempts if a.scored.fitness_tight >= share * most]
+        return [a for a in attempts if a.scored.fitness_tight >= min_contact * most]
 
     # -- refining and scoring ---------------------------------------------------------------------
     def refine(

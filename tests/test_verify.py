@@ -94,6 +94,10 @@ def test_on_two_independent_samplings_of_a_complete_shape_the_choice_weighs_the_
     tight = _fitting(0.95, consistency=0.95, overlap=0.8, turn_deg=90.0)  # odds 19 against 11.9 reported, 361 times strictly
     assert _verifier([whole], [tight], complete=True).most_trusted() is tight
     assert _verifier([whole], [tight._replace(scored=tight.scored._replace(fitness_tight=0.6))], complete=True).most_trusted() is whole
+    # ... and only at those odds over the choice, even where no first estimate is in close contact
+    wider = _fitting(0.02, consistency=0.5, overlap=0.9, turn_deg=90.0, contact=1.0)
+    assert _verifier([whole], [wider], complete=True).most_trusted() is whole
+    assert _verifier([whole], [wider._replace(trust=0.95)], complete=True).most_trusted().trust == 0.95
 
 
 def test_min_contact_is_validated():
@@ -105,6 +109,10 @@ def test_min_contact_is_validated():
         RegisterConfig(search=SearchConfig(min_contact=1.5)).validate(20)
     with pytest.raises(InputError, match="independent_odds"):
         RegisterConfig(search=SearchConfig(independent_odds=0.5)).validate(20)
+    with pytest.raises(InputError, match="independent_contact"):
+        RegisterConfig(search=SearchConfig(independent_contact=1.5)).validate(20)
+    with pytest.raises(InputError, match="independent_spacing"):
+        RegisterConfig(search=SearchConfig(independent_spacing=-1.0)).validate(20)
 
 
 def test_distrust_lowers_a_promoted_estimate_and_its_screening():
