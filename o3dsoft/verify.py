@@ -106,14 +106,14 @@ class Verifier:
 
         if not self.attempts:  # every estimate was screened and none promoted: the screen's best
             assert self.screened, "no estimate was proposed"
-            self.promote(max(self.screened, key=lambda a: (self.admissible(a.fine.transformation), a.trust)))
+            self.promote(max(self.screened, key=lambda a: self._rank(a, strict)))
         search = self.config.search
         if not self.independent():
             return self._choose(strict, search.replace_odds, search.min_contact)[0]
         chosen, replaced = self._choose(reported_trust, search.independent_odds, search.min_contact)
         if replaced:
             return chosen
-        close = max(self.in_contact(self.attempts, search.independent_contact), key=lambda a: (self.admissible(a.fine.transformation), a.trust))
+        close = max(self.in_contact(self.attempts, search.independent_contact), key=lambda a: self._rank(a, strict))
         own = self.search_from is not None and any(a is close for a in self.attempts[: self.search_from])
         return close if not own and self._replaces(close, chosen, strict, search.replace_odds) else chosen
 
@@ -122,8 +122,8 @@ class Verifier:
         search's estimate replacing the most trusted of the pipeline's own only at `odds`; and
         whether a search's estimate replaced the pipeline's own."""
 
-        def rank(a: Attempt):
-            return (self.admissible(a.fine.transformation), trust(a))
+        def rank(a: Attempt) -> Tuple[bool, float]:
+            return self._rank(a, trust)
 
         candidates = self.in_contact(self.attempts, min_contact)
         own = self.in_contact(self.attempts[: self.search_from], min_contact) if self.search_from is not None else candidates
@@ -134,6 +134,10 @@ class Verifier:
             return best, True
         first = max(own, key=rank)
         return (best, True) if self._replaces(best, first, trust, odds) else (first, False)
+
+    def _rank(self, a: Attempt, trust: Callable[[Attempt], float]) -> Tuple[bool, float]:
+        """The key the choice maximises: within the rotation prior first, then `trust`."""
+        return (self.admissible(a.fine.transformation), trust(a))
 
     def _replaces(self, new: Attempt, old: Attempt, trust: Callable[[Attempt], float], odds: float) -> bool:
         """`new` is chosen over `old`: it lies within the rotation prior where `old` does not, or
