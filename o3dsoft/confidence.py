@@ -24,6 +24,12 @@ The pipeline searches by the strict function, and reports the larger of the two;
 the larger too where no estimate of the pair has a spacing ratio under 0.85
 (:meth:`o3dsoft.verify.Verifier.independent`).
 
+On scans the strict function also flags some right alignments: where the overlap's edges curl or
+are seen at grazing angles, about one in eight of the nearby points lies off the other scan.
+:func:`scan_confidence` judges those by the ``planar`` share: how much of the overlap lies on the
+other scan's surface (its tangent planes, from point-to-plane ICP's normals). It is fitted with a
+wrong pose weighing a hundred right ones, and the result reports the larger of the two too.
+
 An alignment that leaves the clouds barely touching (counted points under ``min_overlap`` of the
 smaller cloud) gets confidence 0. The coefficients are fitted by logistic regression
 (``python -m benchmarks.fit_confidence``); the data, the measurements and the rejected
@@ -34,7 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple, Tuple
+from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -46,6 +52,8 @@ from .transforms import apply_transform
 FEATURE_NAMES = ("consistency", "spacing_ratio")
 # ... and those of :func:`complete_confidence`.
 COMPLETE_FEATURE_NAMES = ("consistency", "overlap", "spacing_ratio")
+# ... and those of :func:`scan_confidence`.
+SCAN_FEATURE_NAMES = ("planar",)
 
 
 @dataclass(frozen=True)
@@ -75,6 +83,10 @@ class ConfidenceConfig:
             ``python -m benchmarks.fit_complete_confidence``).
         independent_from: a pose whose spacing ratio is at least this shows no shared point:
             :func:`complete_confidence` judges it where both clouds look complete.
+        planar_tolerance: ``Features.planar`` counts the points within this share of the tight
+            distance of their partner's tangent plane.
+        scan_coefficients: intercept, then one weight per name of :data:`SCAN_FEATURE_NAMES`:
+            :func:`scan_confidence` (fitted by ``python -m benchmarks.fit_scan_confidence``).
     """
 
     distance: float = 0.1
@@ -88,16 +100,21 @@ class ConfidenceConfig:
     wide_spacings: float = 3.0
     complete_coefficients: Tuple[float, ...] = (-20.95, 12.52, 18.19, -5.11)
     independent_from: float = 0.6
+    planar_tolerance: float = 0.1
+    scan_coefficients: Tuple[float, ...] = (-6.87, 12.94)
 
     def validate(self) -> None:
         for name, coefficients, names in (
             ("coefficients", self.coefficients, FEATURE_NAMES),
             ("complete_coefficients", self.complete_coefficients, COMPLETE_FEATURE_NAMES),
+            ("scan_coefficients", self.scan_coefficients, SCAN_FEATURE_NAMES),
         ):
             if len(coefficients) != len(names) + 1:
                 raise ValueError(f"{name}: expected {len(names) + 1} (intercept, {', '.join(names)}), got {len(coefficients)}")
         if not self.distance > 0:
             raise ValueError(f"distance must be positive, got {self.distance}")
+        if not 0 < self.planar_tolerance <= 1:
+            raise ValueError(f"planar_tolerance must be in (0, 1], got {self.planar_tolerance}")
         if not self.independent_from >= 0:
             raise ValueError(f"independent_from must be at least 0, got {self.independent_from}")
         if not 0 < self.likely_failed_below < 1:
@@ -117,13 +134,18 @@ class Features(NamedTuple):
     other cloud less those beyond its edge (as for the consistency): about 1 for two independent
     samplings of one surface at the right pose, 0 for identical point sets, above 1 when the
     surfaces lie apart. Unlike the consistency it keeps its meaning on sparse clouds, whose
-    spacing is close to d (two independent samplings' nearest points lie about s apart)."""
+    spacing is close to d (two independent samplings' nearest points lie about s apart);
+    planar: of the points the consistency counts, the share within ``planar_tolerance`` of the
+    tight distance of their partner's tangent plane (0-1, higher is better): on two samplings of
+    one surface the distance along the surface is the sampling's, across it the scanner's noise
+    (NaN where the scorer has no normals of the cloud compared with)."""
 
     fitness_tight: float
     tight_distance: float
     consistency: float
     overlap: float
     spacing_ratio: float = 0.0
+    planar: float = math.nan
 
 
 def point_spacing(points: np.ndarray) -> float:
@@ -141,6 +163,9 @@ class Scorer:
         distance: d, the correspondence distance of the fine stage (cloud units).
         max_points: clouds above this size are voxel-downsampled first, as in ICP.
         config: the confidence's settings.
+        target_normals: (M, 3) unit normals of `target` (e.g. point-to-plane ICP's), for
+            ``Features.planar``; not used where the target is downsampled first or is the much
+            sparser cloud (then planar is NaN).
     """
 
     def __init__(
@@ -150,8 +175,10 @@ class Scorer:
         distance: float,
         max_points: int = refine_stage.ICPConfig.max_points,
         config: ConfidenceConfig = ConfidenceConfig(),
+        target_normals: Optional[np.ndarray] = None,
     ) -> None:
         self.config = config
+        given = len(target)
         source = refine_stage.downsample(np.asarray(source, dtype=np.float64), max_points)
         target = refine_stage.downsample(np.asarray(target, dtype=np.float64), max_points)
         s_source, s_target = point_spacing(source), point_spacing(target)
@@ -164,6 +191,8 @@ class Scorer:
         self.far_spacing = max(s_source if self.swapped else s_target, 1e-12)
         self.reach = max(distance, self.tight)
         self.wide_reach = max(self.reach, config.wide_spacings * self.far_spacing)
+        usable = target_normals is not None and not self.swapped and len(target) == given == len(target_normals)
+        self.far_normals = np.asarray(target_normals, dtype=np.float64) if usable else None
 
     def __call__(self, transformation: np.ndarray) -> Features:
         """Features of the alignment by `transformation`, (4, 4) T_target_source."""
@@ -186,10 +215,19 @@ class Scorer:
         ratio_counted = close | (reached & ~claimed)
         spacing_ratio = float(np.median(dist[ratio_counted]) / self.far_spacing) if ratio_counted.any() else math.inf
         if not counted.any():
-            return Features(float(close.mean()), self.tight, 0.0, 0.0, spacing_ratio)
+            return Features(float(close.mean()), self.tight, 0.0, 0.0, spacing_ratio, 0.0 if self.far_normals is not None else math.nan)
         consistency = float(close.sum() / counted.sum())
         overlap = min(1.0, float(counted.sum()) / min(len(moved), len(self.far)))
-        return Features(float(close.mean()), self.tight, consistency, overlap, spacing_ratio)
+        return Features(float(close.mean()), self.tight, consistency, overlap, spacing_ratio, self._planar(moved, j, counted))
+
+    def _planar(self, moved: np.ndarray, j: np.ndarray, counted: np.ndarray) -> float:
+        """``Features.planar`` of the (N, 3) moved points, whose nearest partners are far[j],
+        over the `counted` ones; NaN without normals."""
+        if self.far_normals is None:
+            return math.nan
+        partners = j[counted]
+        across = np.abs(np.einsum("ij,ij->i", moved[counted] - self.far[partners], self.far_normals[partners]))
+        return float(np.mean(across <= self.config.planar_tolerance * self.tight))
 
 
 def features(
@@ -233,6 +271,16 @@ def complete_confidence(f: Features, config: ConfidenceConfig = ConfidenceConfig
     if f.overlap < config.min_overlap or not f.spacing_ratio >= config.independent_from:  # NaN: not judged
         return 0.0
     return _logistic(config.complete_coefficients, complete_feature_vector(f, config))
+
+
+def scan_confidence(f: Features, config: ConfidenceConfig = ConfidenceConfig()) -> float:
+    """Estimated probability (0-1, higher is better) that an alignment of two scans is right, from
+    how much of the overlap lies on the other scan's surface (``planar``): the strict
+    :func:`confidence` flags right alignments of scans whose overlap's edges curl or graze
+    (docs/scans.md). 0 where planar is not measured (NaN) or the clouds barely touch."""
+    if f.overlap < config.min_overlap or not f.planar >= 0:  # NaN: not measured
+        return 0.0
+    return _logistic(config.scan_coefficients, np.array([f.planar]))
 
 
 def complete_feature_vector(f: Features, config: ConfidenceConfig = ConfidenceConfig()) -> np.ndarray:

@@ -166,7 +166,8 @@ class PreparedPair:
         """The confidence's scorer of the clouds at `level`, built once."""
         if level not in self._scorers:
             d = self.config.confidence.distance * self.norm.scale  # the confidence's own d, whatever ICP's
-            self._scorers[level] = confidence_stage.Scorer(*self.clouds(level), d, self.config.icp.max_points, self.config.confidence)
+            normals = self.target_normals(level) if self.scans else None  # for the scan confidence's planar share
+            self._scorers[level] = confidence_stage.Scorer(*self.clouds(level), d, self.config.icp.max_points, self.config.confidence, normals)
         return self._scorers[level]
 
     @cached_property

@@ -56,8 +56,9 @@ class RegistrationResult:
             "feature match", "network starts", "translation votes" or "pose as given".
         confidence: estimated probability that the alignment is right (0-1, higher is better); on
             two complete-looking clouds whose pose shows no shared point, the larger of the strict
-            function and :func:`~o3dsoft.confidence.complete_confidence` (two fits, each balanced
-            on its own data: a score to rank and threshold by, not a calibrated probability).
+            function and :func:`~o3dsoft.confidence.complete_confidence`, on scans the larger of
+            the strict function and :func:`~o3dsoft.confidence.scan_confidence` (fits, each on its
+            own data: a score to rank and threshold by, not a calibrated probability).
         likely_failed: confidence below the threshold (0.5): treat the transform as wrong.
         failure_reason: why it is flagged, in words; None when it is not.
         fitness_tight: share of source points within `tight_distance` of a target point, or of

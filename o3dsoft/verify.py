@@ -155,15 +155,22 @@ class Verifier:
         return self.pair.complete and all(a.scored.spacing_ratio >= spacing for a in self.attempts)
 
     def reported(self, attempt: Attempt) -> Attempt:
-        """`attempt` with the confidence a result reports: on a pair whose clouds both look
-        complete (:attr:`PreparedPair.complete`), the larger of the strict one and
-        :func:`~o3dsoft.confidence.complete_confidence`; a 0 (beyond the rotation prior, or the
+        """`attempt` with the confidence a result reports: the larger of the strict one and, on a
+        pair whose clouds both look complete (:attr:`PreparedPair.complete`),
+        :func:`~o3dsoft.confidence.complete_confidence`, on scans
+        :func:`~o3dsoft.confidence.scan_confidence`; a 0 (beyond the rotation prior, or the
         clouds barely touch) stays 0. The strict one flags about nine in ten right alignments of
         two independent samplings of a shape, whose points are never closer than the samplings'
-        spacing."""
-        if attempt.trust == 0.0 or not self.pair.complete:
+        spacing, and some right alignments of scans whose overlap's edges curl (docs/scans.md)."""
+        if attempt.trust == 0.0:
             return attempt
-        return attempt._replace(trust=max(attempt.trust, confidence_stage.complete_confidence(attempt.scored, self.config.confidence)))
+        if self.pair.complete:
+            second = confidence_stage.complete_confidence(attempt.scored, self.config.confidence)
+        elif self.pair.scans:
+            second = confidence_stage.scan_confidence(attempt.scored, self.config.confidence)
+        else:
+            return attempt
+        return attempt._replace(trust=max(attempt.trust, second))
 
     def in_contact(self, attempts: List[Attempt], min_contact: float) -> List[Attempt]:
         """Those of `attempts` that bring at least `min_contact` (``search.min_contact`` for the

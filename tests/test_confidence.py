@@ -212,3 +212,45 @@ def test_more_points_with_a_partner_or_closer_ones_never_lower_the_complete_conf
     assert confidence.complete_confidence(f._replace(overlap=overlap + more * (1 - overlap))) >= c
     assert confidence.complete_confidence(f._replace(consistency=consistency + more * (1 - consistency))) >= c
     assert confidence.complete_confidence(f._replace(spacing_ratio=max(0.6, ratio - more))) >= c
+
+
+def _grid_plane(step: float, offset: float, half: float = 1.0) -> np.ndarray:
+    """(N, 3) points of the plane z = 0 on a square grid of `step`, shifted by `offset` in x and y."""
+    ticks = np.arange(-half, half, step) + offset
+    x, y = np.meshgrid(ticks, ticks)
+    return np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
+
+
+def test_the_planar_share_counts_points_on_the_partners_tangent_plane():
+    # Two samplings of one plane on grids half a step apart: every nearest partner lies half a
+    # diagonal away along the surface, none across it.
+    src, tgt = _grid_plane(0.05, 0.025), _grid_plane(0.05, 0.0)
+    normals = np.tile([0.0, 0.0, 1.0], (len(tgt), 1))
+    scorer = confidence.Scorer(src, tgt, distance=0.3, target_normals=normals)
+    on = scorer(np.eye(4))
+    assert on.planar == pytest.approx(1.0)
+    # Lifted off the surface by half the tight distance: still close, not on the plane.
+    lift = np.eye(4)
+    lift[2, 3] = 0.5 * scorer.tight
+    off = scorer(lift)
+    assert off.consistency == pytest.approx(1.0) and off.planar == pytest.approx(0.0)
+    # No normals, or normals of a downsampled target: not measured.
+    assert np.isnan(confidence.Scorer(src, tgt, distance=0.3)(np.eye(4)).planar)
+    assert np.isnan(confidence.Scorer(src, tgt, distance=0.3, max_points=len(tgt) // 4, target_normals=normals)(np.eye(4)).planar)
+
+
+def test_the_scan_confidence_rises_with_the_planar_share_and_needs_it_measured():
+    config = confidence.ConfidenceConfig()
+    f = confidence.Features(fitness_tight=0.5, tight_distance=0.05, consistency=0.87, overlap=0.5, spacing_ratio=1.0)
+    assert confidence.scan_confidence(f) == 0.0  # planar not measured (NaN)
+    shares = [0.2, 0.4, 0.6, 0.8]
+    scores = [confidence.scan_confidence(f._replace(planar=p)) for p in shares]
+    assert scores == sorted(scores) and scores[0] < 0.5 < scores[-1]
+    z = config.scan_coefficients[0] + config.scan_coefficients[1] * 0.6
+    assert scores[2] == pytest.approx(1 / (1 + np.exp(-z)))
+    assert confidence.scan_confidence(f._replace(planar=0.8, overlap=0.05)) == 0.0  # barely touching
+    assert len(config.scan_coefficients) == len(confidence.SCAN_FEATURE_NAMES) + 1
+    with pytest.raises(ValueError, match="scan_coefficients"):
+        confidence.ConfidenceConfig(scan_coefficients=(1.0,)).validate()
+    with pytest.raises(ValueError, match="planar_tolerance"):
+        confidence.ConfidenceConfig(planar_tolerance=0.0).validate()
