@@ -71,10 +71,11 @@ def random_rotation_within(rng: np.random.Generator, max_deg: float) -> np.ndarr
 
 def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-3, steps: int = 50, balanced: bool = True, failure_weight: float = 1.0) -> np.ndarray:
     """Logistic regression of y (N,) in {0, 1} on X (N, F): (F + 1,) intercept and weights. With
-    `balanced`, each class weighs half of the total whatever its size, the failures (y = 0) times
-    `failure_weight`."""
+    `balanced`, each class weighs half of the total whatever its size; the failures (y = 0) weigh
+    `failure_weight` times as much either way."""
     A = np.hstack([np.ones((len(X), 1)), X])
-    sw = np.where(y > 0.5, 0.5 / max(y.mean(), 1e-12), failure_weight * 0.5 / max(1 - y.mean(), 1e-12)) if balanced else np.ones(len(y))
+    sw = np.where(y > 0.5, 0.5 / max(y.mean(), 1e-12), 0.5 / max(1 - y.mean(), 1e-12)) if balanced else np.ones(len(y))
+    sw = np.where(y > 0.5, sw, failure_weight * sw)
     w = np.zeros(A.shape[1])
     for _ in range(steps):
         p = 1 / (1 + np.exp(-A @ w))

@@ -3,27 +3,33 @@ not run.
 
     python -m benchmarks.fit_scan_confidence [--data ../shared/data] [--failure-weight 100]
 
-The pairs: the Stanford bunny's ordered scan pairs under the bench's 0.3 overlap, and the 3DMatch
-red-kitchen fragment pairs that its pairs.txt does not list (both directions), their ground truth
-composed from the listed transforms, where at least 5 % of the source lies within 1 % of the
-scale of the target. Each pair is aligned by its ground truth and by point-to-plane ICP on the
+The pairs: the Stanford bunny's ordered scan pairs that the bench runs in neither direction
+(under its 0.3 overlap both ways), and the 3DMatch red-kitchen fragment pairs that its pairs.txt
+lists in neither direction, their ground truth composed from the listed transforms, where over
+5 % of the source lies within 1 % of the scale of the target. Each pair is aligned by its ground truth and by point-to-plane ICP on the
 work clouds from the ground truth turned by random rotations of up to 30, 60, 90 and 180 degrees;
 an alignment is right within the folder's loose test (bunny 5 deg / 5 % of the size, 3DMatch 15 deg
 / 0.3 m). The planar share (``Features.planar``) is measured by the pipeline's own scorer of the
 work clouds, and a logistic regression fitted on the alignments that touch (overlap at least
 ``min_overlap``), failures weighing `--failure-weight` times the successes in total: a wrong pose
 reported as trusted costs far more than a right one flagged. Prints the coefficients to paste into
-``ConfidenceConfig.scan_coefficients``, and where 0.5 lies.
+``ConfidenceConfig.scan_coefficients``, and where 0.5 lies. With ``--bench pairs.csv`` (an ``o3dsoft
+bench scans`` run), the bench's pairs are measured the same way, with o3dsoft's results among the
+alignments, and judged by these coefficients: the right results the strict confidence flags, and
+every wrong alignment that touches, with its planar share and reported confidence.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 from pathlib import Path
+from typing import List
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from o3dsoft import confidence as conf
 from o3dsoft.bench import scan_folder
 from o3dsoft.clock import StageClock
 from o3dsoft.config import RegisterConfig
@@ -31,6 +37,7 @@ from o3dsoft.io import read_points, read_transform
 from o3dsoft.pair import PreparedPair
 from o3dsoft.preprocess import normalisation_for
 from o3dsoft.refine import icp
+from o3dsoft.scans import read_pairs_file
 from o3dsoft.transforms import apply_transform, rotation_angle_deg
 
 from .fit_confidence import fit_logistic, random_rotation_within
@@ -42,22 +49,24 @@ TURNS = ((30, 3), (60, 3), (90, 3), (180, 4))  # (largest turn in degrees, start
 def problems(data: Path):
     """Yield (name, source, target, T_target_source, (degrees, distance) of a right pose)."""
     bunny = data / "stanford_bunny"
-    benched = {pair.category for pair in scan_folder(bunny).pairs}
+    benched = {frozenset(pair.category.split("->")) for pair in scan_folder(bunny).pairs}
     folder = scan_folder(bunny, min_overlap=0.0)
     for pair in folder.pairs:
-        if pair.category not in benched:
+        if frozenset(pair.category.split("->")) not in benched:
             yield f"bunny {pair.category}", pair.source, pair.target, pair.transform, folder.recall[-1]
     kitchen = data / "real_scans" / "3dmatch_redkitchen"
-    listed = [line.split()[:2] for line in (kitchen / "pairs.txt").read_text().splitlines() if line and not line.startswith("#")]
-    poses = {"cloud_bin_1.ply": np.eye(4)}  # in fragment 1's frame, along the listed chain
+    entries = read_pairs_file(kitchen / "pairs.txt")
+    listed = [[entry.source.name, entry.target.name] for entry in entries]
+    truths = {(entry.source.name, entry.target.name): read_transform(entry.transform) for entry in entries}
+    poses = {listed[0][1]: np.eye(4)}  # in one fragment's frame, along the listed transforms
     for _ in range(len(listed)):
-        for (s, t), gt in zip(listed, (read_transform(kitchen / f"gt_{s[10:-4]}_to_{t[10:-4]}.txt") for s, t in listed)):
+        for (s, t), gt in truths.items():
             if t in poses and s not in poses:
                 poses[s] = poses[t] @ gt
     clouds = {name: read_points(kitchen / name) for name in poses}
     for s in poses:
         for t in poses:
-            if s == t or [s, t] in listed:
+            if s == t or [s, t] in listed or [t, s] in listed:
                 continue
             T = np.linalg.inv(poses[t]) @ poses[s]
             reach = 0.01 * normalisation_for(clouds[s], clouds[t]).scale
@@ -65,28 +74,44 @@ def problems(data: Path):
                 yield f"3dmatch {s[:-4]}->{t[:-4]}", clouds[s], clouds[t], T, (15.0, 0.3)
 
 
-def measure(data: Path, seed: int):
-    """(planar, overlap, right) of every alignment: three (N,) arrays."""
+def bench_problems(data: Path, results: Path):
+    """Yield (name, source, target, T_target_source, test, o3dsoft's result or None) for every pair
+    of the scans bench (3DMatch, the laser pair, the bunny), its result read from a bench run's
+    pairs.csv."""
+    found = {}
+    with open(results) as f:
+        for row in csv.DictReader(f):
+            if row["method"] == "o3dsoft":
+                found[(row["protocol"], int(row["index"]))] = np.array(row["transform"].split(), dtype=float).reshape(4, 4)
+    for folder in (data / "real_scans" / "3dmatch_redkitchen", data / "real_scans" / "outdoor_laser_car", data / "stanford_bunny"):
+        scans = scan_folder(folder)
+        for pair in scans.pairs:
+            yield f"{scans.name} {pair.category}", pair.source, pair.target, pair.transform, scans.recall[-1], found.get((scans.name, pair.index))
+
+
+def measure(problems, seed: int) -> List[dict]:
+    """Every alignment of each problem (the ground truth, ICP from it turned, and the problem's
+    result when it has one): its name, kind, features, strict confidence and whether it is right."""
     config = RegisterConfig()
     rng = np.random.default_rng(seed)
     rows = []
-    for name, source, target, truth, (degrees, distance) in problems(data):
+    for name, source, target, truth, (degrees, distance), *result in problems:
         pair = PreparedPair(source, target, config, 20, ("source", "target"), StageClock())
         src, tgt = pair.clouds("work")
         centre = src.mean(axis=0)
-        poses = [truth]
+        poses = [("truth", truth)] + [("result", T) for T in result if T is not None]
         for largest, starts in TURNS:
             for _ in range(starts):
                 turn = np.eye(4)
                 turn[:3, :3] = random_rotation_within(rng, largest)
                 turn[:3, 3] = centre - turn[:3, :3] @ centre  # about the source's centre
-                poses.append(icp(src, tgt, truth @ turn, pair.distance, config.icp, pair.target_normals("work")).transformation)
-        for T in poses:
+                poses.append(("turned", icp(src, tgt, truth @ turn, pair.distance, pair.config.icp, pair.target_normals("work")).transformation))
+        for kind, T in poses:
             f = pair.scorer("work")(T)
             right = rotation_angle_deg(T[:3, :3] @ truth[:3, :3].T) <= degrees and np.linalg.norm(T[:3, 3] - truth[:3, 3]) <= distance
-            rows.append((f.planar, f.overlap, right))
-        print(f"{name}: {sum(r[2] for r in rows[-len(poses) :])} of {len(poses)} right", flush=True)
-    return tuple(np.array(column, dtype=float) for column in zip(*rows))
+            rows.append(dict(name=name, kind=kind, planar=f.planar, overlap=f.overlap, strict=conf.confidence(f), right=bool(right)))
+        print(f"{name}: {sum(r['right'] for r in rows[-len(poses) :])} of {len(poses)} right", flush=True)
+    return rows
 
 
 def main() -> None:
@@ -94,16 +119,29 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--failure-weight", type=float, default=100.0)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--bench", type=Path, help="pairs.csv of an `o3dsoft bench scans` run: also measure the bench's pairs, with its results")
     args = parser.parse_args()
-    planar, overlap, right = measure(args.data, args.seed)
-    touch = (overlap >= RegisterConfig().confidence.min_overlap) & np.isfinite(planar)
-    X, y = planar[touch, None], right[touch]
+    min_overlap = RegisterConfig().confidence.min_overlap
+    rows = [r for r in measure(problems(args.data), args.seed) if r["overlap"] >= min_overlap and np.isfinite(r["planar"])]
+    X, y = np.array([[r["planar"]] for r in rows]), np.array([r["right"] for r in rows], dtype=float)
     w = fit_logistic(X, y, failure_weight=args.failure_weight)
     score = 1 / (1 + np.exp(-(w[0] + w[1] * X[:, 0])))
     print(f"alignments that touch: {len(y)} ({int(y.sum())} right)")
     print(f"scan_coefficients = ({w[0]:.2f}, {w[1]:.2f}); 0.5 at planar {-w[0] / w[1]:.3f}")
     print(f"wrong at 0.5 or more: {int(((score >= 0.5) & (y < 0.5)).sum())}; right below 0.5: {int(((score < 0.5) & (y > 0.5)).sum())}")
     print(f"largest planar share of a wrong alignment: {X[y < 0.5, 0].max():.3f}")
+    if args.bench is None:
+        return
+    # The bench's pairs, judged by these coefficients: reported = max(strict, scan confidence).
+    config = conf.ConfidenceConfig(scan_coefficients=tuple(w))
+    for r in measure(bench_problems(args.data, args.bench), args.seed):
+        r["reported"] = (
+            0.0 if r["overlap"] < min_overlap else max(r["strict"], conf.scan_confidence(conf.Features(0, 0, 0, r["overlap"], 0, r["planar"]), config))
+        )
+        if r["kind"] == "result" and r["right"] and r["strict"] < 0.5:
+            print(f"flagged right result {r['name']}: planar {r['planar']:.3f}, reported {r['reported']:.2f}")
+        if not r["right"] and r["overlap"] >= min_overlap:
+            print(f"wrong {r['kind']} {r['name']}: planar {r['planar']:.3f}, strict {r['strict']:.2f}, reported {r['reported']:.2f}")
 
 
 if __name__ == "__main__":

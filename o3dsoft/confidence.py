@@ -32,7 +32,7 @@ wrong pose weighing a hundred right ones, and the result reports the larger of t
 
 An alignment that leaves the clouds barely touching (counted points under ``min_overlap`` of the
 smaller cloud) gets confidence 0. The coefficients are fitted by logistic regression
-(``python -m benchmarks.fit_confidence``); the data, the measurements and the rejected
+(``python -m benchmarks.fit_confidence``, ``fit_complete_confidence``, ``fit_scan_confidence``); the data, the measurements and the rejected
 alternatives are in docs/pipeline.md (The confidence). Below 0.5 a result is flagged ``likely_failed``.
 """
 
@@ -101,7 +101,7 @@ class ConfidenceConfig:
     complete_coefficients: Tuple[float, ...] = (-20.95, 12.52, 18.19, -5.11)
     independent_from: float = 0.6
     planar_tolerance: float = 0.1
-    scan_coefficients: Tuple[float, ...] = (-6.87, 12.94)
+    scan_coefficients: Tuple[float, ...] = (-10.02, 19.68)
 
     def validate(self) -> None:
         for name, coefficients, names in (
@@ -191,7 +191,7 @@ class Scorer:
         self.far_spacing = max(s_source if self.swapped else s_target, 1e-12)
         self.reach = max(distance, self.tight)
         self.wide_reach = max(self.reach, config.wide_spacings * self.far_spacing)
-        usable = target_normals is not None and not self.swapped and len(target) == given == len(target_normals)
+        usable = target_normals is not None and not self.swapped and given <= max_points and len(target_normals) == given
         self.far_normals = np.asarray(target_normals, dtype=np.float64) if usable else None
 
     def __call__(self, transformation: np.ndarray) -> Features:

@@ -154,8 +154,8 @@ class PreparedPair:
         return getattr(self, level)
 
     def target_normals(self, level: str) -> Optional[np.ndarray]:
-        """(M, 3) normals of the target at `level` for point-to-plane ICP, estimated once; None
-        when ICP is point-to-point."""
+        """(M, 3) normals of the target at `level` for point-to-plane ICP (and, on scans, the
+        confidence's planar share), estimated once; None when ICP is point-to-point."""
         if self.config.icp.method != "plane":
             return None
         if level not in self._normals:

@@ -227,7 +227,8 @@ def _register(
         _search(pair, verifier, model, search_model, features_done=False)
         best = _refine_full(pair, verifier, _select(verifier))
     # Report: where both clouds look complete and the pose shows no shared point, the confidence
-    # that weighs the overlap too (the search ran by the strict one).
+    # that weighs the overlap too; on scans, the one of the overlap on the other scan's surface
+    # (the search ran by the strict one).
     best = verifier.reported(best)
     # On the screen clouds (evenly spaced, at most search.screen.points): a test that can only flag.
     geometry = degeneracy_stage.assess(
@@ -359,6 +360,9 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, compl
         why = f"the clouds barely touch: the points near the other cloud are {100 * best.scored.overlap:.0f} % of the smaller one"
     else:
         why = f"of the points near the other cloud, only {100 * best.scored.consistency:.0f} % lie within {best.scored.tight_distance:.3g} units of it"
+        if best.scored.planar >= 0:  # measured (scans)
+            on = config.confidence.planar_tolerance * best.scored.tight_distance
+            why += f" and {100 * best.scored.planar:.0f} % within {on:.3g} units of its surface"
         full_overlap = best.scored._replace(overlap=1.0)  # would the pose be trusted with a partner for every point?
         if complete and confidence_stage.complete_confidence(full_overlap, config.confidence) >= config.confidence.likely_failed_below:
             why += f", and both clouds look complete but those points are only {100 * best.scored.overlap:.0f} % of the smaller one"

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import example, given, settings
@@ -254,3 +256,38 @@ def test_the_scan_confidence_rises_with_the_planar_share_and_needs_it_measured()
         confidence.ConfidenceConfig(scan_coefficients=(1.0,)).validate()
     with pytest.raises(ValueError, match="planar_tolerance"):
         confidence.ConfidenceConfig(planar_tolerance=0.0).validate()
+
+
+def test_the_planar_share_is_a_share_and_is_not_measured_on_a_much_sparser_target():
+    src, tgt = _grid_plane(0.05, 0.025), _grid_plane(0.05, 0.0)
+    normals = np.tile([0.0, 0.0, 1.0], (len(tgt), 1))
+    scorer = confidence.Scorer(src, tgt, distance=0.3, target_normals=normals)
+    # Half of the source (x < 0) lifted off the plane by half the tight distance.
+    lifted = src.copy()
+    lifted[src[:, 0] < 0, 2] += 0.5 * scorer.tight
+    half = confidence.Scorer(lifted, tgt, distance=0.3, target_normals=normals)(np.eye(4))
+    assert half.consistency == pytest.approx(1.0) and half.planar == pytest.approx(np.mean(src[:, 0] >= 0), abs=0.01)
+    # Far apart: nothing counted, a measured share of 0.
+    away = np.eye(4)
+    away[2, 3] = 10.0
+    assert scorer(away).planar == 0.0
+    # A target four times sparser (in spacing) than the source: the roles swap, and the target's
+    # normals do not apply.
+    coarse = _grid_plane(0.2, 0.0)
+    swapped = confidence.Scorer(src, coarse, distance=0.3, target_normals=np.tile([0.0, 0.0, 1.0], (len(coarse), 1)))
+    assert swapped.swapped and np.isnan(swapped(np.eye(4)).planar)
+
+
+def test_the_pipelines_scorer_measures_the_planar_share_on_scans_only():
+    from o3dsoft.pair import PreparedPair
+
+    rng = np.random.default_rng(5)
+    plate = np.c_[rng.uniform(-1, 1, (6000, 2)), 0.02 * np.sin(3 * rng.uniform(-1, 1, 6000))]
+    bumpy = plate + [0.0, 0.0, 0.0]
+    bumpy[:, 2] += 0.1 * np.cos(2 * plate[:, 0]) * np.sin(2 * plate[:, 1])
+    scans = PreparedPair(bumpy, bumpy + 1e-3 * rng.normal(size=bumpy.shape), RegisterConfig(), k=8)
+    assert scans.scans and np.isfinite(scans.scorer("work")(np.eye(4)).planar)
+    small = PreparedPair(bumpy[:1000], bumpy[:1000], RegisterConfig(), k=8)
+    assert not small.scans and np.isnan(small.scorer("work")(np.eye(4)).planar)
+    point = replace(RegisterConfig(), icp=replace(RegisterConfig().icp, method="point"))
+    assert np.isnan(PreparedPair(bumpy, bumpy, point, k=8).scorer("work")(np.eye(4)).planar)

@@ -646,6 +646,9 @@ def test_the_reason_a_complete_looking_pair_is_flagged_names_the_overlap_when_th
     assert "complete" not in _failure_reason(half_turn, config, True, complete=False)
     apart = flagged(consistency=0.5, overlap=0.97)  # overlapping, but not close: the overlap is not what is short
     assert "complete" not in _failure_reason(apart, config, True, complete=True)
+    assert "surface" not in _failure_reason(apart, config, True)  # planar not measured
+    scan = apart._replace(scored=apart.scored._replace(planar=0.31))
+    assert "and 31 % within 0.007 units of its surface" in _failure_reason(scan, config, True)
 
 
 def test_right_alignments_of_scans_whose_overlap_grazes_are_reported_trusted(bunny_root, monkeypatch):

@@ -3,7 +3,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from o3dsoft.clock import StageClock
-from o3dsoft.confidence import Features, complete_confidence
+from o3dsoft.confidence import Features, complete_confidence, scan_confidence
 from o3dsoft.config import RegisterConfig, SearchConfig
 from o3dsoft.refine import ICPResult
 from o3dsoft.transforms import euler_to_matrix, rigid
@@ -15,9 +15,10 @@ def _attempt(trust, turn_deg=0.0):
     return Attempt(trust, Features(0.0, 0.0, 0.0, 0.0), ICPResult(T, 1.0, 0.0), T, T)
 
 
-def _pair(config=RegisterConfig(), complete=False):
-    """As much of a PreparedPair as the choice reads: `complete`, two complete-looking clouds."""
-    return SimpleNamespace(config=config, complete=complete)
+def _pair(config=RegisterConfig(), complete=False, scans=False):
+    """As much of a PreparedPair as the choice reads: `complete`, two complete-looking clouds;
+    `scans`, two scans."""
+    return SimpleNamespace(config=config, complete=complete, scans=scans)
 
 
 def _verifier(own, searched, config=RegisterConfig(), complete=False):
@@ -132,3 +133,19 @@ def test_with_no_estimate_kept_the_screens_best_is_promoted(monkeypatch):
     verifier.screened = [low, high]
     monkeypatch.setattr(verifier, "promote", lambda s: verifier.attempts.append(s) or s)
     assert verifier.most_trusted() is high and verifier.attempts == [high]
+
+
+def test_on_scans_the_result_reports_the_scan_confidence_where_it_is_larger():
+    T = np.eye(4)
+
+    def scan_attempt(trust, planar):
+        return Attempt(trust, Features(0.5, 0.05, 0.88, 0.5, 1.0, planar), ICPResult(T, 1.0, 0.0), T, T)
+
+    grazing = scan_attempt(0.2, 0.7)  # flagged strictly, most of the overlap on the other surface
+    assert scan_confidence(grazing.scored) > 0.5
+    scans = Verifier(_pair(scans=True), StageClock())
+    assert scans.reported(grazing).trust == scan_confidence(grazing.scored)
+    assert scans.reported(scan_attempt(0.99, 0.7)).trust == 0.99  # the larger of the two
+    assert scans.reported(scan_attempt(0.2, float("nan"))).trust == 0.2  # not measured: the strict one
+    assert scans.reported(scan_attempt(0.0, 0.9)).trust == 0.0  # beyond the prior stays 0
+    assert Verifier(_pair(), StageClock()).reported(grazing).trust == 0.2  # not scans: the strict one
