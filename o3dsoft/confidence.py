@@ -32,8 +32,9 @@ wrong pose weighing a hundred right ones, and the result reports the larger of t
 
 An alignment that leaves the clouds barely touching (counted points under ``min_overlap`` of the
 smaller cloud) gets confidence 0. The coefficients are fitted by logistic regression
-(``python -m benchmarks.fit_confidence``, ``fit_complete_confidence``, ``fit_scan_confidence``); the data, the measurements and the rejected
-alternatives are in docs/pipeline.md (The confidence). Below 0.5 a result is flagged ``likely_failed``.
+(``python -m benchmarks.fit_confidence``, ``fit_complete_confidence``, ``fit_scan_confidence``);
+the data, the measurements and the rejected alternatives are in docs/pipeline.md (The
+confidence). Below 0.5 a result is flagged ``likely_failed``.
 """
 
 from __future__ import annotations
