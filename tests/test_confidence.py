@@ -291,3 +291,31 @@ def test_the_pipelines_scorer_measures_the_planar_share_on_scans_only():
     assert not small.scans and np.isnan(small.scorer("work")(np.eye(4)).planar)
     point = replace(RegisterConfig(), icp=replace(RegisterConfig().icp, method="point"))
     assert np.isnan(PreparedPair(bumpy, bumpy, point, k=8).scorer("work")(np.eye(4)).planar)
+
+
+def test_the_scan_confidence_is_fitted_on_pairs_the_bench_runs_in_neither_direction(bunny_root, real_scans_root):
+    from scipy.spatial import cKDTree
+
+    from benchmarks.fit_scan_confidence import problems
+    from o3dsoft.bench import scan_folder
+    from o3dsoft.metrics import pair_errors
+    from o3dsoft.scans import read_pairs_file
+
+    benched = {frozenset(p.category.split("->")) for p in scan_folder(bunny_root).pairs}
+    kitchen = real_scans_root / "3dmatch_redkitchen"
+    entries = read_pairs_file(kitchen / "pairs.txt")
+    benched |= {frozenset((e.source.stem, e.target.stem)) for e in entries}
+    truths = {(e.source.stem, e.target.stem): o3dsoft.read_transform(e.transform) for e in entries}
+    found = list(problems(bunny_root.parent))
+    assert any(name.startswith("bunny") for name, *_ in found) and any(name.startswith("3dmatch") for name, *_ in found)
+    for name, source, target, truth, _ in found:
+        pair = frozenset(name.split(" ")[1].split("->"))
+        assert pair not in benched and len(pair) == 2
+        if name.startswith("3dmatch"):  # the composed truth lays over 5 % of the source on the target
+            d, _ = cKDTree(target).query(apply(truth, source), distance_upper_bound=0.05)
+            assert np.isfinite(d).mean() > 0.05
+    # The composed ground truths agree with the listed ones: 6 -> 1 composed through 4 (6 -> 4,
+    # then 4 -> 1) is the listed 6 -> 1 to within its stated accuracy.
+    composed = truths[("cloud_bin_4", "cloud_bin_1")] @ truths[("cloud_bin_6", "cloud_bin_4")]
+    errors = pair_errors(composed, truths[("cloud_bin_6", "cloud_bin_1")])
+    assert errors.rotation_deg < 2.0 and errors.translation < 0.1
