@@ -34,11 +34,12 @@ from o3dsoft.bench import scan_folder
 from o3dsoft.clock import StageClock
 from o3dsoft.config import RegisterConfig
 from o3dsoft.io import read_points, read_transform
+from o3dsoft.metrics import pair_errors
 from o3dsoft.pair import PreparedPair
 from o3dsoft.preprocess import normalisation_for
 from o3dsoft.refine import icp
 from o3dsoft.scans import read_pairs_file
-from o3dsoft.transforms import apply_transform, rotation_angle_deg
+from o3dsoft.transforms import apply_transform
 
 from .fit_confidence import fit_logistic, random_rotation_within
 
@@ -91,7 +92,8 @@ def bench_problems(data: Path, results: Path):
 
 def measure(problems, seed: int) -> List[dict]:
     """Every alignment of each problem (the ground truth, ICP from it turned, and the problem's
-    result when it has one): its name, kind, features, strict confidence and whether it is right."""
+    result when it has one): its name, kind, features (:class:`o3dsoft.confidence.Features`) and
+    whether it is right (within the problem's test)."""
     config = RegisterConfig()
     rng = np.random.default_rng(seed)
     rows = []
@@ -107,9 +109,9 @@ def measure(problems, seed: int) -> List[dict]:
                 turn[:3, 3] = centre - turn[:3, :3] @ centre  # about the source's centre
                 poses.append(("turned", icp(src, tgt, truth @ turn, pair.distance, pair.config.icp, pair.target_normals("work")).transformation))
         for kind, T in poses:
-            f = pair.scorer("work")(T)
-            right = rotation_angle_deg(T[:3, :3] @ truth[:3, :3].T) <= degrees and np.linalg.norm(T[:3, 3] - truth[:3, 3]) <= distance
-            rows.append(dict(name=name, kind=kind, planar=f.planar, overlap=f.overlap, strict=conf.confidence(f), right=bool(right)))
+            errors = pair_errors(T, truth)
+            right = errors.rotation_deg <= degrees and errors.translation <= distance
+            rows.append(dict(name=name, kind=kind, features=pair.scorer("work")(T), right=bool(right)))
         print(f"{name}: {sum(r['right'] for r in rows[-len(poses) :])} of {len(poses)} right", flush=True)
     return rows
 
@@ -122,10 +124,11 @@ def main() -> None:
     parser.add_argument("--bench", type=Path, help="pairs.csv of an `o3dsoft bench scans` run: also measure the bench's pairs, with its results")
     args = parser.parse_args()
     min_overlap = RegisterConfig().confidence.min_overlap
-    rows = [r for r in measure(problems(args.data), args.seed) if r["overlap"] >= min_overlap and np.isfinite(r["planar"])]
-    X, y = np.array([[r["planar"]] for r in rows]), np.array([r["right"] for r in rows], dtype=float)
+    rows = [r for r in measure(problems(args.data), args.seed) if r["features"].overlap >= min_overlap and np.isfinite(r["features"].planar)]
+    X, y = np.array([[r["features"].planar] for r in rows]), np.array([r["right"] for r in rows], dtype=float)
     w = fit_logistic(X, y, failure_weight=args.failure_weight)
-    score = 1 / (1 + np.exp(-(w[0] + w[1] * X[:, 0])))
+    config = conf.ConfidenceConfig(scan_coefficients=tuple(w))
+    score = np.array([conf.scan_confidence(r["features"], config) for r in rows])
     print(f"alignments that touch: {len(y)} ({int(y.sum())} right)")
     print(f"scan_coefficients = ({w[0]:.2f}, {w[1]:.2f}); 0.5 at planar {-w[0] / w[1]:.3f}")
     print(f"wrong at 0.5 or more: {int(((score >= 0.5) & (y < 0.5)).sum())}; right below 0.5: {int(((score < 0.5) & (y > 0.5)).sum())}")
@@ -133,15 +136,14 @@ def main() -> None:
     if args.bench is None:
         return
     # The bench's pairs, judged by these coefficients: reported = max(strict, scan confidence).
-    config = conf.ConfidenceConfig(scan_coefficients=tuple(w))
     for r in measure(bench_problems(args.data, args.bench), args.seed):
-        r["reported"] = (
-            0.0 if r["overlap"] < min_overlap else max(r["strict"], conf.scan_confidence(conf.Features(0, 0, 0, r["overlap"], 0, r["planar"]), config))
-        )
-        if r["kind"] == "result" and r["right"] and r["strict"] < 0.5:
-            print(f"flagged right result {r['name']}: planar {r['planar']:.3f}, reported {r['reported']:.2f}")
-        if not r["right"] and r["overlap"] >= min_overlap:
-            print(f"wrong {r['kind']} {r['name']}: planar {r['planar']:.3f}, strict {r['strict']:.2f}, reported {r['reported']:.2f}")
+        f = r["features"]
+        strict = conf.confidence(f, config)
+        reported = max(strict, conf.scan_confidence(f, config))
+        if r["kind"] == "result" and r["right"] and strict < 0.5:
+            print(f"flagged right result {r['name']}: planar {f.planar:.3f}, reported {reported:.2f}")
+        if not r["right"] and f.overlap >= min_overlap:
+            print(f"wrong {r['kind']} {r['name']}: planar {f.planar:.3f}, strict {strict:.2f}, reported {reported:.2f}")
 
 
 if __name__ == "__main__":
