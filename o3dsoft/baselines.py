@@ -15,7 +15,7 @@ search's feature match orients them (:class:`o3dsoft.search.FeatureMatchConfig`)
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 
@@ -145,13 +145,22 @@ class KissConfig:
 _KISS_MIN_VOXEL = 0.05
 
 
-def kiss_matcher(source: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray:
-    """(4, 4) T_target_source from KISS-Matcher at `voxel` (cloud units) on (N, 3) and (M, 3)."""
+def kiss_matcher(
+    source: np.ndarray, target: np.ndarray, voxel: float, normal_radius: Optional[float] = None, feature_radius: Optional[float] = None
+) -> np.ndarray:
+    """(4, 4) T_target_source from KISS-Matcher at `voxel` (cloud units) on (N, 3) and (M, 3).
+    `normal_radius`, `feature_radius`: its normals' and FPFH features' radii in voxels (None:
+    KISS-Matcher's own, 3 and 5)."""
     import kiss_matcher as km  # optional: o3dsoft[peers]
 
     magnify = max(1.0, _KISS_MIN_VOXEL / voxel)
+    config = km.KISSMatcherConfig(voxel * magnify)
+    if normal_radius is not None:
+        config.normal_radius = normal_radius * voxel * magnify
+    if feature_radius is not None:
+        config.fpfh_radius = feature_radius * voxel * magnify
     with quiet_c_output("stdout"):  # it prints warnings about its noise bounds on every call
-        matcher = km.KISSMatcher(km.KISSMatcherConfig(voxel * magnify))
+        matcher = km.KISSMatcher(config)
         solution = matcher.estimate((magnify * source).astype(np.float32), (magnify * target).astype(np.float32))
     T = np.eye(4)
     T[:3, :3] = np.asarray(solution.rotation)

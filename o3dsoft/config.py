@@ -139,6 +139,10 @@ class SearchConfig:
             before the feature match, where the optional package ``kiss-matcher`` is installed
             (``o3dsoft[peers]``; default True).
         kiss_voxel: KISS-Matcher's voxel, as a share of the larger scene's size (default 0.01).
+        kiss_normal_radius, kiss_feature_radius: its normals' and FPFH features' radii, in its
+            voxels (default 2.5 and 4; KISS-Matcher's own are 3 and 5: smaller neighbourhoods
+            take about 0.75 of its time, and on the shared RGB-D fragments they lost no pair;
+            docs/scans.md).
         replace_odds: an estimate of the search replaces the pipeline's own (the network's, and the
             feature match's where it ran first) only when its confidence's odds, p / (1 - p), are
             this many times higher (default 30; 1: the most trusted wins).
@@ -165,6 +169,8 @@ class SearchConfig:
     prior_margin_deg: float = 10.0
     kiss: bool = True
     kiss_voxel: float = 0.01
+    kiss_normal_radius: float = 2.5
+    kiss_feature_radius: float = 4.0
     replace_odds: float = 30.0
     independent_odds: float = 5.0
     independent_contact: float = 0.9
@@ -298,6 +304,9 @@ class RegisterConfig:
                 raise InputError(f"search.{name} must be at least 1, got {getattr(search, name)}")
         if not (self.sparser_moves == 0 or self.sparser_moves >= 1):
             raise InputError(f"sparser_moves must be 0 (never) or at least 1, got {self.sparser_moves}")
+        for name in ("kiss_voxel", "kiss_normal_radius", "kiss_feature_radius"):
+            if not getattr(search, name) > 0:
+                raise InputError(f"search.{name} must be positive, got {getattr(search, name)}")
         if not search.independent_spacing >= 0:
             raise InputError(f"search.independent_spacing must be at least 0, got {search.independent_spacing}")
         for name in ("min_contact", "independent_contact"):

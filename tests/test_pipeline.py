@@ -228,6 +228,9 @@ def test_search_settings_are_checked():
         register(src, src, RegisterConfig(search=SearchConfig(restart=RestartConfig(refined=-1))), model=model)
     with pytest.raises(InputError, match="confidence: coefficients: expected 3"):
         register(src, src, RegisterConfig(confidence=ConfidenceConfig(coefficients=(1.0, 2.0))), model=model)
+    for name in ("kiss_voxel", "kiss_normal_radius", "kiss_feature_radius"):
+        with pytest.raises(InputError, match=f"search.{name} must be positive, got 0"):
+            register(src, src, RegisterConfig(search=SearchConfig(**{name: 0.0})), model=model)
 
 
 def test_without_icp_the_search_keeps_its_top_ranked_estimate_as_it_is():
@@ -455,11 +458,12 @@ def test_kiss_matchers_estimate_comes_before_the_feature_match_on_scans(monkeypa
     feature_runs, kiss_runs = [], []
     real_propose = features.FeatureMatchProposals.propose
     monkeypatch.setattr(features.FeatureMatchProposals, "propose", lambda self, pair, verifier: feature_runs.append(1) or real_propose(self, pair, verifier))
-    monkeypatch.setattr(baselines, "kiss_matcher", lambda s, t, voxel: kiss_runs.append(voxel) or truth)
+    monkeypatch.setattr(baselines, "kiss_matcher", lambda s, t, voxel, *radii: kiss_runs.append((voxel, *radii)) or truth)
     config = RegisterConfig(voxel=0.003, search=SearchConfig(mode="always"))  # on a grid: a scan
     res = register(src, tgt, config)
     assert len(kiss_runs) == 1 and not feature_runs  # trusted: the feature match is not needed
-    assert kiss_runs[0] == pytest.approx(0.01 * max(scene_size(src), scene_size(tgt)), rel=0.05)
+    assert kiss_runs[0][0] == pytest.approx(0.01 * max(scene_size(src), scene_size(tgt)), rel=0.05)
+    assert kiss_runs[0][1:] == (config.search.kiss_normal_radius, config.search.kiss_feature_radius)
     assert not res.likely_failed and pair_errors(res.transformation, truth).rotation_deg < 0.5
     register(src, tgt, replace(config, search=replace(config.search, kiss=False)))
     register(src[::2], tgt[::2], replace(config, voxel=None))  # 3,500 points, no grid: the ModelNet40 protocols' path

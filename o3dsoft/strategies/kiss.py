@@ -17,12 +17,13 @@ def kiss_available() -> bool:
 
 class KissMatcherProposal:
     """One estimate, from KISS-Matcher on the full clouds at ``search.kiss_voxel`` of the larger
-    scene's size, verified like the feature match's (refined on the screen, then the work clouds)."""
+    scene's size (its radii ``search.kiss_normal_radius`` and ``kiss_feature_radius``), verified like the feature match's (refined on the screen, then the work clouds)."""
 
     def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
         source, target = pair.full
-        voxel = pair.config.search.kiss_voxel * max(scene_size(source), scene_size(target))
-        T = baselines.kiss_matcher(source, target, voxel)
+        search = pair.config.search
+        voxel = search.kiss_voxel * max(scene_size(source), scene_size(target))
+        T = baselines.kiss_matcher(source, target, voxel, search.kiss_normal_radius, search.kiss_feature_radius)
         verifier.clock.lap("search")
         if verifier.plausible(T):
             verifier.try_estimate(T, pair.config.icp, "KISS-Matcher")
