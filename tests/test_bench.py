@@ -611,6 +611,7 @@ def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):
         f"t = o3dsoft.read_points({str(bunny_root / 'bun045.ply')!r})\n"
         "from o3dsoft.preprocess import scene_size\n"
         "baselines.kiss_matcher(1000 * s, t, 0.01 * max(scene_size(1000 * s), scene_size(t)))\n"
+        "baselines.kiss_matcher(1000 * s, t, 0.01 * max(scene_size(1000 * s), scene_size(t)), 2.5, 4.0)\n"
         "print('done')\n"
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, check=True)
