@@ -140,9 +140,7 @@ class SearchConfig:
             (``o3dsoft[peers]``; default True).
         kiss_voxel: KISS-Matcher's voxel, as a share of the larger scene's size (default 0.01).
         kiss_normal_radius, kiss_feature_radius: its normals' and FPFH features' radii, in its
-            voxels (default 2.5 and 4; KISS-Matcher's own are 3 and 5: smaller neighbourhoods
-            take about 0.75 of its time, and on the shared RGB-D fragments they lost no pair;
-            docs/scans.md).
+            voxels (default 2.5 and 4; KISS-Matcher's own are 3 and 5; docs/scans.md).
         replace_odds: an estimate of the search replaces the pipeline's own (the network's, and the
             feature match's where it ran first) only when its confidence's odds, p / (1 - p), are
             this many times higher (default 30; 1: the most trusted wins).

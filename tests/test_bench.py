@@ -594,6 +594,38 @@ def test_the_source_commit_is_read_without_writing_to_the_checkout(tmp_path):
     assert (index.stat().st_mtime_ns, index.read_bytes()) == before and not (tmp_path / ".git" / "index.lock").exists()
 
 
+def test_kiss_matchers_radii_are_in_voxels_of_the_clouds_it_is_given(monkeypatch):
+    # Small scenes are magnified for KISS-Matcher (it refuses voxels of under a few centimetres):
+    # the radii, in voxels, scale with the voxel it is given, and its answer is scaled back.
+    import sys
+    import types
+
+    from o3dsoft import baselines
+
+    made = []
+
+    class Config:
+        def __init__(self, voxel):
+            self.voxel_size, self.normal_radius, self.fpfh_radius = voxel, 3 * voxel, 5 * voxel
+            made.append(self)
+
+    class Matcher:
+        def __init__(self, config):
+            pass
+
+        def estimate(self, source, target):
+            return types.SimpleNamespace(rotation=np.eye(3), translation=np.array([[1.0], [2.0], [3.0]]))
+
+    monkeypatch.setitem(sys.modules, "kiss_matcher", types.SimpleNamespace(KISSMatcherConfig=Config, KISSMatcher=Matcher))
+    points = np.random.default_rng(0).normal(size=(50, 3))
+    T = baselines.kiss_matcher(points, points, 0.01, 2.5, 4.0)  # magnified 5 times
+    assert made[-1].voxel_size == pytest.approx(0.05)
+    assert (made[-1].normal_radius, made[-1].fpfh_radius) == (pytest.approx(0.125), pytest.approx(0.2))
+    assert np.allclose(T[:3, 3], [0.2, 0.4, 0.6])  # back in the clouds' units
+    baselines.kiss_matcher(points, points, 0.2)  # no radii given: KISS-Matcher's own
+    assert (made[-1].voxel_size, made[-1].normal_radius, made[-1].fpfh_radius) == (0.2, pytest.approx(0.6), pytest.approx(1.0))
+
+
 def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):
     # Its constructor and its solver print warnings about their noise bounds to C's stdout (here:
     # a scan in millimetres against one in metres); o3dsoft's output is its own.

@@ -459,6 +459,7 @@ def test_kiss_matchers_estimate_comes_before_the_feature_match_on_scans(monkeypa
     real_propose = features.FeatureMatchProposals.propose
     monkeypatch.setattr(features.FeatureMatchProposals, "propose", lambda self, pair, verifier: feature_runs.append(1) or real_propose(self, pair, verifier))
     monkeypatch.setattr(baselines, "kiss_matcher", lambda s, t, voxel, *radii: kiss_runs.append((voxel, *radii)) or truth)
+    monkeypatch.setattr("o3dsoft.pipeline.kiss_available", lambda: True)  # faked above: the optional package need not be installed
     config = RegisterConfig(voxel=0.003, search=SearchConfig(mode="always"))  # on a grid: a scan
     res = register(src, tgt, config)
     assert len(kiss_runs) == 1 and not feature_runs  # trusted: the feature match is not needed

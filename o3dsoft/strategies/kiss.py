@@ -17,7 +17,8 @@ def kiss_available() -> bool:
 
 class KissMatcherProposal:
     """One estimate, from KISS-Matcher on the full clouds at ``search.kiss_voxel`` of the larger
-    scene's size (its radii ``search.kiss_normal_radius`` and ``kiss_feature_radius``), verified like the feature match's (refined on the screen, then the work clouds)."""
+    scene's size (its radii ``search.kiss_normal_radius`` and ``kiss_feature_radius``), verified
+    like the feature match's (refined on the screen, then the work clouds)."""
 
     def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
         source, target = pair.full
