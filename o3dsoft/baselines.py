@@ -154,12 +154,13 @@ def kiss_matcher(
     import kiss_matcher as km  # optional: o3dsoft[peers]
 
     magnify = max(1.0, _KISS_MIN_VOXEL / voxel)
+    magnified_voxel = voxel * magnify
     with quiet_c_output("stdout"):  # it prints warnings about its noise bounds on every call
-        config = km.KISSMatcherConfig(voxel * magnify)
+        config = km.KISSMatcherConfig(magnified_voxel)
         if normal_radius is not None:
-            config.normal_radius = normal_radius * voxel * magnify
+            config.normal_radius = normal_radius * magnified_voxel
         if feature_radius is not None:
-            config.fpfh_radius = feature_radius * voxel * magnify
+            config.fpfh_radius = feature_radius * magnified_voxel
         matcher = km.KISSMatcher(config)
         solution = matcher.estimate((magnify * source).astype(np.float32), (magnify * target).astype(np.float32))
     T = np.eye(4)
