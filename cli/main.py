@@ -399,8 +399,14 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         f"  inlier RMSE  {result.inlier_rmse:.4g}   units, over those points (lower is better)",
         f"  confidence   {result.confidence:.4f}   estimated probability that the alignment is right (0-1, higher is better)"
         + ("  LIKELY FAILED" if result.likely_failed else ""),
-        f"  constraint   {result.constraint:.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below 0.002: not determined)",
-        f"  flatness     {result.flatness:.3f}   fit 30 degrees away over the result's (0-1, lower is better; from 0.85: not determined)",
+        *(
+            [
+                f"  constraint   {result.constraint:.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below 0.002: not determined)",
+                f"  flatness     {result.flatness:.3f}   fit 30 degrees away over the result's (0-1, lower is better; from 0.85: not determined)",
+            ]
+            if result.constraint is not None
+            else ["  constraint   not measured: the clouds share their points, which fix the pose"]
+        ),
         f"  estimate     the {result.estimate_from}'s" + (", refined by ICP" if refined else ""),
     ]
     if result.sparser_moved:

@@ -14,7 +14,7 @@ lost) over the result's own. Points that fill a volume, or a ball, fit about as 
 turn (0.85-1.0); surfaces that fix the pose lose most of their fit (0.2-0.55 on real scans).
 
 Clouds that share their points (benchmark pairs cut from one point set) are held to neither:
-their points fix the pose where the surface alone does not.
+their points fix the pose where the surface alone does not, so neither is measured there.
 """
 
 from __future__ import annotations
@@ -57,12 +57,17 @@ class DegeneracyConfig:
 class Degeneracy(NamedTuple):
     """constraint: smallest / largest eigenvalue of the point-to-plane normal equations (0-1,
     higher is better; 0: some motion leaves the fit unchanged); flatness: the best fit 30 degrees
-    away over the result's (0-1, lower is better; about 1: any turn fits as well); reason: why the
-    pose is not determined, in words, or None."""
+    away over the result's (0-1, lower is better; about 1: any turn fits as well); both None where
+    the clouds share their points (not measured); reason: why the pose is not determined, in
+    words, or None."""
 
-    constraint: float
-    flatness: float
+    constraint: Optional[float]
+    flatness: Optional[float]
     reason: Optional[str]
+
+
+# Clouds that share their points: their points fix the pose, and neither measurement is taken.
+SHARED_POINTS = Degeneracy(None, None, None)
 
 
 def assess(
@@ -73,7 +78,7 @@ def assess(
     scale: float,
     spacing_ratio: float = 1.0,
     config: DegeneracyConfig = DegeneracyConfig(),
-    scorer: Optional[Callable[[np.ndarray], Features]] = None,
+    make_scorer: Optional[Callable[[], Callable[[np.ndarray], Features]]] = None,
 ) -> Degeneracy:
     """How well the geometry of the pair determines the pose `transformation`.
 
@@ -81,12 +86,16 @@ def assess(
         source: (N, 3); target: (M, 3); transformation: (4, 4) T_target_source.
         distance: points farther than this (cloud units) from the other cloud are not matched.
         scale: the pair's scale (cloud units), which makes rotations and translations comparable.
-        spacing_ratio: the confidence's spacing ratio at `transformation` (whether the clouds
-            share their points).
+        spacing_ratio: the confidence's spacing ratio at `transformation`: below
+            ``config.shared_below`` the clouds share their points, and :data:`SHARED_POINTS` is
+            returned without measuring.
         config: thresholds and sizes.
-        scorer: the confidence's measurements of an alignment of these clouds (built here when
-            not given).
+        make_scorer: returns the confidence's measurements of an alignment of these clouds, e.g.
+            a scorer built already (default: a new :class:`~o3dsoft.confidence.Scorer`); called
+            only where the clouds do not share their points.
     """
+    if spacing_ratio < config.shared_below:
+        return SHARED_POINTS
     source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
     target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
     target_normals = refine_stage.normals(target, config.neighbours)
@@ -100,13 +109,13 @@ def assess(
         J = np.hstack([np.cross(c, n), n])  # (K, 6): d(residual) / d(rotation, translation)
         eigenvalues = np.linalg.eigvalsh(J.T @ J / len(J))
         constraint = float(max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300))
-    flatness = _flatness(scorer or Scorer(source, target, distance), transformation, moved.mean(axis=0), config.turn_deg)
+    scorer = make_scorer() if make_scorer is not None else Scorer(source, target, distance)
+    flatness = _flatness(scorer, transformation, moved.mean(axis=0), config.turn_deg)
     reason = None
-    if spacing_ratio >= config.shared_below:
-        if constraint < config.min_constraint:
-            reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g})"
-        elif flatness >= config.max_flatness:
-            reason = f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): points that fill a volume or a ball do not determine the pose"
+    if constraint < config.min_constraint:
+        reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g})"
+    elif flatness >= config.max_flatness:
+        reason = f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): points that fill a volume or a ball do not determine the pose"
     return Degeneracy(constraint, flatness, reason)
 
 

@@ -89,11 +89,12 @@ class RegistrationResult:
             (the work clouds) and "final" (the registered clouds).
         constraint: how firmly the geometry fixes the pose: smallest over largest eigenvalue of
             the point-to-plane normal equations at the result (0-1, higher is better; below
-            ``degeneracy.min_constraint`` the result is flagged with confidence 0, unless the
-            clouds share their points).
+            ``degeneracy.min_constraint`` the result is flagged with confidence 0). None where the
+            clouds share their points (spacing ratio under ``degeneracy.shared_below``): their
+            points fix the pose, and it is not measured.
         flatness: how well the clouds still fit with the source turned 30 degrees, over the
             result's fit (0-1, lower is better; from ``degeneracy.max_flatness`` = 0.85 the result
-            is flagged with confidence 0, unless the clouds share their points).
+            is flagged with confidence 0). None where the clouds share their points.
         sparser_moved: the target was much sparser than the source (``sparser_moves``), so it was
             registered onto the source and the result inverted; every field still speaks of the
             source onto the target.
@@ -120,8 +121,8 @@ class RegistrationResult:
     removed: Dict[str, int]
     network_transformation: Optional[np.ndarray] = None
     points_used: Dict[str, Tuple[int, int]] = field(default_factory=dict)
-    constraint: float = 1.0
-    flatness: float = 0.0
+    constraint: Optional[float] = None
+    flatness: Optional[float] = None
     failure_reason: Optional[str] = None
     voxel: Optional[float] = None
     icp_method: str = "point"
@@ -230,9 +231,16 @@ def _register(
     # that weighs the overlap too; on scans, the one of the overlap on the other scan's surface
     # (the search ran by the strict one).
     best = verifier.reported(best)
-    # On the screen clouds (evenly spaced, at most search.screen.points): a test that can only flag.
+    # On the screen clouds (evenly spaced, at most search.screen.points): a test that can only
+    # flag, and only clouds that share no point (theirs fix the pose otherwise).
     geometry = degeneracy_stage.assess(
-        *pair.clouds("screen"), best.fine.transformation, pair.distance, pair.norm.scale, best.scored.spacing_ratio, config.degeneracy, pair.scorer("screen")
+        *pair.clouds("screen"),
+        best.fine.transformation,
+        pair.distance,
+        pair.norm.scale,
+        best.scored.spacing_ratio,
+        config.degeneracy,
+        lambda: pair.scorer("screen"),
     )
     clock.lap("degeneracy")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())

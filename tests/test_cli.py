@@ -56,6 +56,7 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert r.exit_code == 0, r.output
     assert "T_target_source" in r.output and "higher is better" in r.output and "lower is better" in r.output
     assert "network + ICP" in r.output and "deg" in r.output
+    assert "constraint   not measured: the clouds share their points" in r.output  # the target is the source moved
     assert np.allclose(read_transform(d / "T.txt"), T, atol=1e-5)
     assert np.allclose(read_points(d / "aligned.xyz"), apply(T, src), atol=1e-4)
     assert (d / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"Picture: {d / 'fig.png'}" in r.output
@@ -68,6 +69,7 @@ def test_register_json(pair_files, tiny_model_path):
     payload = json.loads(r.output)
     assert np.allclose(payload["transformation"], T, atol=1e-5)
     assert payload["errors"]["final"]["rotation_deg"] < 1e-3
+    assert payload["constraint"] is None and payload["flatness"] is None  # shared points: not measured
     assert {"fitness", "inlier_rmse", "confidence", "likely_failed", "coarse_transformation", "timings_ms"} <= set(payload)
     assert payload["likely_failed"] is False
 
