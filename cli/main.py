@@ -559,6 +559,8 @@ _TRAIN_FIELDS = (
     "lr_min",
     "grad_clip",
     "point_loss",
+    "match_loss",
+    "init_temperature",
     "init",
     "seed",
     "device",
@@ -594,6 +596,19 @@ _TRAIN_FIELDS = (
     default=0.0,
     show_default=True,
     help="Weight of a loss on each source point's soft partner (where it truly lies), added to the paper's transform loss.",
+)
+@click.option(
+    "--match-loss",
+    type=click.FloatRange(min=0),
+    default=0.0,
+    show_default=True,
+    help="Weight of the soft assignment's cross-entropy against each source point's true neighbourhood, added to the loss.",
+)
+@click.option(
+    "--init-temperature",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Set the softmax temperature tau to this value before training (default: the initial weights' own).",
 )
 @click.option(
     "--init",

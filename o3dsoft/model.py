@@ -503,6 +503,7 @@ class SoftAlignNet(nn.Module):
         virtual = torch.matmul(W, target)  # (B, N, 3)
         if not torch.jit.is_scripting():
             self.virtual_points = virtual  # the last eager call's soft partners, for training losses
+            self.soft_partners = W
         w = W.amax(dim=-1)  # (B, N)
         R, t = weighted_procrustes(source, virtual, w)
         return R, t, w
@@ -539,3 +540,25 @@ def virtual_point_loss(
         has_partner = (torch.cdist(truth, target).amin(dim=-1) < reach).to(virtual.dtype)
     error = ((virtual - truth) ** 2).sum(dim=-1)
     return (error * has_partner).sum() / has_partner.sum().clamp(min=1.0)
+
+
+def match_loss(source: torch.Tensor, target: torch.Tensor, W: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor, reach: float = 0.06) -> torch.Tensor:
+    """Cross-entropy of the soft assignment against the true neighbourhood: the mean over source
+    points of -log(sum of W_ij over the target points j within `reach` of where point i truly
+    lies), over the points with such a target point. It asks each row of W to put its mass near
+    the true partner, so that the soft partners are local averages (a correspondence) rather than
+    near-uniform weights whose small first-order term carries the rotation.
+
+    Args:
+        source: (B, N, 3); target: (B, M, 3); W: (B, N, M) row-stochastic soft assignment.
+        R_gt: (B, 3, 3), t_gt: (B, 3) the true transform (target ~ R_gt source + t_gt).
+        reach: normalised units.
+    Returns:
+        () loss (nats).
+    """
+    truth = torch.matmul(source, R_gt.transpose(1, 2)) + t_gt.unsqueeze(1)  # (B, N, 3)
+    with torch.no_grad():
+        near = (torch.cdist(truth, target) < reach).to(W.dtype)  # (B, N, M)
+        has_partner = near.amax(dim=-1)
+    mass = (W * near).sum(dim=-1).clamp(min=1e-12)
+    return -(torch.log(mass) * has_partner).sum() / has_partner.sum().clamp(min=1.0)

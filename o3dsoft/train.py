@@ -28,7 +28,7 @@ from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_re
 from .errors import InputError, O3dsoftError, UsageError
 from .io import atomic_output, make_folder, remove_stale_temporaries
 from .metrics import pair_errors, summarise
-from .model import NetConfig, SoftAlignNet, count_parameters, registration_loss, virtual_point_loss
+from .model import NetConfig, SoftAlignNet, count_parameters, match_loss, registration_loss, virtual_point_loss
 from .preprocess import denormalise_transform, normalisation_for, normalise_pair, normalise_transform
 from .transforms import rigid
 
@@ -51,6 +51,11 @@ class TrainConfig:
         grad_clip: clip the gradients' total L2 norm to this value (None: no clipping, the paper's).
         point_loss: weight of :func:`o3dsoft.model.virtual_point_loss` added to the paper's loss
             (0: the paper's loss alone).
+        match_loss: weight of :func:`o3dsoft.model.match_loss` (the soft assignment's cross-entropy
+            against the true neighbourhoods) added to the loss (0: none).
+        init_temperature: set the softmax temperature tau to this value before training (None:
+            keep the initial weights' tau). A network trained on the transform loss alone ends with
+            a large tau, whose near-uniform soft partners the match loss sharpens only slowly.
         init: start from the model weights of this training checkpoint instead of a random
             initialisation (fine-tuning; optimiser and schedule start fresh). Its network must
             have this run's settings, except ``net.relative``.
@@ -78,6 +83,8 @@ class TrainConfig:
     lr_min: float = 1e-5
     grad_clip: Optional[float] = None
     point_loss: float = 0.0
+    match_loss: float = 0.0
+    init_temperature: Optional[float] = None
     init: Optional[str] = None
     seed: int = 0
     device: str = "cpu"
@@ -107,6 +114,8 @@ class TrainConfig:
             ("lr_min", self.lr_schedule != "cosine" or 0 <= self.lr_min <= self.lr, "between 0 and lr"),
             ("grad_clip", self.grad_clip is None or self.grad_clip > 0, "positive or null"),
             ("point_loss", self.point_loss >= 0, "at least 0"),
+            ("match_loss", self.match_loss >= 0, "at least 0"),
+            ("init_temperature", self.init_temperature is None or self.init_temperature > 0, "positive or null"),
             ("checkpoint_minutes", self.checkpoint_minutes > 0, "positive"),
             ("eval_pairs", self.eval_pairs is None or self.eval_pairs >= 0, "0 or more, or null for the whole split"),
             ("max_steps", self.max_steps is None or self.max_steps >= 1, "at least 1 or null"),
@@ -474,6 +483,9 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             raise InputError(f"{config.init}: its network settings differ from this run's ({init_net})")
         with _damaged(Path(config.init)):
             model.load_state_dict(weights)
+    if config.init_temperature is not None and not resume:
+        with torch.no_grad():
+            model.log_tau.fill_(math.log(config.init_temperature))
     state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "history": [], "seconds": 0.0}
     ckpt: dict = {}
     if resume:
@@ -548,6 +560,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             loss = registration_loss(R, t, R_gt, t_gt)
             if config.point_loss > 0:
                 loss = loss + config.point_loss * virtual_point_loss(src, tgt, model.virtual_points, R_gt, t_gt)
+            if config.match_loss > 0:
+                loss = loss + config.match_loss * match_loss(src, tgt, model.soft_partners, R_gt, t_gt)
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             if config.grad_clip is not None:

@@ -1,3 +1,5 @@
+import math
+
 import pytest
 import torch
 
@@ -314,12 +316,46 @@ def test_virtual_point_loss_counts_only_points_with_a_partner():
     assert virtual_point_loss(source, far_target, off, R, t).item() == 0.0
 
 
+def test_match_loss_is_the_cross_entropy_of_the_mass_near_each_true_partner():
+    from o3dsoft.model import match_loss
+
+    torch.manual_seed(0)
+    source = torch.rand(1, 30, 3) * 10.0  # points far apart: each has one target point within reach
+    R = torch.eye(3)[None]
+    t = torch.tensor([[0.5, 0.0, 0.0]])
+    target = source + t[:, None]
+    one_hot = torch.eye(30)[None]
+    assert match_loss(source, target, one_hot, R, t).item() == pytest.approx(0.0, abs=1e-6)
+    uniform = torch.full((1, 30, 30), 1 / 30)
+    assert match_loss(source, target, uniform, R, t).item() == pytest.approx(math.log(30), rel=1e-5)
+    shifted = torch.roll(one_hot, 1, dims=-1)  # all mass on a wrong point: the floor of 1e-12
+    assert match_loss(source, target, shifted, R, t).item() == pytest.approx(-math.log(1e-12), rel=1e-4)
+    far = target + 100.0  # no target point within reach of any true place: no partner, no loss
+    assert match_loss(source, far, uniform, R, t).item() == 0.0
+
+
 def test_the_network_keeps_its_soft_partners_when_eager_and_scripts_without_them():
     from o3dsoft.model import NetConfig, SoftAlignNet
 
     net = SoftAlignNet(NetConfig(k=8, channels=(8, 16))).eval()
     src, tgt = torch.rand(1, 40, 3), torch.rand(1, 30, 3)
     R, t, w = net(src, tgt)
-    assert net.virtual_points.shape == (1, 40, 3)
+    assert net.virtual_points.shape == (1, 40, 3) and net.soft_partners.shape == (1, 40, 30)
     R_s, t_s, w_s = torch.jit.script(net)(src, tgt)
     assert torch.allclose(R, R_s, atol=1e-5) and torch.allclose(t, t_s, atol=1e-5)
+
+
+def test_soft_partner_sharpness_is_one_for_uniform_weights_and_rises_as_the_temperature_falls(modelnet_root):
+    from benchmarks.soft_partners import sharpness
+
+    torch.manual_seed(0)
+    net = SoftAlignNet(TINY)
+    with torch.no_grad():
+        net.log_tau.fill_(math.log(1e6))  # scores ~0: uniform rows
+    flat = sharpness(net, str(modelnet_root), "incongruent", limit=2)
+    assert flat["max_w_times_m"] == pytest.approx(1.0, abs=1e-3)
+    assert flat["match_loss"] == pytest.approx(flat["uniform_match_loss"], rel=1e-3)
+    with torch.no_grad():
+        net.log_tau.fill_(math.log(1e-3))  # near one-hot rows
+    sharp = sharpness(net, str(modelnet_root), "incongruent", limit=2)
+    assert sharp["max_w_times_m"] > 2 * flat["max_w_times_m"] and sharp["positives_per_point"] == flat["positives_per_point"]

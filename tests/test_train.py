@@ -1,4 +1,5 @@
 import json
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -211,6 +212,27 @@ def test_the_point_loss_changes_the_training_and_is_recorded(modelnet_root, tmp_
     assert np.isfinite(losses).all() and losses[1] > losses[0]  # the same first pairs, a further term
     with pytest.raises(InputError, match="point_loss"):
         _config(modelnet_root, tmp_path / "bad", point_loss=-1.0).validate()
+
+
+def test_the_match_loss_changes_the_training_and_is_recorded(modelnet_root, tmp_path):
+    plain = train(_config(modelnet_root, tmp_path / "plain", max_steps=2, eval_pairs=0, protocol="incongruent"), log=lambda m: None)
+    matched = train(_config(modelnet_root, tmp_path / "match", max_steps=2, eval_pairs=0, protocol="incongruent", match_loss=1.0), log=lambda m: None)
+    cards = [json.loads((p.parent / "model_card.json").read_text()) for p in (plain, matched)]
+    assert [c["config"]["match_loss"] for c in cards] == [0.0, 1.0]
+    losses = [c["history"][0]["train_loss"] for c in cards]
+    assert np.isfinite(losses).all() and losses[1] > losses[0]  # the same first pairs, a further term
+    with pytest.raises(InputError, match="match_loss"):
+        _config(modelnet_root, tmp_path / "bad", match_loss=-1.0).validate()
+
+
+def test_the_initial_temperature_replaces_the_initial_weights_tau(modelnet_root, tmp_path):
+    first = train(_config(modelnet_root, tmp_path / "first", max_steps=1, eval_pairs=0), log=lambda m: None)
+    tau_of = lambda run: math.exp(torch.load(run / "checkpoint.pt", weights_only=True)["model"]["log_tau"].item())  # noqa: E731
+    again = _config(modelnet_root, tmp_path / "again", max_steps=1, eval_pairs=0, lr=1e-6, init=str(first.parent / "checkpoint.pt"), init_temperature=0.5)
+    train(again, log=lambda m: None)
+    assert tau_of(first.parent) > 1.0 and tau_of(tmp_path / "again") == pytest.approx(0.5, rel=1e-4)  # one step of lr 1e-6 moves it less
+    with pytest.raises(InputError, match="init_temperature"):
+        _config(modelnet_root, tmp_path / "bad", init_temperature=0.0).validate()
 
 
 def test_temporaries_left_by_a_killed_checkpoint_write_are_removed(modelnet_root, tmp_path):

@@ -1,0 +1,69 @@
+"""How sharp a network's soft assignment is at the true pose, on ModelNet40 test pairs.
+
+    python -m benchmarks.soft_partners [--weights incongruent] [--protocol incongruent dcp] [--limit 20]
+
+Per protocol, over the first N pairs (clouds normalised as in training, the network's own
+forward pass), prints as JSON:
+
+- ``max_w_times_m``: the mean over source points of max_j W_ij times the target's size M: 1 for
+  uniform weights (every soft partner the target's centroid), M for one-hot rows;
+- ``match_loss``: :func:`o3dsoft.model.match_loss` (nats, lower is better), with
+  ``uniform_match_loss``, its value for uniform weights on the same pairs;
+- ``positives_per_point``: target points within the loss's reach of each source point's true place.
+
+A network whose soft partners are near-uniform (``max_w_times_m`` near 1) does not find
+correspondences: its rotation comes from a small first-order term of W (docs/incongruent.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import torch
+
+from benchmarks.eval_model import DEFAULT_DATA
+from o3dsoft.data import get_protocol, load_pairs
+from o3dsoft.model import NetConfig, SoftAlignNet, match_loss
+from o3dsoft.train import _initial_weights, normalised_batch
+
+
+def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: int = 0, reach: float = 0.06) -> dict:
+    """The figures above for the first `limit` test pairs of `protocol` (one batch: equal point counts)."""
+    pairs = load_pairs(data, "test", get_protocol(protocol), seed)
+    src, tgt, R, t = normalised_batch([pairs[i] for i in range(min(limit, len(pairs)))])
+    model.eval()
+    with torch.no_grad():
+        model(src, tgt)
+        W = model.soft_partners
+        truth = src @ R.transpose(1, 2) + t[:, None]
+        near = (torch.cdist(truth, tgt) < reach).to(W.dtype)
+        has = near.amax(dim=-1)
+        uniform = -(torch.log(near.sum(-1).clamp(min=1) / W.shape[-1]) * has).sum() / has.sum().clamp(min=1)
+        return {
+            "protocol": protocol,
+            "pairs": int(src.shape[0]),
+            "max_w_times_m": float(W.amax(-1).mean() * W.shape[-1]),
+            "match_loss": float(match_loss(src, tgt, W, R, t, reach)),
+            "uniform_match_loss": float(uniform),
+            "positives_per_point": float(near.sum(-1).mean()),
+            "temperature": float(torch.exp(model.log_tau)),
+        }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--weights", default="incongruent", help="a shipped model's name, an exported model file or a training checkpoint")
+    ap.add_argument("--protocol", nargs="+", default=["incongruent", "dcp"])
+    ap.add_argument("--limit", type=int, default=20)
+    ap.add_argument("--data", default=str(DEFAULT_DATA))
+    args = ap.parse_args()
+    weights, net, _ = _initial_weights(args.weights)
+    model = SoftAlignNet(NetConfig.from_dict(net))
+    model.load_state_dict(weights)
+    for p in args.protocol:
+        print(json.dumps(sharpness(model, args.data, p, args.limit)), flush=True)
+
+
+if __name__ == "__main__":
+    main()
