@@ -203,26 +203,16 @@ def test_mixture_training_evaluates_on_its_evaluation_protocol(modelnet_root, tm
     assert card["history"][0]["test"]["pairs"] == 4
 
 
-def test_the_point_loss_changes_the_training_and_is_recorded(modelnet_root, tmp_path):
+@pytest.mark.parametrize("loss, weight", [("point_loss", 10.0), ("match_loss", 1.0)])
+def test_a_further_loss_changes_the_training_and_is_recorded(modelnet_root, tmp_path, loss, weight):
     plain = train(_config(modelnet_root, tmp_path / "plain", max_steps=2, eval_pairs=0, protocol="incongruent"), log=lambda m: None)
-    pointed = train(_config(modelnet_root, tmp_path / "point", max_steps=2, eval_pairs=0, protocol="incongruent", point_loss=10.0), log=lambda m: None)
-    cards = [json.loads((p.parent / "model_card.json").read_text()) for p in (plain, pointed)]
-    assert [c["config"]["point_loss"] for c in cards] == [0.0, 10.0]
+    added = train(_config(modelnet_root, tmp_path / "added", max_steps=2, eval_pairs=0, protocol="incongruent", **{loss: weight}), log=lambda m: None)
+    cards = [json.loads((p.parent / "model_card.json").read_text()) for p in (plain, added)]
+    assert [c["config"][loss] for c in cards] == [0.0, weight]
     losses = [c["history"][0]["train_loss"] for c in cards]
     assert np.isfinite(losses).all() and losses[1] > losses[0]  # the same first pairs, a further term
-    with pytest.raises(InputError, match="point_loss"):
-        _config(modelnet_root, tmp_path / "bad", point_loss=-1.0).validate()
-
-
-def test_the_match_loss_changes_the_training_and_is_recorded(modelnet_root, tmp_path):
-    plain = train(_config(modelnet_root, tmp_path / "plain", max_steps=2, eval_pairs=0, protocol="incongruent"), log=lambda m: None)
-    matched = train(_config(modelnet_root, tmp_path / "match", max_steps=2, eval_pairs=0, protocol="incongruent", match_loss=1.0), log=lambda m: None)
-    cards = [json.loads((p.parent / "model_card.json").read_text()) for p in (plain, matched)]
-    assert [c["config"]["match_loss"] for c in cards] == [0.0, 1.0]
-    losses = [c["history"][0]["train_loss"] for c in cards]
-    assert np.isfinite(losses).all() and losses[1] > losses[0]  # the same first pairs, a further term
-    with pytest.raises(InputError, match="match_loss"):
-        _config(modelnet_root, tmp_path / "bad", match_loss=-1.0).validate()
+    with pytest.raises(InputError, match=loss):
+        _config(modelnet_root, tmp_path / "bad", **{loss: -1.0}).validate()
 
 
 def test_the_initial_temperature_replaces_the_initial_weights_tau(modelnet_root, tmp_path):
