@@ -46,15 +46,16 @@ def main() -> None:
     target = WEIGHTS / f"o3dsoft_{args.name}.pt"
     # Re-exported from the checkpoint, so that the shipped file carries the current inference code;
     # measured outside weights/ (where a file must match its card) and copied there with its card.
-    staging = Path(tempfile.mkdtemp()) / target.name
-    export_checkpoint(args.run_dir / "checkpoint.pt", staging)
-    model = load_model(staging)
-    evaluation = []
-    for p in args.protocol:
-        for iterations in args.iterations:
-            evaluation.append(evaluate_protocol(model, args.data, p, args.limit, seed=0, iterations=iterations, search=args.search))
-            print(json.dumps(evaluation[-1]), flush=True)
-    shutil.copyfile(staging, target)
+    with tempfile.TemporaryDirectory() as tmp:
+        staging = Path(tmp) / target.name
+        export_checkpoint(args.run_dir / "checkpoint.pt", staging)
+        model = load_model(staging)
+        evaluation = []
+        for p in args.protocol:
+            for iterations in args.iterations:
+                evaluation.append(evaluate_protocol(model, args.data, p, args.limit, seed=0, iterations=iterations, search=args.search))
+                print(json.dumps(evaluation[-1]), flush=True)
+        shutil.copyfile(staging, target)
     card.update(
         model_file=target.name,
         sha256=sha256_of(target),

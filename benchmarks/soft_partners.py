@@ -24,7 +24,7 @@ import torch
 
 from benchmarks.eval_model import DEFAULT_DATA
 from o3dsoft.data import get_protocol, load_pairs
-from o3dsoft.model import NetConfig, SoftAlignNet, match_loss
+from o3dsoft.model import NetConfig, SoftAlignNet, match_loss, true_partners, true_places
 from o3dsoft.train import _initial_weights, normalised_batch
 
 
@@ -36,8 +36,7 @@ def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: i
     with torch.no_grad():
         model(src, tgt)
         W = model.soft_partners
-        truth = src @ R.transpose(1, 2) + t[:, None]
-        near = (torch.cdist(truth, tgt) < reach).to(W.dtype)
+        near = true_partners(true_places(src, R, t), tgt, reach).to(W.dtype)
         has = near.amax(dim=-1)
         uniform = -(torch.log(near.sum(-1).clamp(min=1) / W.shape[-1]) * has).sum() / has.sum().clamp(min=1)
         return {

@@ -519,6 +519,18 @@ def registration_loss(R: torch.Tensor, t: torch.Tensor, R_gt: torch.Tensor, t_gt
     return F.mse_loss(R, R_gt) + F.mse_loss(t, t_gt)
 
 
+def true_places(source: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:
+    """Where the source points (B, N, 3) truly lie in the target's frame: R_gt (B, 3, 3) source + t_gt (B, 3)."""
+    return torch.matmul(source, R_gt.transpose(1, 2)) + t_gt.unsqueeze(1)
+
+
+def true_partners(truth: torch.Tensor, target: torch.Tensor, reach: float) -> torch.Tensor:
+    """(B, N, M) bool: target point j (target (B, M, 3)) lies within `reach` of source point i's
+    true place (truth (B, N, 3), from :func:`true_places`). No gradient flows through it."""
+    with torch.no_grad():
+        return torch.cdist(truth, target) < reach
+
+
 def virtual_point_loss(
     source: torch.Tensor, target: torch.Tensor, virtual: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor, reach: float = 0.05
 ) -> torch.Tensor:
@@ -535,9 +547,8 @@ def virtual_point_loss(
     Returns:
         () loss (normalised units squared).
     """
-    truth = torch.matmul(source, R_gt.transpose(1, 2)) + t_gt.unsqueeze(1)  # (B, N, 3)
-    with torch.no_grad():
-        has_partner = (torch.cdist(truth, target).amin(dim=-1) < reach).to(virtual.dtype)
+    truth = true_places(source, R_gt, t_gt)
+    has_partner = true_partners(truth, target, reach).any(dim=-1).to(virtual.dtype)
     error = ((virtual - truth) ** 2).sum(dim=-1)
     return (error * has_partner).sum() / has_partner.sum().clamp(min=1.0)
 
@@ -556,9 +567,7 @@ def match_loss(source: torch.Tensor, target: torch.Tensor, W: torch.Tensor, R_gt
     Returns:
         () loss (nats).
     """
-    truth = torch.matmul(source, R_gt.transpose(1, 2)) + t_gt.unsqueeze(1)  # (B, N, 3)
-    with torch.no_grad():
-        near = (torch.cdist(truth, target) < reach).to(W.dtype)  # (B, N, M)
-        has_partner = near.amax(dim=-1)
+    near = true_partners(true_places(source, R_gt, t_gt), target, reach).to(W.dtype)  # (B, N, M)
+    has_partner = near.amax(dim=-1)
     mass = (W * near).sum(dim=-1).clamp(min=1e-12)
     return -(torch.log(mass) * has_partner).sum() / has_partner.sum().clamp(min=1.0)
