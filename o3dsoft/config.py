@@ -157,6 +157,10 @@ class SearchConfig:
         min_contact: an estimate is chosen only if it brings at least this share as many points
             into close contact (``fitness_tight``) as the estimate that brings most (0-1, default
             0.5; 0: any; docs/incongruent.md).
+        undetermined_gain: a trusted result that the degeneracy test flags and whose pose shows no
+            shared point (not on scans) starts the second network and the search after all; what
+            they find replaces it only where its input Chamfer distance on the work clouds is this
+            many times lower (at least 1, default 1.5; docs/incongruent.md).
         features, starts, votes, restart: the search's steps, in the order they run (the main
             network's cube starts only where the feature match is off).
         screen: how the steps' estimates are tried first on large clouds.
@@ -174,6 +178,7 @@ class SearchConfig:
     independent_contact: float = 0.9
     independent_spacing: float = 0.85
     min_contact: float = 0.5
+    undetermined_gain: float = 1.5
     features: FeatureSearchConfig = field(default_factory=FeatureSearchConfig)
     starts: StartsConfig = field(default_factory=StartsConfig)
     votes: VotesConfig = field(default_factory=VotesConfig)
@@ -297,7 +302,7 @@ class RegisterConfig:
         threshold = self.confidence.likely_failed_below
         if not threshold <= search.features.stop <= 1:
             raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
-        for name in ("replace_odds", "independent_odds"):
+        for name in ("replace_odds", "independent_odds", "undetermined_gain"):
             if not getattr(search, name) >= 1:
                 raise InputError(f"search.{name} must be at least 1, got {getattr(search, name)}")
         if not (self.sparser_moves == 0 or self.sparser_moves >= 1):

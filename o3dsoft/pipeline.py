@@ -8,7 +8,10 @@
     -> select the most trusted (within the rotation prior, if any; among those bringing at least
        half as many points into contact as the one that brings most)
     -> refine it again at full resolution when the work clouds were reduced (ICP's last stage
-       with point-to-plane ICP, its tight stages with point-to-point).
+       with point-to-plane ICP, its tight stages with point-to-point)
+    -> test whether the geometry determines the pose; where it does not and the pose shows no
+       shared point (not on scans), a result no flag had sent to the search goes there now (the
+       second network, the search), and what they find replaces it where it fits clearly closer.
 
 Where each stage lives: :class:`o3dsoft.pair.PreparedPair`, :mod:`o3dsoft.strategies`,
 :class:`o3dsoft.verify.Verifier`, :mod:`o3dsoft.refine`, :mod:`o3dsoft.confidence`. The settings
@@ -28,6 +31,7 @@ from . import degeneracy as degeneracy_stage
 from . import refine as refine_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
+from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
 from .preprocess import point_spacing, scene_size
 from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, kiss_available
@@ -209,8 +213,10 @@ def _register(
         _match_features(pair, verifier)
     if not (features_first and verifier.confident()):
         network.propose(pair, verifier)
-    if config.second_network.weights is not None and not features_first and not pair.scans and not verifier.confident():
+    second_pending = config.second_network.weights is not None and not features_first and not pair.scans
+    if second_pending and not verifier.confident():
         _second_network(pair, verifier)
+        second_pending = False
 
     # Search while nothing is confident: feature match, networks from many starts, votes, restart.
     searched = features_first or search.mode == "always" or (search.mode == "auto" and not verifier.confident())
@@ -231,21 +237,49 @@ def _register(
     # that weighs the overlap too; on scans, the one of the overlap on the other scan's surface
     # (the search ran by the strict one).
     best = verifier.reported(best)
-    # On the screen clouds (evenly spaced, at most search.screen.points): a test that can only
-    # flag, and only clouds that share no point (theirs fix the pose otherwise).
-    geometry = degeneracy_stage.assess(
+    geometry = _assess(pair, best)
+    clock.lap("degeneracy")
+    if search.mode == "auto" and not searched and geometry.reason and not pair.scans and best.scored.spacing_ratio >= search.independent_spacing:
+        # Trusted, but the pose does not hold and shows no shared point: on two independent
+        # samplings a wrong pose that fits a part closely is trusted strictly and fits as well
+        # turned. (A symmetric shape's right pose shows the points noisy clouds share; on scans
+        # the test flags surfaces that slide.) What a flag starts runs now, the flagged estimate
+        # out of the choice; what it finds replaces the flagged result only where it fits the
+        # clouds clearly closer (a turn of a symmetric shape fits as well, and stays flagged).
+        verifier.distrust(chosen, 0.0)
+        if second_pending:
+            _second_network(pair, verifier)
+        searched = True
+        _search(pair, verifier, model, search_model, features_done=False)
+        found = verifier.reported(_refine_full(pair, verifier, _select(verifier)))
+        if _fits_closer(pair, found, best, search.undetermined_gain):
+            best, geometry = found, _assess(pair, found)
+        clock.lap("degeneracy")
+    clock.timings_ms["total"] = sum(clock.timings_ms.values())
+    final_level = "work" if unrefined else "full"
+    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, final_level), pair.clouds(final_level)
+
+
+def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
+    """Whether the geometry determines `best`'s pose, on the screen clouds (evenly spaced, at most
+    search.screen.points): a test that can only flag, and only clouds that share no point (theirs
+    fix the pose otherwise)."""
+    return degeneracy_stage.assess(
         *pair.clouds("screen"),
         best.fine.transformation,
         pair.distance,
         pair.norm.scale,
         best.scored.spacing_ratio,
-        config.degeneracy,
+        pair.config.degeneracy,
         lambda: pair.scorer("screen"),
     )
-    clock.lap("degeneracy")
-    clock.timings_ms["total"] = sum(clock.timings_ms.values())
-    final_level = "work" if unrefined else "full"
-    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, final_level), pair.clouds(final_level)
+
+
+def _fits_closer(pair: PreparedPair, new: Attempt, old: Attempt, gain: float) -> bool:
+    """`new`'s pose fits the work clouds `gain` times closer than `old`'s: input Chamfer distance
+    (:func:`o3dsoft.metrics.input_chamfer_distance`) at most the old one over `gain`."""
+    work = pair.clouds("work")
+    return gain * input_chamfer_distance(*work, new.fine.transformation) <= input_chamfer_distance(*work, old.fine.transformation)
 
 
 def _sparser(target: np.ndarray, source: np.ndarray, factor: float) -> bool:

@@ -618,6 +618,32 @@ def test_on_independent_samplings_of_a_complete_shape_the_choice_weighs_the_over
     assert pair_errors(strict_choice.transformation, pairs[89].transform).rotation_deg > 170 and not strict_choice.likely_failed
 
 
+def test_a_trusted_pose_the_geometry_does_not_hold_starts_the_search(modelnet_root, monkeypatch):
+    from o3dsoft import pipeline
+    from o3dsoft.data import get_protocol, load_pairs
+
+    # A tv stand and a night stand, no point shared: the first network's pose fits a part of the
+    # shape closely (trusted strictly) and fits as well turned 30 degrees (flagged as undetermined).
+    pairs = load_pairs(modelnet_root, "test", get_protocol("incongruent"), 0)
+    for i in (185, 199):
+        result = o3dsoft.register(pairs[i].source, pairs[i].target)
+        errors = pair_errors(result.transformation, pairs[i].transform)
+        assert errors.rotation_deg < 5 and errors.translation < 0.05 and not result.likely_failed, (i, errors, result.confidence)
+        assert result.searched and pair_errors(result.network_transformation, pairs[i].transform).rotation_deg > 20
+    # A bowl: what the search finds is another turn of the bowl, which fits the clouds no closer
+    # than the flagged pose; the result stays flagged, where replacing it would trust a wrong pose.
+    bowl = pairs[25]
+    kept = o3dsoft.register(bowl.source, bowl.target)
+    assert kept.searched and kept.likely_failed
+    replaced = o3dsoft.register(bowl.source, bowl.target, RegisterConfig(search=SearchConfig(undetermined_gain=1.0)))
+    assert not replaced.likely_failed and pair_errors(replaced.transformation, bowl.transform).rotation_deg > 20
+    # Without the geometry's flag, the first network's pose, trusted strictly, is kept and nothing else is tried.
+    real = pipeline._assess
+    monkeypatch.setattr(pipeline, "_assess", lambda pair, best: real(pair, best)._replace(reason=None))
+    unflagged = o3dsoft.register(pairs[185].source, pairs[185].target)
+    assert not unflagged.searched and pair_errors(unflagged.transformation, pairs[185].transform).rotation_deg > 20
+
+
 def test_only_complete_looking_clouds_that_are_not_scans_count_as_complete():
     from o3dsoft.pair import PreparedPair
 

@@ -114,6 +114,8 @@ def test_min_contact_is_validated():
         RegisterConfig(search=SearchConfig(independent_contact=1.5)).validate(20)
     with pytest.raises(InputError, match="independent_spacing"):
         RegisterConfig(search=SearchConfig(independent_spacing=-1.0)).validate(20)
+    with pytest.raises(InputError, match="undetermined_gain"):
+        RegisterConfig(search=SearchConfig(undetermined_gain=0.5)).validate(20)
 
 
 def test_distrust_lowers_a_promoted_estimate_and_its_screening():
