@@ -24,11 +24,13 @@ REPO = Path(__file__).resolve().parents[1]
 def main() -> None:
     sys.path.insert(0, str(REPO))
     # The commands live in cli/ and import as o3dsoft.cli once installed; load them under that name.
-    spec = importlib.util.spec_from_file_location("o3dsoft.cli", REPO / "cli" / "__init__.py", submodule_search_locations=[str(REPO / "cli")])
-    assert spec is not None and spec.loader is not None
-    package = importlib.util.module_from_spec(spec)
-    sys.modules["o3dsoft.cli"] = package
-    spec.loader.exec_module(package)
+    # The shipped models in weights/ likewise import as o3dsoft.weights.
+    for name, folder in (("o3dsoft.cli", "cli"), ("o3dsoft.weights", "weights")):
+        spec = importlib.util.spec_from_file_location(name, REPO / folder / "__init__.py", submodule_search_locations=[str(REPO / folder)])
+        assert spec is not None and spec.loader is not None
+        package = importlib.util.module_from_spec(spec)
+        sys.modules[name] = package
+        spec.loader.exec_module(package)
     from o3dsoft.cli.main import main as o3dsoft_main
 
     o3dsoft_main()

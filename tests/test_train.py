@@ -310,8 +310,10 @@ def test_a_time_limit_ends_the_run_with_a_checkpoint_and_a_model(modelnet_root, 
 
 def test_the_gpu_machines_path_trains_from_packed_data_from_the_source_tree_without_open3d(modelnet_root, tmp_path):
     """benchmarks/device_train.py from the source tree, on data packed by benchmarks.pack_modelnet,
-    with Open3D unimportable (the lent GPU machine has no Open3D)."""
+    fine-tuning a shipped model, with neither Open3D, trimesh nor an installed o3dsoft (the lent GPU
+    machine has none of them)."""
     import os
+    import site
     import subprocess
     import sys
     from pathlib import Path
@@ -325,16 +327,18 @@ def test_the_gpu_machines_path_trains_from_packed_data_from_the_source_tree_with
     pack(modelnet_root, packed, test_shapes=4, train_shapes=16)
     with h5py.File(packed / "ply_data_train0.h5", "r") as h5:
         assert h5["data"].shape[0] == 16 and h5["data"].dtype == np.float16
-    blocked = tmp_path / "blocked" / "open3d"
-    blocked.mkdir(parents=True)
-    (blocked / "__init__.py").write_text("raise ImportError('open3d is not on this machine')\n")
-    config = tmp_path / "tiny.yaml"
-    config.write_text(f"net:\n  k: {TINY.k}\n  radius: {TINY.radius}\n  channels: {list(TINY.channels)}\n")
+    blocked = tmp_path / "blocked"
+    for name in ("open3d", "trimesh"):
+        (blocked / name).mkdir(parents=True)
+        (blocked / name / "__init__.py").write_text(f"raise ImportError('{name} is not on this machine')\n")
     out = tmp_path / "run"
-    cmd = [sys.executable, str(repo / "benchmarks" / "device_train.py"), "train", "--config", str(config), "--data", str(packed)]
+    # -S: no site processing, so no .pth file installs o3dsoft; the packages' folder comes by PYTHONPATH.
+    python = [sys.executable, "-S"]
+    cmd = python + [str(repo / "benchmarks" / "device_train.py"), "train", "--init", "default", "--data", str(packed)]
     cmd += ["--protocol", "incongruent-mix", "--batch-size", "2", "--max-steps", "2", "--eval-pairs", "2", "--epochs", "1", "--out", str(out)]
-    env = {**os.environ, "PYTHONPATH": str(blocked.parent), "OMP_NUM_THREADS": "1"}
-    assert subprocess.run([sys.executable, "-c", "import open3d"], env=env, capture_output=True).returncode != 0
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(blocked), *site.getsitepackages()]), "OMP_NUM_THREADS": "1"}
+    for module in ("open3d", "trimesh", "o3dsoft"):
+        assert subprocess.run(python + ["-c", f"import {module}"], env=env, capture_output=True, cwd=tmp_path).returncode != 0, module
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr
     card = json.loads((out / "model_card.json").read_text())
