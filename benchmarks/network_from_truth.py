@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from o3dsoft.bench import scan_folder
-from o3dsoft.coarse import cached_model
+from o3dsoft.coarse import CoarseModel, cached_model
 from o3dsoft.config import RegisterConfig
 from o3dsoft.pair import PreparedPair
 from o3dsoft.search import network_candidates
@@ -30,10 +30,10 @@ from o3dsoft.transforms import axis_angle_to_matrix, rotation_angle_deg
 DEFAULT_SCANS = Path(__file__).resolve().parents[2] / "shared" / "data" / "stanford_bunny"
 
 
-def errors_from_truth(weights: str, folder: Path, angles: list, passes: int, seed: int) -> np.ndarray:
-    """(P, A) rotation errors in degrees of the network after `passes` passes, per pair and start angle."""
+def errors_from_truth(model: CoarseModel, folder: Path, angles: list, passes: int, seed: int) -> np.ndarray:
+    """(P, A) rotation errors in degrees of `model` after `passes` passes, per pair of the scans
+    in `folder` and start angle (degrees from the truth)."""
     pairs = scan_folder(folder).pairs
-    model = cached_model(weights, "cpu")
     config = RegisterConfig()
     rng = np.random.default_rng(seed)
     errors = np.zeros((len(pairs), len(angles)))
@@ -59,7 +59,7 @@ def main() -> None:
     args = parser.parse_args()
     print("weights | start (deg from the truth) | rotation error median [q25, q75] (deg, lower is better) | within 5 deg (higher is better)")
     for weights in args.weights:
-        errors = errors_from_truth(weights, args.scans, args.angles, args.passes, args.seed)
+        errors = errors_from_truth(cached_model(weights, "cpu"), args.scans, args.angles, args.passes, args.seed)
         for j, angle in enumerate(args.angles):
             e = errors[:, j]
             print(f"{weights} | {angle:g} | {np.median(e):.1f} [{np.quantile(e, 0.25):.1f}, {np.quantile(e, 0.75):.1f}] | {100 * np.mean(e < 5):.1f} %")

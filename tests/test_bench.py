@@ -666,3 +666,27 @@ def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, check=True)
     assert run.stdout.decode() == "done\n" and b"Warning" not in run.stderr
+
+
+def test_the_network_from_the_truth_is_measured_from_the_truth(tmp_path):
+    from benchmarks import network_from_truth
+
+    from .conftest import EXAMPLES
+    from .fakes import StubModel
+
+    class KeepsTheStart(StubModel):  # returns no further rotation, the centroids put onto each other
+        def __init__(self):
+            from o3dsoft.model import NetConfig
+
+            self.config = NetConfig(k=8)
+
+        def run(self, source, target):
+            import torch
+
+            R = torch.eye(3).expand(len(source), 3, 3)
+            return R, target.mean(1) - source.mean(1), torch.ones(len(source), source.shape[1])
+
+    (tmp_path / "pairs.txt").write_text(f"{EXAMPLES / 'bun045.ply'} {EXAMPLES / 'bun000.ply'} {EXAMPLES / 'bun045_to_bun000.txt'}\n")
+    errors = network_from_truth.errors_from_truth(KeepsTheStart(), tmp_path, [0.0, 20.0, 90.0], passes=2, seed=0)
+    assert errors.shape == (1, 3)
+    assert errors[0] == pytest.approx([0.0, 20.0, 90.0], abs=1e-3)  # each start kept: its angle from the truth
