@@ -583,7 +583,12 @@ _TRAIN_FIELDS = (
     help="YAML file of settings (the keys of config.yaml in a run folder); command-line options override it.",
 )
 @click.option("--data", help="ModelNet40 folder (official HDF5 layout or OFF meshes); default $O3DSOFT_DATA.")
-@click.option("--protocol", default="paper", show_default=True, help="Pair protocol (paper, dcp, wide45, so3, incongruent, ...) or mixture (incongruent-mix).")
+@click.option(
+    "--protocol",
+    default="paper",
+    show_default=True,
+    help="Pair protocol (paper, dcp, wide45, so3, incongruent, ...) or mixture (incongruent-mix, incongruent-view-mix).",
+)
 @click.option("--epochs", type=click.IntRange(min=1), default=5, show_default=True)
 @click.option("--batch-size", type=click.IntRange(min=1), default=10, show_default=True, help="Pairs per step (per process under torchrun).")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True, help="Adam's learning rate.")

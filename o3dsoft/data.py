@@ -19,7 +19,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 
 from .errors import InputError, UsageError
-from .transforms import euler_to_matrix, random_rotation, rigid, rotation_angle_deg
+from .transforms import axis_angle_to_matrix, euler_to_matrix, random_rotation, rigid, rotation_angle_deg
 
 DATA_ENV = "O3DSOFT_DATA"
 DEFAULT_POINTS_PER_SHAPE = 1024
@@ -62,6 +62,10 @@ class Protocol:
             points in both. 0 = never (the literature's protocols), 1 = every pair.
         source_share: share of the shape's points that go to the source of a disjoint pair; the
             target takes the rest.
+        view_deg: each cloud is the part of its points a camera sees (:func:`seen_from`), as in
+            two scans of one object: the source's camera in a random direction, the target's
+            turned from it by an angle uniform in [0, view_deg] degrees about a random axis, both
+            3 shape radii from the shape's centroid (None = each cloud whole).
     """
 
     name: str
@@ -77,6 +81,7 @@ class Protocol:
     categories: str = "all"
     disjoint_share: float = 0.0
     source_share: float = 0.5
+    view_deg: Optional[float] = None
 
 
 PROTOCOLS: Dict[str, Protocol] = {
@@ -103,12 +108,16 @@ PROTOCOLS: Dict[str, Protocol] = {
         Protocol("incongruent-noise", disjoint_share=1.0, **_NOISE),
         Protocol("incongruent-crop", disjoint_share=1.0, crop_keep=0.7, **_NOISE),
         Protocol("incongruent-so3", rotation="so3", disjoint_share=1.0),
+        # Each half as a camera sees it, the two cameras up to 60 degrees apart (as turntable views).
+        Protocol("incongruent-view", disjoint_share=1.0, view_deg=60.0, **_NOISE),
         # Training only: the components of the mixture "incongruent-mix" (see MIXTURES).
         Protocol("incongruent-wide", disjoint_share=1.0, **_WIDE45),
         Protocol("incongruent-wide-noise", disjoint_share=1.0, **_WIDE45, **_NOISE),
         Protocol("incongruent-wide-crop", disjoint_share=1.0, crop_keep=0.7, **_WIDE45, **_NOISE),
         Protocol("incongruent-wide-sparse", disjoint_share=1.0, source_share=0.3, **_WIDE45, **_NOISE),
         Protocol("incongruent-wide-dense", disjoint_share=1.0, source_share=0.7, **_WIDE45, **_NOISE),
+        # (192 points per view, so that a batch's clouds have one size: a 512-point half's view has 130-350)
+        Protocol("incongruent-wide-view", disjoint_share=1.0, view_deg=60.0, num_points=192, **_WIDE45, **_NOISE),
         # Training only: the residual poses of a second network pass, for "incongruent-iterative".
         Protocol("incongruent-near", disjoint_share=1.0, **_NEAR),
         Protocol("incongruent-near-crop", disjoint_share=1.0, crop_keep=0.7, **_NEAR, **_NOISE),
@@ -144,6 +153,21 @@ MIXTURES: Dict[str, Mixture] = {
                 ("incongruent-wide-dense", 0.1),
             ),
             "incongruent",
+        ),
+        # incongruent-mix with a third of the batches partial views, for scans.
+        Mixture(
+            "incongruent-view-mix",
+            (
+                ("wide45", 0.1),
+                ("wide45-partial", 0.07),
+                ("incongruent-wide", 0.14),
+                ("incongruent-wide-noise", 0.1),
+                ("incongruent-wide-crop", 0.14),
+                ("incongruent-wide-sparse", 0.07),
+                ("incongruent-wide-dense", 0.07),
+                ("incongruent-wide-view", 0.31),
+            ),
+            "incongruent-wide-view",
         ),
         # incongruent-mix with a third of the batches near the true pose (within 10 degrees per
         # axis), where further network passes (``coarse_iterations``) start.
@@ -200,6 +224,36 @@ def _crop(points: np.ndarray, keep: float, rng: np.random.Generator) -> np.ndarr
     return points[np.sort(order[: max(1, int(round(keep * len(points))))])]
 
 
+# Hidden point removal's sphere, in distances of the farthest point from the camera: the larger,
+# the more points count as seen (100: about half of a 512-point ModelNet40 half, as Open3D's
+# examples use it).
+VIEW_RADIUS = 100.0
+
+
+def seen_from(points: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """The (V, 3) points of an (N, 3) cloud a camera at `camera` (3,) sees, in their order: hidden
+    point removal (Katz, Tal and Basri, SIGGRAPH 2007), each point flipped about a sphere around
+    the camera; the visible ones are those on the convex hull of the flipped points and the camera."""
+    from scipy.spatial import ConvexHull  # noqa: WPS433 - only the view protocols need it
+
+    offsets = points - camera
+    norms = np.linalg.norm(offsets, axis=1, keepdims=True)
+    flipped = offsets + 2.0 * (VIEW_RADIUS * norms.max() - norms) * offsets / norms
+    vertices = ConvexHull(np.vstack([flipped, np.zeros((1, 3))])).vertices
+    return points[np.sort(vertices[vertices < len(points)])]
+
+
+def _views(source: np.ndarray, target: np.ndarray, centre: np.ndarray, max_deg: float, rng: np.random.Generator) -> Tuple[np.ndarray, np.ndarray]:
+    """Each cloud as seen from its own camera, 3 radii from `centre` (3,), the target's turned
+    from the source's by up to `max_deg` degrees (:attr:`Protocol.view_deg`)."""
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    axis = np.cross(direction, rng.normal(size=3))
+    turn = axis_angle_to_matrix(np.radians(rng.uniform(0.0, max_deg)) * axis / np.linalg.norm(axis))
+    radius = max(np.linalg.norm(source - centre, axis=1).max(), np.linalg.norm(target - centre, axis=1).max())
+    return seen_from(source, centre + 3.0 * radius * direction), seen_from(target, centre + 3.0 * radius * turn @ direction)
+
+
 def _resample(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
     replace = len(points) < n
     return points[rng.choice(len(points), size=n, replace=replace)]
@@ -254,6 +308,8 @@ def make_pair(points: np.ndarray, protocol: Protocol, seed: int, index: int, lab
         order = rng.permutation(len(src))
         cut = min(max(1, int(round(p.source_share * len(src)))), len(src) - 1)
         src, tgt = src[order[:cut]], src[order[cut:]]
+    if degraded and p.view_deg is not None:
+        src, tgt = _views(src, tgt, points.mean(axis=0), p.view_deg, rng)
     if degraded and p.crop_keep < 1.0:
         src = _crop(src, p.crop_keep, rng)
         tgt = _crop(tgt, p.crop_keep, rng)

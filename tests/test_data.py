@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -26,7 +28,10 @@ def test_pairs_follow_their_protocol(shape, name):
         n_source, n_target = (int(round(p.crop_keep * n)) for n in (n_source, len(shape) - n_source))
     else:
         n_source = n_target = p.num_points or len(shape)
-    assert pair.source.shape == (n_source, 3) and pair.target.shape == (n_target, 3)
+    if p.view_deg is None:
+        assert pair.source.shape == (n_source, 3) and pair.target.shape == (n_target, 3)
+    else:  # what each camera sees: a part of each half
+        assert 32 <= len(pair.source) < n_source and 32 <= len(pair.target) < n_target
     R, t = pair.transform[:3, :3], pair.transform[:3, 3]
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0)
     assert (np.abs(t) <= p.translation).all()
@@ -162,6 +167,33 @@ def test_independently_sampled_protocols_share_no_point(shape, name):
         both = np.concatenate([pair.source, back]).astype(np.float64)
         assert np.allclose(np.sort(both, axis=0), np.sort(shape.astype(np.float64), axis=0), atol=1e-5)
         assert np.median(gap) < 3 * np.median(spacing)  # yet samples of the same surface
+
+
+def test_a_camera_sees_the_side_of_a_sphere_that_faces_it():
+    from o3dsoft.data import seen_from
+
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(2000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    camera = np.array([0.0, 0.0, 3.0])
+    seen = seen_from(sphere, camera)
+    # Nothing of the far side (the horizon seen from 3 radii is at z = 1/3; the operator keeps some
+    # grazing points just beyond it).
+    assert (seen[:, 2] > 0.1).all()
+    facing = sphere[sphere[:, 2] > 0.5]  # well inside the horizon
+    assert len(seen) >= 0.9 * len(facing)
+    assert {tuple(q) for q in seen} <= {tuple(q) for q in sphere}  # points of the cloud, none made up
+
+
+def test_views_are_two_cameras_parts_of_the_disjoint_halves(shape):
+    p = get_protocol("incongruent-view")
+    pair = make_pair(shape, p, seed=3, index=5)
+    whole = make_pair(shape, replace(p, view_deg=None, noise_std=0.0), seed=3, index=5)
+    back = apply(np.linalg.inv(pair.transform), pair.target.astype(np.float64))
+    assert len(pair.source) < len(whole.source) and len(pair.target) < len(whole.target)
+    # Different parts: the source's nearest target points leave some of it without a partner.
+    gap = np.min(np.linalg.norm(pair.source[:, None].astype(np.float64) - back[None], axis=2), axis=1)
+    assert gap.min() > 0 and np.median(gap) < np.max(gap) / 2
 
 
 def test_the_literatures_protocols_share_every_point(shape):

@@ -196,11 +196,17 @@ def test_a_mixture_draws_each_batch_from_one_protocol_repeatably():
     assert _batches(order[40:], 4, 10, [0.5, 0.25, 0.25], seed=1, epoch=2) == batches[4:]
 
 
-def test_mixture_training_evaluates_on_its_evaluation_protocol(modelnet_root, tmp_path):
-    train(_config(modelnet_root, tmp_path, protocol="incongruent-mix", max_steps=2, eval_pairs=4), log=lambda m: None)
+@pytest.mark.parametrize("mixture", ["incongruent-mix", "incongruent-view-mix"])
+def test_mixture_training_evaluates_on_its_evaluation_protocol(modelnet_root, tmp_path, mixture):
+    train(_config(modelnet_root, tmp_path, protocol=mixture, max_steps=2, eval_pairs=4), log=lambda m: None)
     card = json.loads((tmp_path / "model_card.json").read_text())
     assert [p["name"] for p in card["protocol"]["mixture"]][:2] == ["wide45", "wide45-partial"]
     assert card["history"][0]["test"]["pairs"] == 4
+
+
+def test_views_train_in_batches_of_one_size(modelnet_root, tmp_path):
+    path = train(_config(modelnet_root, tmp_path, protocol="incongruent-wide-view", max_steps=2, eval_pairs=4), log=lambda m: None)
+    assert path.is_file() and json.loads((tmp_path / "model_card.json").read_text())["history"][0]["test"]["pairs"] == 4
 
 
 @pytest.mark.parametrize("loss, weight", [("point_loss", 10.0), ("match_loss", 1.0)])
