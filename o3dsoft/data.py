@@ -136,6 +136,17 @@ class Mixture:
     evaluate: str
 
 
+# incongruent-mix's parts at about 69 % of their weights, for mixtures that add 31 % of their own.
+_MIX_AT_69: Tuple[Tuple[str, float], ...] = (
+    ("wide45", 0.1),
+    ("wide45-partial", 0.07),
+    ("incongruent-wide", 0.14),
+    ("incongruent-wide-noise", 0.1),
+    ("incongruent-wide-crop", 0.14),
+    ("incongruent-wide-sparse", 0.07),
+    ("incongruent-wide-dense", 0.07),
+)
+
 MIXTURES: Dict[str, Mixture] = {
     m.name: m
     for m in (
@@ -154,38 +165,11 @@ MIXTURES: Dict[str, Mixture] = {
             ),
             "incongruent",
         ),
-        # incongruent-mix with a third of the batches partial views, for scans.
-        Mixture(
-            "incongruent-view-mix",
-            (
-                ("wide45", 0.1),
-                ("wide45-partial", 0.07),
-                ("incongruent-wide", 0.14),
-                ("incongruent-wide-noise", 0.1),
-                ("incongruent-wide-crop", 0.14),
-                ("incongruent-wide-sparse", 0.07),
-                ("incongruent-wide-dense", 0.07),
-                ("incongruent-wide-view", 0.31),
-            ),
-            "incongruent-wide-view",
-        ),
+        # incongruent-mix with 31 % of the batches partial views, for scans.
+        Mixture("incongruent-view-mix", _MIX_AT_69 + (("incongruent-wide-view", 0.31),), "incongruent-wide-view"),
         # incongruent-mix with a third of the batches near the true pose (within 10 degrees per
         # axis), where further network passes (``coarse_iterations``) start.
-        Mixture(
-            "incongruent-iterative",
-            (
-                ("wide45", 0.1),
-                ("wide45-partial", 0.07),
-                ("incongruent-wide", 0.14),
-                ("incongruent-wide-noise", 0.1),
-                ("incongruent-wide-crop", 0.14),
-                ("incongruent-wide-sparse", 0.07),
-                ("incongruent-wide-dense", 0.07),
-                ("incongruent-near", 0.18),
-                ("incongruent-near-crop", 0.13),
-            ),
-            "incongruent",
-        ),
+        Mixture("incongruent-iterative", _MIX_AT_69 + (("incongruent-near", 0.18), ("incongruent-near-crop", 0.13)), "incongruent"),
     )
 }
 
