@@ -51,8 +51,9 @@ class Protocol:
         translation: each component of t uniform in [-translation, translation].
         noise_std, noise_clip: Gaussian noise added to each cloud independently (0 = none).
         crop_keep: fraction of each cloud kept by its own random half-space (1 = no crop).
-        num_points: points per cloud after cropping (None = all points of the shape); each cloud
-            draws its own points, so source and target are different samples of the shape.
+        num_points: points per cloud after cropping or the views (None = all points of the
+            shape); each cloud draws its own points, so source and target are different samples
+            of the shape.
         degraded_share: share of pairs that get the crop and the noise; the others stay complete
             and noise-free (still resampled to num_points). 1 = every pair, the benchmark setting.
         categories: "all", "seen" (labels 0-19) or "unseen" (labels 20-39) for the test split;

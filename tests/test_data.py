@@ -30,6 +30,8 @@ def test_pairs_follow_their_protocol(shape, name):
         n_source = n_target = p.num_points or len(shape)
     if p.view_deg is None:
         assert pair.source.shape == (n_source, 3) and pair.target.shape == (n_target, 3)
+    elif p.num_points is not None:  # each view resampled to one size
+        assert pair.source.shape == pair.target.shape == (p.num_points, 3)
     else:  # what each camera sees: a part of each half
         assert 32 <= len(pair.source) < n_source and 32 <= len(pair.target) < n_target
     R, t = pair.transform[:3, :3], pair.transform[:3, 3]
