@@ -2,6 +2,7 @@
 
     python -m benchmarks.network_from_truth [--weights default incongruent partial]
         [--scans ../shared/data/stanford_bunny] [--angles 0 15 30 45 90] [--passes 3] [--seed 0]
+        [--overlap-only]
 
 For every pair of a folder of scans (`o3dsoft.bench.scan_folder`, as `o3dsoft bench scans` takes
 them), the network's samples of the two clouds are prepared as `register` prepares them
@@ -11,6 +12,10 @@ runs `--passes` times from there, each pass from the estimate so far. Prints, pe
 angle, the median and quartiles of the rotation error in degrees (lower is better) and the share
 of pairs within 5 degrees (higher is better). A network that aligns surfaces keeps the 0-degree
 start; one that does not moves away from the truth itself.
+
+``--overlap-only`` gives the network only the overlap: each sample keeps the points within 3
+median spacings of the target's points from the other sample at the truth, and is centred on its own centroid again.
+What a network does there, against the whole samples, is what the part without a partner costs.
 """
 
 from __future__ import annotations
@@ -24,21 +29,44 @@ from o3dsoft.bench import scan_folder
 from o3dsoft.coarse import CoarseModel, cached_model
 from o3dsoft.config import RegisterConfig
 from o3dsoft.pair import PreparedPair
+from o3dsoft.preprocess import normalise_transform
 from o3dsoft.search import network_candidates
-from o3dsoft.transforms import axis_angle_to_matrix, rotation_angle_deg
+from o3dsoft.transforms import apply_transform, axis_angle_to_matrix, rotation_angle_deg
+
+OVERLAP_SPACINGS = 3.0  # --overlap-only: a point with a point of the other cloud this many median spacings away is in the overlap
 
 DEFAULT_SCANS = Path(__file__).resolve().parents[2] / "shared" / "data" / "stanford_bunny"
 
 
-def errors_from_truth(model: CoarseModel, folder: Path, angles: list, passes: int, seed: int) -> np.ndarray:
+def overlap_only(source: np.ndarray, target: np.ndarray, T: np.ndarray, min_points: int) -> tuple:
+    """The points of source (N, 3) and target (M, 3) within OVERLAP_SPACINGS median target
+    spacings of the other cloud under the true T (4, 4) (target ~ T source), each centred on its
+    own centroid; the whole clouds where either part would have fewer than `min_points`."""
+    from scipy.spatial import cKDTree
+
+    moved = apply_transform(T, source)
+    tree = cKDTree(target)
+    reach = OVERLAP_SPACINGS * float(np.median(tree.query(target, k=2)[0][:, 1]))
+    keep_s = tree.query(moved)[0] < reach
+    keep_t = cKDTree(moved).query(target)[0] < reach
+    if min(keep_s.sum(), keep_t.sum()) < min_points:
+        return source, target
+    return source[keep_s] - source[keep_s].mean(axis=0), target[keep_t] - target[keep_t].mean(axis=0)
+
+
+def errors_from_truth(model: CoarseModel, folder: Path, angles: list, passes: int, seed: int, overlap: bool = False) -> np.ndarray:
     """(P, A) rotation errors in degrees of `model` after `passes` passes, per pair of the scans
-    in `folder` and start angle (degrees from the truth)."""
+    in `folder` and start angle (degrees from the truth); `overlap`: on the overlap only
+    (:func:`overlap_only`)."""
     pairs = scan_folder(folder).pairs
     config = RegisterConfig()
     rng = np.random.default_rng(seed)
     errors = np.zeros((len(pairs), len(angles)))
     for i, p in enumerate(pairs):
-        source, target = PreparedPair(p.source, p.target, config, model.config.k).net_normalised
+        prepared = PreparedPair(p.source, p.target, config, model.config.k)
+        source, target = prepared.net_normalised
+        if overlap:
+            source, target = overlap_only(source, target, normalise_transform(p.transform, prepared.norm), model.config.k)
         R_true = p.transform[:3, :3]
         axes = rng.normal(size=(len(angles), 3))
         axes /= np.linalg.norm(axes, axis=1, keepdims=True)
@@ -56,10 +84,11 @@ def main() -> None:
     parser.add_argument("--angles", type=float, nargs="+", default=[0.0, 15.0, 30.0, 45.0, 90.0])
     parser.add_argument("--passes", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--overlap-only", action="store_true", help="give the network only the two samples' overlap at the truth")
     args = parser.parse_args()
     print("weights | start (deg from the truth) | rotation error median [q25, q75] (deg, lower is better) | within 5 deg (higher is better)")
     for weights in args.weights:
-        errors = errors_from_truth(cached_model(weights, "cpu"), args.scans, args.angles, args.passes, args.seed)
+        errors = errors_from_truth(cached_model(weights, "cpu"), args.scans, args.angles, args.passes, args.seed, args.overlap_only)
         for j, angle in enumerate(args.angles):
             e = errors[:, j]
             print(f"{weights} | {angle:g} | {np.median(e):.1f} [{np.quantile(e, 0.25):.1f}, {np.quantile(e, 0.75):.1f}] | {100 * np.mean(e < 5):.1f} %")

@@ -9,7 +9,11 @@ forward pass), prints as JSON:
   uniform weights (every soft partner the target's centroid), M for one-hot rows;
 - ``match_loss``: :func:`o3dsoft.model.match_loss` (nats, lower is better), with
   ``uniform_match_loss``, its value for uniform weights on the same pairs;
-- ``positives_per_point``: target points within the loss's reach of each source point's true place.
+- ``positives_per_point``: target points within the loss's reach of each source point's true place;
+- ``partner_auc``: the ROC AUC of the weights w_i = max_j W_ij for telling the source points with
+  such a target point from those without (median over the pairs that have both; higher is better,
+  0.5 is chance; None where no pair has both). Weighted Procrustes trusts each point by w_i, so on
+  partial overlap a network with a high ``partner_auc`` leaves out the points without a partner.
 
 A network whose soft partners are near-uniform (``max_w_times_m`` near 1) does not find
 correspondences: its rotation comes from a small first-order term of W (docs/incongruent.md).
@@ -19,7 +23,9 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Optional
 
+import numpy as np
 import torch
 
 from benchmarks.eval_model import DEFAULT_DATA
@@ -47,7 +53,20 @@ def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: i
             "uniform_match_loss": float(uniform),
             "positives_per_point": float(near.sum(-1).mean()),
             "temperature": float(torch.exp(model.log_tau)),
+            "partner_auc": partner_auc(W.amax(-1), has > 0),
         }
+
+
+def partner_auc(w: torch.Tensor, has_partner: torch.Tensor) -> Optional[float]:
+    """Median over pairs of the ROC AUC of w (B, N) for has_partner (B, N) bool (ties count half);
+    None where no pair has points of both kinds."""
+    aucs = []
+    for scores, label in zip(w, has_partner):
+        pos, neg = scores[label], scores[~label]
+        if len(pos) and len(neg):
+            above = (pos[:, None] > neg[None, :]).double().mean() + 0.5 * (pos[:, None] == neg[None, :]).double().mean()
+            aucs.append(float(above))
+    return float(np.median(aucs)) if aucs else None
 
 
 def main() -> None:

@@ -690,3 +690,21 @@ def test_the_network_from_the_truth_is_measured_from_the_truth(tmp_path):
     errors = network_from_truth.errors_from_truth(KeepsTheStart(), tmp_path, [0.0, 20.0, 90.0], passes=2, seed=0)
     assert errors.shape == (1, 3)
     assert errors[0] == pytest.approx([0.0, 20.0, 90.0], abs=1e-3)  # each start kept: its angle from the truth
+    overlap = network_from_truth.errors_from_truth(KeepsTheStart(), tmp_path, [0.0, 20.0], passes=1, seed=0, overlap=True)
+    assert overlap[0] == pytest.approx([0.0, 20.0], abs=1e-3)
+
+
+def test_overlap_only_keeps_the_points_near_the_other_cloud_each_part_centred():
+    from benchmarks.network_from_truth import overlap_only
+
+    grid = np.stack(np.meshgrid(*[np.arange(10.0)] * 2, [0.0], indexing="ij"), -1).reshape(-1, 3)  # 10 x 10 plane, spacing 1
+    source = grid[grid[:, 0] < 6]  # columns 0-5
+    target = grid[grid[:, 0] >= 3] + [0.0, 0.0, 7.0]  # columns 3-9, shifted: the truth moves the source by (0, 0, 7)
+    T = np.eye(4)
+    T[2, 3] = 7.0
+    s, t = overlap_only(source, target, T, min_points=4)
+    # closer than 3 spacings to the other cloud: source columns 1-5 (column 0 is 3 from column 3), target columns 3-7
+    assert len(s) == 50 and len(t) == 50
+    assert np.allclose(s.mean(0), 0) and np.allclose(t.mean(0), 0)
+    whole = overlap_only(source, target + 100.0, T, min_points=4)  # no overlap: the clouds as they are
+    assert np.array_equal(whole[0], source) and np.array_equal(whole[1], target + 100.0)

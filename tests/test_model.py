@@ -334,6 +334,18 @@ def test_match_loss_is_the_cross_entropy_of_the_mass_near_each_true_partner():
     assert match_loss(source, far, uniform, R, t).item() == 0.0
 
 
+def test_partner_auc_is_one_where_the_weights_rank_every_point_with_a_partner_first():
+    from benchmarks.soft_partners import partner_auc
+
+    has = torch.arange(40)[None] < 20  # (1, 40): the first 20 points have a partner
+    right = torch.where(has, 0.9, 0.01)
+    assert partner_auc(right, has) == 1.0 and partner_auc(1.0 - right, has) == 0.0
+    assert partner_auc(torch.full((1, 40), 0.5), has) == 0.5  # ties count half: chance
+    both = torch.cat([right, 1.0 - right])  # two pairs: the median of 1 and 0
+    assert partner_auc(both, has.expand(2, -1)) == 0.5
+    assert partner_auc(right, torch.ones_like(has)) is None  # every point has a partner: no AUC
+
+
 def test_the_network_keeps_its_soft_partners_when_eager_and_scripts_without_them():
     from o3dsoft.model import NetConfig, SoftAlignNet
 
