@@ -2,7 +2,7 @@
 
     python -m benchmarks.network_from_truth [--weights default incongruent partial]
         [--scans ../shared/data/stanford_bunny] [--angles 0 15 30 45 90] [--passes 3] [--seed 0]
-        [--overlap-only]
+        [--overlap-only] [--modelnet PROTOCOL [--limit 50] [--data ../shared/data/modelnet40_ply_hdf5_1024]]
 
 For every pair of a folder of scans (`o3dsoft.bench.scan_folder`, as `o3dsoft bench scans` takes
 them), the network's samples of the two clouds are prepared as `register` prepares them
@@ -16,20 +16,23 @@ start; one that does not moves away from the truth itself.
 ``--overlap-only`` gives the network only the overlap: each sample keeps the points within 3
 median spacings of the target's points from the other sample at the truth, and is centred on its own centroid again.
 What a network does there, against the whole samples, is what the part without a partner costs.
+``--modelnet PROTOCOL`` runs on the first ``--limit`` ModelNet40 test pairs of a protocol instead.
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Iterable, Iterator, Tuple
 
 import numpy as np
 
+from benchmarks.eval_model import DEFAULT_DATA
 from o3dsoft.bench import scan_folder
 from o3dsoft.coarse import CoarseModel, cached_model
 from o3dsoft.config import RegisterConfig
 from o3dsoft.pair import PreparedPair
-from o3dsoft.preprocess import normalise_transform
+from o3dsoft.preprocess import normalise_pair, normalise_transform
 from o3dsoft.search import network_candidates
 from o3dsoft.transforms import apply_transform, axis_angle_to_matrix, rotation_angle_deg
 
@@ -54,27 +57,45 @@ def overlap_only(source: np.ndarray, target: np.ndarray, T: np.ndarray, min_poin
     return source[keep_s] - source[keep_s].mean(axis=0), target[keep_t] - target[keep_t].mean(axis=0)
 
 
-def errors_from_truth(model: CoarseModel, folder: Path, angles: list, passes: int, seed: int, overlap: bool = False) -> np.ndarray:
-    """(P, A) rotation errors in degrees of `model` after `passes` passes, per pair of the scans
-    in `folder` and start angle (degrees from the truth); `overlap`: on the overlap only
-    (:func:`overlap_only`)."""
-    pairs = scan_folder(folder).pairs
+def scan_samples(folder: Path, k: int) -> Iterator[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per pair of the scans in `folder`: the network's two samples as `register` prepares them,
+    normalised, and the true T (4, 4) between them (target ~ T source)."""
     config = RegisterConfig()
+    for p in scan_folder(folder).pairs:
+        prepared = PreparedPair(p.source, p.target, config, k)
+        yield (*prepared.net_normalised, normalise_transform(p.transform, prepared.norm))
+
+
+def modelnet_samples(data: str, protocol: str, limit: int) -> Iterator[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The first `limit` ModelNet40 test pairs of `protocol`, normalised as in training, with their
+    true T (4, 4)."""
+    from o3dsoft.data import get_protocol, load_pairs
+
+    pairs = load_pairs(data, "test", get_protocol(protocol), 0)
+    for i in range(min(limit, len(pairs))):
+        source, target, norm = normalise_pair(pairs[i].source, pairs[i].target)
+        yield source, target, normalise_transform(pairs[i].transform, norm)
+
+
+def errors_from_truth(
+    model: CoarseModel, samples: Iterable[Tuple[np.ndarray, np.ndarray, np.ndarray]], angles: list, passes: int, seed: int, overlap: bool = False
+) -> np.ndarray:
+    """(P, A) rotation errors in degrees of `model` after `passes` passes, per pair of `samples`
+    ((source (N, 3), target (M, 3), true T (4, 4)), normalised) and start angle (degrees from the
+    truth); `overlap`: on the overlap only (:func:`overlap_only`)."""
     rng = np.random.default_rng(seed)
-    errors = np.zeros((len(pairs), len(angles)))
-    for i, p in enumerate(pairs):
-        prepared = PreparedPair(p.source, p.target, config, model.config.k)
-        source, target = prepared.net_normalised
+    errors = []
+    for source, target, T in samples:
         if overlap:
-            source, target = overlap_only(source, target, normalise_transform(p.transform, prepared.norm), model.config.k)
-        R_true = p.transform[:3, :3]
+            source, target = overlap_only(source, target, T, model.config.k)
+        R_true = T[:3, :3]
         axes = rng.normal(size=(len(angles), 3))
         axes /= np.linalg.norm(axes, axis=1, keepdims=True)
         starts = np.stack([axis_angle_to_matrix(np.radians(a) * axis) @ R_true for a, axis in zip(angles, axes)])
         for _ in range(passes):  # each pass from the rotation so far (the network centres the source itself)
             starts = network_candidates(model, source, target, starts)[:, :3, :3]
-        errors[i] = [rotation_angle_deg(R.T @ R_true) for R in starts]
-    return errors
+        errors.append([rotation_angle_deg(R.T @ R_true) for R in starts])
+    return np.array(errors).reshape(-1, len(angles))
 
 
 def main() -> None:
@@ -85,10 +106,15 @@ def main() -> None:
     parser.add_argument("--passes", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overlap-only", action="store_true", help="give the network only the two samples' overlap at the truth")
+    parser.add_argument("--modelnet", metavar="PROTOCOL", help="ModelNet40 test pairs of this protocol instead of the scans")
+    parser.add_argument("--limit", type=int, default=50, help="with --modelnet: the first N test pairs")
+    parser.add_argument("--data", default=str(DEFAULT_DATA), help="with --modelnet: the ModelNet40 folder")
     args = parser.parse_args()
     print("weights | start (deg from the truth) | rotation error median [q25, q75] (deg, lower is better) | within 5 deg (higher is better)")
     for weights in args.weights:
-        errors = errors_from_truth(cached_model(weights, "cpu"), args.scans, args.angles, args.passes, args.seed, args.overlap_only)
+        model = cached_model(weights, "cpu")
+        samples = modelnet_samples(args.data, args.modelnet, args.limit) if args.modelnet else scan_samples(args.scans, model.config.k)
+        errors = errors_from_truth(model, samples, args.angles, args.passes, args.seed, args.overlap_only)
         for j, angle in enumerate(args.angles):
             e = errors[:, j]
             print(f"{weights} | {angle:g} | {np.median(e):.1f} [{np.quantile(e, 0.25):.1f}, {np.quantile(e, 0.75):.1f}] | {100 * np.mean(e < 5):.1f} %")

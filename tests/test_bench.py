@@ -668,7 +668,7 @@ def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):
     assert run.stdout.decode() == "done\n" and b"Warning" not in run.stderr
 
 
-def test_the_network_from_the_truth_is_measured_from_the_truth(tmp_path):
+def test_the_network_from_the_truth_is_measured_from_the_truth(tmp_path, modelnet_root):
     from benchmarks import network_from_truth
 
     from .conftest import EXAMPLES
@@ -687,11 +687,15 @@ def test_the_network_from_the_truth_is_measured_from_the_truth(tmp_path):
             return R, target.mean(1) - source.mean(1), torch.ones(len(source), source.shape[1])
 
     (tmp_path / "pairs.txt").write_text(f"{EXAMPLES / 'bun045.ply'} {EXAMPLES / 'bun000.ply'} {EXAMPLES / 'bun045_to_bun000.txt'}\n")
-    errors = network_from_truth.errors_from_truth(KeepsTheStart(), tmp_path, [0.0, 20.0, 90.0], passes=2, seed=0)
+    errors = network_from_truth.errors_from_truth(KeepsTheStart(), network_from_truth.scan_samples(tmp_path, 8), [0.0, 20.0, 90.0], passes=2, seed=0)
     assert errors.shape == (1, 3)
     assert errors[0] == pytest.approx([0.0, 20.0, 90.0], abs=1e-3)  # each start kept: its angle from the truth
-    overlap = network_from_truth.errors_from_truth(KeepsTheStart(), tmp_path, [0.0, 20.0], passes=1, seed=0, overlap=True)
+    overlap = network_from_truth.errors_from_truth(KeepsTheStart(), network_from_truth.scan_samples(tmp_path, 8), [0.0, 20.0], passes=1, seed=0, overlap=True)
     assert overlap[0] == pytest.approx([0.0, 20.0], abs=1e-3)
+    shapes = network_from_truth.errors_from_truth(
+        KeepsTheStart(), network_from_truth.modelnet_samples(str(modelnet_root), "incongruent-crop", 3), [45.0], passes=1, seed=0, overlap=True
+    )
+    assert shapes.shape == (3, 1) and shapes[:, 0] == pytest.approx(45.0, abs=1e-3)
 
 
 def test_overlap_only_keeps_the_points_near_the_other_cloud_each_part_centred():
