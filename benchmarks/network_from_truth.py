@@ -32,7 +32,7 @@ from o3dsoft.bench import scan_folder
 from o3dsoft.coarse import CoarseModel, cached_model
 from o3dsoft.config import RegisterConfig
 from o3dsoft.pair import PreparedPair
-from o3dsoft.preprocess import normalise_pair, normalise_transform
+from o3dsoft.preprocess import normalise_pair, normalise_transform, point_spacing
 from o3dsoft.search import network_candidates
 from o3dsoft.transforms import apply_transform, axis_angle_to_matrix, rotation_angle_deg
 
@@ -48,9 +48,8 @@ def overlap_only(source: np.ndarray, target: np.ndarray, T: np.ndarray, min_poin
     from scipy.spatial import cKDTree
 
     moved = apply_transform(T, source)
-    tree = cKDTree(target)
-    reach = OVERLAP_SPACINGS * float(np.median(tree.query(target, k=2)[0][:, 1]))
-    keep_s = tree.query(moved)[0] < reach
+    reach = OVERLAP_SPACINGS * point_spacing(target, sample=len(target))
+    keep_s = cKDTree(target).query(moved)[0] < reach
     keep_t = cKDTree(moved).query(target)[0] < reach
     if min(keep_s.sum(), keep_t.sum()) < min_points:
         return source, target

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from benchmarks.eval_model import DEFAULT_DATA
+from o3dsoft.bench import roc_auc
 from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.model import NetConfig, SoftAlignNet, match_loss, true_partners, true_places
 from o3dsoft.train import _initial_weights, normalised_batch
@@ -60,12 +61,8 @@ def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: i
 def partner_auc(w: torch.Tensor, has_partner: torch.Tensor) -> Optional[float]:
     """Median over pairs of the ROC AUC of w (B, N) for has_partner (B, N) bool (ties count half);
     None where no pair has points of both kinds."""
-    aucs = []
-    for scores, label in zip(w, has_partner):
-        pos, neg = scores[label], scores[~label]
-        if len(pos) and len(neg):
-            above = (pos[:, None] > neg[None, :]).double().mean() + 0.5 * (pos[:, None] == neg[None, :]).double().mean()
-            aucs.append(float(above))
+    aucs = [roc_auc(scores.double().numpy(), label.numpy()) for scores, label in zip(w.cpu(), has_partner.cpu())]
+    aucs = [a for a in aucs if a is not None]
     return float(np.median(aucs)) if aucs else None
 
 
