@@ -560,6 +560,8 @@ _TRAIN_FIELDS = (
     "grad_clip",
     "point_loss",
     "match_loss",
+    "overlap_loss",
+    "only_overlap",
     "init_temperature",
     "init",
     "seed",
@@ -610,6 +612,14 @@ _TRAIN_FIELDS = (
     help="Weight of the soft assignment's cross-entropy against each source point's true neighbourhood, added to the loss.",
 )
 @click.option(
+    "--overlap-loss",
+    type=click.FloatRange(min=0),
+    default=0.0,
+    show_default=True,
+    help="Weight of the overlap head's cross-entropy against which points lie in the overlap, added to the loss (needs --overlap).",
+)
+@click.option("--only-overlap", is_flag=True, default=False, help="Train the overlap head alone; the rest of the network stays as --init gave it.")
+@click.option(
     "--init-temperature",
     type=click.FloatRange(min=0, min_open=True),
     default=None,
@@ -634,6 +644,12 @@ _TRAIN_FIELDS = (
     default=None,
     help="First layer on neighbour offsets instead of coordinates: descriptors that do not move with a cropped cloud's centroid.",
 )
+@click.option(
+    "--overlap",
+    type=click.IntRange(min=0),
+    default=None,
+    help="Width of an overlap head (attention between the two clouds that predicts which points lie in the overlap; default 0: none).",
+)
 @click.option("--out", default="runs/train", show_default=True, help="Output folder: checkpoint, config, model, model card.")
 @click.option("--checkpoint-minutes", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True)
 @click.option(
@@ -654,7 +670,7 @@ _TRAIN_FIELDS = (
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.pass_context
 @_friendly_errors
-def train(ctx, config_file, resume, radius, k, separate_encoders, relative, **options):
+def train(ctx, config_file, resume, radius, k, separate_encoders, relative, overlap, **options):
     """Train the network on ModelNet40 and export TorchScript + a model card into OUT.
 
     Several processes or machines: run the same command under torchrun, e.g.
@@ -666,7 +682,7 @@ def train(ctx, config_file, resume, radius, k, separate_encoders, relative, **op
     from ..train import train as run_train
 
     given = {name: options[name] for name in _TRAIN_FIELDS if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE}
-    net = {"radius": radius, "k": k, "shared_encoder": None if separate_encoders is None else not separate_encoders, "relative": relative}
+    net = {"radius": radius, "k": k, "shared_encoder": None if separate_encoders is None else not separate_encoders, "relative": relative, "overlap": overlap}
     config = settings_from(given, {name: options[name] for name in _TRAIN_FIELDS}, config_file, {n: v for n, v in net.items() if v is not None}, resume)
     run_train(config, resume=resume, log=lambda m: click.echo(m, err=True))
 

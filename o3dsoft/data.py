@@ -171,6 +171,13 @@ MIXTURES: Dict[str, Mixture] = {
         # incongruent-mix with a third of the batches near the true pose (within 10 degrees per
         # axis), where further network passes (``coarse_iterations``) start.
         Mixture("incongruent-iterative", _MIX_AT_69 + (("incongruent-near", 0.18), ("incongruent-near-crop", 0.13)), "incongruent"),
+        # For an overlap head (``NetConfig.overlap``): half of the batches partial overlaps at a
+        # first pass's pose, a fifth at a later pass's, the rest complete or seen from a camera.
+        Mixture(
+            "incongruent-overlap-mix",
+            (("incongruent-wide-crop", 0.3), ("incongruent-near-crop", 0.2), ("incongruent-wide-view", 0.3), ("incongruent-wide", 0.2)),
+            "incongruent-crop",
+        ),
     )
 }
 

@@ -5,8 +5,10 @@
       -> encoder: five layers "gather K neighbours -> 1x1 conv -> BatchNorm -> ReLU -> max over K",
          channels 3 -> 64 -> 128 -> 256 -> 256 -> 512; a 512-d descriptor per point
          (with ``NetConfig.relative``, the first layer sees neighbour offsets, see RelativeEdgeLayer)
-      -> W = row-softmax(<f_i, g_j> / tau)       (B, N, M)
-      -> virtual points vq_i = sum_j W_ij q_j, weights w_i = max_j W_ij
+      -> (with ``NetConfig.overlap``) logits o_i, o_j that a point lies in the overlap, from
+         attention within and between the two clouds' descriptors (:class:`OverlapHead`)
+      -> W = row-softmax(<f_i, g_j> / tau [+ log sigmoid(o_j)])       (B, N, M)
+      -> virtual points vq_i = sum_j W_ij q_j, weights w_i = max_j W_ij [x sigmoid(o_i)]
       -> weighted Procrustes -> R (B, 3, 3), t (B, 3) with Q ~ R P + t
 
 The layers are computed in an exact, K-times cheaper form. A 1x1 conv acts on each point alone,
@@ -46,6 +48,10 @@ class NetConfig:
         relative: the first layer sees each neighbour's offset x_j - x_i instead of its
             coordinates x_j, which makes the descriptors independent of where the cloud's
             centroid lies (a cropped cloud's centroid moves with the crop).
+        overlap: width of the overlap head (0: none), :class:`OverlapHead`: it predicts which
+            points of each cloud lie in the overlap, and the alignment leaves out the rest (a
+            descriptor computed from one cloud alone cannot tell).
+        overlap_layers: the head's attention blocks.
     """
 
     k: int = 32
@@ -54,6 +60,8 @@ class NetConfig:
     shared_encoder: bool = True
     learn_temperature: bool = True
     relative: bool = False
+    overlap: int = 0
+    overlap_layers: int = 2
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -449,11 +457,59 @@ class LiteralEncoder(nn.Module):
             lit.load_into(f)
 
 
+class OverlapBlock(nn.Module):
+    """Self-attention within each cloud, then attention from each cloud to the other, then a
+    feed-forward layer; pre-norm, residual, one set of weights for both clouds."""
+
+    def __init__(self, width: int, heads: int = 4) -> None:
+        super().__init__()
+        self.within = nn.MultiheadAttention(width, heads, batch_first=True)
+        self.across = nn.MultiheadAttention(width, heads, batch_first=True)
+        self.norm_within, self.norm_across, self.norm_ffn = nn.LayerNorm(width), nn.LayerNorm(width), nn.LayerNorm(width)
+        self.ffn = nn.Sequential(nn.Linear(width, 2 * width), nn.ReLU(), nn.Linear(2 * width, width))
+
+    def forward(self, a: torch.Tensor, b: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """a (B, N, W), b (B, M, W) -> the same shapes."""
+        na, nb = self.norm_within(a), self.norm_within(b)
+        a = a + self.within(na, na, na, need_weights=False)[0]
+        b = b + self.within(nb, nb, nb, need_weights=False)[0]
+        na, nb = self.norm_across(a), self.norm_across(b)
+        a, b = a + self.across(na, nb, nb, need_weights=False)[0], b + self.across(nb, na, na, need_weights=False)[0]
+        return a + self.ffn(self.norm_ffn(a)), b + self.ffn(self.norm_ffn(b))
+
+
+class OverlapHead(nn.Module):
+    """Logits that each point of the source and of the target lies in the two clouds' overlap (a
+    point of the other cloud near where it truly lies; :func:`overlap_labels`), from both clouds'
+    descriptors and coordinates: a projection to `width`, `layers` :class:`OverlapBlock`, a linear
+    read-out. The read-out starts at zero: every logit 0, which leaves the network's poses as they
+    were (a common shift of the soft assignment's scores and a common factor of the weights), so
+    that a head added to a trained network starts from that network's results."""
+
+    def __init__(self, descriptor: int, width: int, layers: int = 2) -> None:
+        super().__init__()
+        self.embed = nn.Linear(descriptor + 3, width)
+        self.blocks = nn.ModuleList([OverlapBlock(width) for _ in range(layers)])
+        self.readout = nn.Linear(width, 1)
+        nn.init.zeros_(self.readout.weight)
+        nn.init.zeros_(self.readout.bias)
+
+    def forward(self, source: torch.Tensor, f: torch.Tensor, target: torch.Tensor, g: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+        """source (B, N, 3), f (B, N, C), target (B or 1, M, 3), g (B or 1, M, C) -> logits (B, N), (B, M)."""
+        b = source.shape[0]
+        a = self.embed(torch.cat([f, source], dim=-1))
+        c = self.embed(torch.cat([g, target], dim=-1)).expand(b, -1, -1)
+        for block in self.blocks:
+            a, c = block(a, c)
+        return self.readout(a).squeeze(-1), self.readout(c).squeeze(-1)
+
+
 class SoftAlignNet(nn.Module):
     """Soft-alignment registration network: returns (R, t, w) with target ~ R source + t.
 
     forward(source (B, N, 3), target (B, M, 3)) -> (R (B, 3, 3), t (B, 3), w (B, N)), where w_i in
-    [1/M, 1] is the largest soft-assignment probability of source point i.
+    [0, 1] is the largest soft-assignment probability of source point i (times its overlap
+    probability with an overlap head).
     """
 
     def __init__(self, config: NetConfig = NetConfig()) -> None:
@@ -467,11 +523,8 @@ class SoftAlignNet(nn.Module):
             self.log_tau = nn.Parameter(log_tau)
         else:
             self.register_buffer("log_tau", log_tau)
-
-    def soft_alignment(self, f: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-        """W (B, N, M) = row-softmax(f g^T / tau) from descriptors f (B, N, C), g (B, M, C)."""
-        scores = torch.matmul(f, g.transpose(1, 2)) * torch.exp(-self.log_tau)
-        return torch.softmax(scores, dim=-1)
+        # Empty without a head (a ModuleList, so that TorchScript compiles both cases).
+        self.overlap = nn.ModuleList([OverlapHead(config.channels[-1], config.overlap, config.overlap_layers)] if config.overlap else [])
 
     def forward(self, source: torch.Tensor, target: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         f = self.describe_source(source, self.neighbours(source))
@@ -499,12 +552,20 @@ class SoftAlignNet(nn.Module):
     def align(self, source: torch.Tensor, f: torch.Tensor, target: torch.Tensor, g: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """R (B, 3, 3), t (B, 3), w (B, N) from source (B, N, 3) with descriptors f (B, N, C) and
         target (B, M, 3) with g (B, M, C); a target of batch 1 serves all B sources."""
-        W = self.soft_alignment(f, g)
+        scores = torch.matmul(f, g.transpose(1, 2)) * torch.exp(-self.log_tau)
+        in_overlap = torch.ones(source.shape[:2], dtype=source.dtype, device=source.device)
+        for head in self.overlap:  # at most one
+            logits_s, logits_t = head(source, f, target, g)
+            scores = scores + F.logsigmoid(logits_t).unsqueeze(1)  # target points outside the overlap draw less
+            in_overlap = torch.sigmoid(logits_s)
+            if not torch.jit.is_scripting():
+                self.overlap_logits = (logits_s, logits_t)
+        W = torch.softmax(scores, dim=-1)
         virtual = torch.matmul(W, target)  # (B, N, 3)
         if not torch.jit.is_scripting():
             self.virtual_points = virtual  # the last eager call's soft partners, for training losses
             self.soft_partners = W
-        w = W.amax(dim=-1)  # (B, N)
+        w = W.amax(dim=-1) * in_overlap  # (B, N)
         R, t = weighted_procrustes(source, virtual, w)
         return R, t, w
 
@@ -571,3 +632,31 @@ def match_loss(source: torch.Tensor, target: torch.Tensor, W: torch.Tensor, R_gt
     has_partner = near.amax(dim=-1)
     mass = (W * near).sum(dim=-1).clamp(min=1e-12)
     return -(torch.log(mass) * has_partner).sum() / has_partner.sum().clamp(min=1.0)
+
+
+def median_spacing(points: torch.Tensor) -> torch.Tensor:
+    """(B, N, 3) -> (B,) median distance from each point to its nearest other point."""
+    d = torch.cdist(points, points)
+    d.diagonal(dim1=1, dim2=2).fill_(float("inf"))
+    return d.amin(dim=-1).median(dim=-1).values
+
+
+def overlap_labels(
+    source: torch.Tensor, target: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor, spacings: float = 3.0
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Which points lie in the overlap: (B, N) bool, a source point whose true place has a target
+    point within `spacings` median target spacings, and (B, M) bool, a target point with a source
+    point's true place within `spacings` median source spacings. Spacings, not a fixed distance, so
+    that sparse samplings of a surface count as overlapping everywhere."""
+    with torch.no_grad():
+        truth = true_places(source, R_gt, t_gt)
+        d = torch.cdist(truth, target)  # (B, N, M)
+        in_s = d.amin(dim=2) < spacings * median_spacing(target).unsqueeze(1)
+        in_t = d.amin(dim=1) < spacings * median_spacing(source).unsqueeze(1)
+        return in_s, in_t
+
+
+def overlap_loss(logits: Tuple[torch.Tensor, torch.Tensor], labels: Tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """Binary cross-entropy (nats, lower is better) of the overlap head's logits ((B, N), (B, M))
+    against :func:`overlap_labels`, the mean over the source's points plus the target's."""
+    return sum(F.binary_cross_entropy_with_logits(x, y.to(x.dtype)) for x, y in zip(logits, labels))

@@ -28,7 +28,7 @@ from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_re
 from .errors import InputError, O3dsoftError, UsageError
 from .io import atomic_output, make_folder, remove_stale_temporaries
 from .metrics import pair_errors, summarise
-from .model import NetConfig, SoftAlignNet, count_parameters, match_loss, registration_loss, virtual_point_loss
+from .model import NetConfig, SoftAlignNet, count_parameters, match_loss, overlap_labels, overlap_loss, registration_loss, virtual_point_loss
 from .preprocess import denormalise_transform, normalisation_for, normalise_pair, normalise_transform
 from .transforms import rigid
 
@@ -53,6 +53,11 @@ class TrainConfig:
             (0: the paper's loss alone).
         match_loss: weight of :func:`o3dsoft.model.match_loss` (the soft assignment's cross-entropy
             against the true neighbourhoods) added to the loss (0: none).
+        overlap_loss: weight of :func:`o3dsoft.model.overlap_loss` (the overlap head's
+            cross-entropy against which points lie in the overlap) added to the loss (0: none;
+            needs ``net.overlap``).
+        only_overlap: train the overlap head alone; the rest of the network keeps its initial
+            weights and BatchNorm statistics.
         init_temperature: set the softmax temperature tau to this value before training (None:
             keep the initial weights' tau). A network trained on the transform loss alone ends with
             a large tau, whose near-uniform soft partners the match loss sharpens only slowly.
@@ -84,6 +89,8 @@ class TrainConfig:
     grad_clip: Optional[float] = None
     point_loss: float = 0.0
     match_loss: float = 0.0
+    overlap_loss: float = 0.0
+    only_overlap: bool = False
     init_temperature: Optional[float] = None
     init: Optional[str] = None
     seed: int = 0
@@ -115,6 +122,12 @@ class TrainConfig:
             ("grad_clip", self.grad_clip is None or self.grad_clip > 0, "positive or null"),
             ("point_loss", self.point_loss >= 0, "at least 0"),
             ("match_loss", self.match_loss >= 0, "at least 0"),
+            (
+                "overlap_loss",
+                self.overlap_loss >= 0 and (self.overlap_loss == 0 or self.net.overlap > 0),
+                "at least 0, and 0 without an overlap head (net.overlap)",
+            ),
+            ("only_overlap", not self.only_overlap or self.net.overlap > 0, "false without an overlap head (net.overlap)"),
             ("init_temperature", self.init_temperature is None or self.init_temperature > 0, "positive or null"),
             ("checkpoint_minutes", self.checkpoint_minutes > 0, "positive"),
             ("eval_pairs", self.eval_pairs is None or self.eval_pairs >= 0, "0 or more, or null for the whole split"),
@@ -262,6 +275,13 @@ def export_checkpoint(checkpoint: Path, out: Path) -> Path:
 LR_SCHEDULES = ("constant", "cosine")
 # Settings that fix which pairs each step sees and the network's shape: a resumed run must keep them.
 RESUME_MUST_MATCH = ("data", "protocol", "batch_size", "seed", "net", "limit_train", "points_per_shape")
+
+
+def _training_mode(model: SoftAlignNet, only_overlap: bool) -> None:
+    """Training mode; with `only_overlap`, for the overlap head alone (the rest keeps its
+    BatchNorm statistics)."""
+    model.train(not only_overlap)
+    model.overlap.train()
 
 
 def _lr_factor(config: TrainConfig, total_steps: int) -> Callable[[int], float]:
@@ -473,16 +493,24 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
 
     torch.manual_seed(config.seed)
     model = SoftAlignNet(config.net).to(device)
-    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr)
+    if config.only_overlap:
+        for name, p in model.named_parameters():
+            p.requires_grad_(name.startswith("overlap."))
+    optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=config.lr)
     init_record = None
     if config.init is not None and not resume:
         weights, init_net, init_record = _initial_weights(config.init)
-        # The relative first layer has the same parameters as the absolute one: a network can
-        # start from weights trained either way.
-        if replace(NetConfig.from_dict(init_net), relative=config.net.relative) != config.net:
+        # The relative first layer has the same parameters as the absolute one, and a network
+        # without an overlap head starts one with a new head: a network can start from either.
+        init_config = NetConfig.from_dict(init_net)
+        new_head = init_config.overlap == 0 and config.net.overlap > 0
+        comparable = replace(config.net, overlap=0, overlap_layers=init_config.overlap_layers) if new_head else config.net
+        if replace(init_config, relative=config.net.relative) != comparable:
             raise InputError(f"{config.init}: its network settings differ from this run's ({init_net})")
         with _damaged(Path(config.init)):
-            model.load_state_dict(weights)
+            missing, unexpected = model.load_state_dict(weights, strict=not new_head)
+            if unexpected or any(not k.startswith("overlap.") for k in missing):
+                raise KeyError(f"weights do not fit the network: missing {missing}, unexpected {unexpected}")
     if config.init_temperature is not None and not resume:
         with torch.no_grad():
             model.log_tau.fill_(math.log(config.init_temperature))
@@ -540,7 +568,6 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             raise O3dsoftError(f"{ckpt_path}: could not write the checkpoint ({e}); {kept}; free space and run again with --resume") from None
 
     dataset = _TrainingPairs([train_pairs])
-    model.train()
     last_ckpt = started = time.monotonic()
     done = config.max_steps is not None and state["global_step"] >= config.max_steps
     while state["epoch"] < config.epochs and not done:
@@ -554,6 +581,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         loader = torch.utils.data.DataLoader(dataset, batch_sampler=batches, num_workers=config.workers)
         losses: List[float] = state.get("epoch_losses", [])
         progress = _Progress(lead, epoch, config, steps_per_epoch, state["step_in_epoch"], world, log)
+        _training_mode(model, config.only_overlap)
         for src, tgt, R_gt, t_gt in loader:
             src, tgt, R_gt, t_gt = (x.to(device, non_blocking=True) for x in (src, tgt, R_gt, t_gt))
             R, t, _ = net(src, tgt)
@@ -562,6 +590,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                 loss = loss + config.point_loss * virtual_point_loss(src, tgt, model.virtual_points, R_gt, t_gt)
             if config.match_loss > 0:
                 loss = loss + config.match_loss * match_loss(src, tgt, model.soft_partners, R_gt, t_gt)
+            if config.overlap_loss > 0:
+                loss = loss + config.overlap_loss * overlap_loss(model.overlap_logits, overlap_labels(src, tgt, R_gt, t_gt))
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             if config.grad_clip is not None:
@@ -609,7 +639,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             "sha256": sha256_of(model_path),
             **_card_facts(config, train_pairs, parts, state),
             "initialised_from": init_record,
-            "parameters": count_parameters(model),
+            "parameters": sum(p.numel() for p in model.parameters()),
+            "trained_parameters": count_parameters(model),  # fewer with only_overlap
             "torch_version": torch.__version__,
             "device": str(device),
             "world_size": world,

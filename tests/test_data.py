@@ -211,7 +211,9 @@ def test_mixture_parts_and_evaluation_protocol():
     for name, mixture in MIXTURES.items():
         parts = training_parts(name)
         assert abs(sum(w for _, w in parts) - 1) < 1e-9
-        assert any(p.disjoint_share > 0 for p, _ in parts) and any(p.disjoint_share == 0 for p, _ in parts)
+        assert any(p.disjoint_share > 0 for p, _ in parts)
+        if name != "incongruent-overlap-mix":  # for an overlap head trained alone: the rest of the network keeps what it learnt
+            assert any(p.disjoint_share == 0 for p, _ in parts)
         assert evaluation_protocol(name).name == mixture.evaluate
     assert training_parts("dcp") == ((get_protocol("dcp"), 1.0),)
     with pytest.raises(UsageError, match="incongruent-mix"):

@@ -1,4 +1,5 @@
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -15,6 +16,8 @@ from o3dsoft.model import (
     count_parameters,
     gather_max,
     neighbour_multiplicity,
+    overlap_labels,
+    overlap_loss,
     registration_loss,
 )
 
@@ -371,3 +374,79 @@ def test_soft_partner_sharpness_is_one_for_uniform_weights_and_rises_as_the_temp
         net.log_tau.fill_(math.log(1e-3))  # near one-hot rows
     sharp = sharpness(net, str(modelnet_root), "incongruent", limit=2)
     assert sharp["max_w_times_m"] > 2 * flat["max_w_times_m"] and sharp["positives_per_point"] == flat["positives_per_point"]
+    assert flat["overlap_auc"] is None or flat["overlap_auc"] == pytest.approx(0.5)  # uniform rows: one weight for all
+    assert flat["head_overlap_auc"] is None
+
+
+def test_soft_partners_reports_an_overlap_heads_auc_for_both_clouds(modelnet_root):
+    from benchmarks.soft_partners import sharpness
+
+    torch.manual_seed(0)
+    figures = sharpness(SoftAlignNet(_with_head()), str(modelnet_root), "incongruent-crop", limit=3)
+    for key in ("overlap_auc", "head_overlap_auc", "head_target_overlap_auc"):
+        assert 0.0 <= figures[key] <= 1.0
+
+
+def _with_head(config=TINY, width=16):
+    return replace(config, overlap=width)
+
+
+def test_a_network_with_an_overlap_head_scripts_and_equals_eager_with_a_shared_target():
+    torch.manual_seed(6)
+    net = SoftAlignNet(_with_head()).double().eval()  # float64: see test_scripted_model_equals_eager
+    assert NetConfig.from_dict(_with_head().to_dict()) == _with_head()
+    src, tgt = _cloud(b=3, n=64), _cloud(b=1, n=50, seed=1)
+    scripted = torch.jit.script(net)
+    with torch.no_grad():
+        g = scripted.describe_target(tgt, ball_query(tgt, TINY.k, TINY.radius))
+        f = scripted.describe_source(src, ball_query(src, TINY.k, TINY.radius))
+        for a, b in zip(net(src, tgt.expand(3, -1, -1)), scripted.align(src, f, tgt, g)):
+            assert torch.allclose(a, b, atol=1e-9)
+    assert [t.shape for t in net.overlap_logits] == [(3, 64), (3, 50)]
+
+
+def test_an_overlap_head_that_says_the_same_of_every_point_changes_no_pose():
+    torch.manual_seed(7)
+    plain = SoftAlignNet(TINY).double().eval()
+    headed = SoftAlignNet(_with_head()).double().eval()
+    headed.load_state_dict(plain.state_dict(), strict=False)
+    src, tgt = _cloud(n=64), _cloud(n=50, seed=1)
+    readout = headed.overlap[0].readout
+    with torch.no_grad():
+        assert torch.allclose(plain(src, tgt)[0], headed(src, tgt)[0], atol=1e-9)  # a new head starts at zero
+        for bias in (-3.0, 0.0, 4.0):  # a common column shift leaves each softmax row as it was
+            readout.bias.fill_(bias)
+            for a, b in zip(plain(src, tgt)[:2], headed(src, tgt)[:2]):
+                assert torch.allclose(a, b, atol=1e-9)
+        readout.weight.normal_()  # logits that differ between points change the pose
+        assert not torch.allclose(plain(src, tgt)[0], headed(src, tgt)[0], atol=1e-4)
+
+
+def test_overlap_labels_count_spacings_from_each_points_true_place():
+    # Source x = 0..19 and target x = 10.5..29.5 on a line, spacing 1; the source given turned
+    # and shifted, with the transform that puts it back. Within 3 spacings: source x >= 8, target x <= 21.5.
+    R = torch.tensor(_rotation_about_z(0.7), dtype=torch.float64)
+    t = torch.tensor([0.3, -2.0, 5.0], dtype=torch.float64)
+    line = lambda xs: torch.stack([xs, torch.zeros_like(xs), torch.zeros_like(xs)], -1)  # noqa: E731
+    placed, target = line(torch.arange(20.0).double()), line(torch.arange(20.0).double() + 10.5)
+    source = (placed - t) @ R  # R^T (x - t), row-wise
+    in_s, in_t = overlap_labels(source[None], target[None], R[None], t[None])
+    assert in_s[0].tolist() == [x >= 8 for x in range(20)]
+    assert in_t[0].tolist() == [x + 10.5 <= 21.5 for x in range(20)]
+    narrow = overlap_labels(source[None], target[None], R[None], t[None], spacings=1.0)[0]
+    assert narrow[0].tolist() == [x >= 10 for x in range(20)]
+
+
+def test_the_overlap_loss_is_small_for_right_logits_and_large_for_reversed_ones():
+    labels = (torch.tensor([[True, False, True]]), torch.tensor([[False, True]]))
+    right = tuple(torch.where(y, 20.0, -20.0) for y in labels)
+    reversed_ = tuple(-x for x in right)
+    assert overlap_loss(right, labels) < 1e-6
+    assert overlap_loss(reversed_, labels) == pytest.approx(40.0, rel=1e-6)  # 20 nats each, source and target
+    unsure = tuple(torch.zeros(y.shape) for y in labels)
+    assert overlap_loss(unsure, labels) == pytest.approx(2 * math.log(2), rel=1e-6)
+
+
+def _rotation_about_z(angle):
+    c, s = math.cos(angle), math.sin(angle)
+    return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]

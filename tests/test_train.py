@@ -1,6 +1,7 @@
 import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -349,3 +350,40 @@ def test_the_gpu_machines_path_trains_from_packed_data_from_the_source_tree_with
     assert r.returncode == 0, r.stdout + r.stderr
     card = json.loads((out / "model_card.json").read_text())
     assert card["steps"] == 2 and (out / "model.pt").is_file() and (out / "checkpoint.pt").is_file()
+
+
+def test_training_the_overlap_head_alone_keeps_the_rest_of_the_network_and_its_statistics(modelnet_root, tmp_path):
+    first = train(_config(modelnet_root, tmp_path / "first", max_steps=1, eval_pairs=0, protocol="incongruent-crop"), log=lambda m: None)
+    headed = replace(TINY, overlap=8)
+    run = _config(
+        modelnet_root,
+        tmp_path / "head",
+        max_steps=3,
+        eval_pairs=4,
+        protocol="incongruent-crop",
+        net=headed,
+        init=str(first.parent / "checkpoint.pt"),
+        only_overlap=True,
+        overlap_loss=1.0,
+    )
+    train(run, log=lambda m: None)
+    before = torch.load(first.parent / "checkpoint.pt", weights_only=True)["model"]
+    after = torch.load(tmp_path / "head" / "checkpoint.pt", weights_only=True)["model"]
+    assert set(after) - set(before) and all(k.startswith("overlap.") for k in set(after) - set(before))
+    assert all(torch.equal(before[k], after[k]) for k in before)  # weights and BatchNorm statistics
+    assert load_model(tmp_path / "head" / "model.pt").config.overlap == 8
+    card = json.loads((tmp_path / "head" / "model_card.json").read_text())
+    head = sum(v.numel() for k, v in after.items() if k.startswith("overlap.") and v.is_floating_point())
+    assert card["trained_parameters"] == head and card["parameters"] > head
+    with pytest.raises(InputError, match="overlap_loss"):
+        _config(modelnet_root, tmp_path / "bad", overlap_loss=1.0).validate()
+    with pytest.raises(InputError, match="only_overlap"):
+        _config(modelnet_root, tmp_path / "bad", only_overlap=True).validate()
+
+
+@pytest.mark.parametrize("recipe", sorted((Path(__file__).resolve().parents[1] / "docs" / "experiments").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_recipe_in_the_docs_is_a_valid_training_config(recipe):
+    from o3dsoft.train import settings_from
+
+    config = settings_from({}, {}, recipe)
+    assert config.protocol and config.epochs >= 1
