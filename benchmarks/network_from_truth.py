@@ -31,12 +31,11 @@ from benchmarks.eval_model import DEFAULT_DATA
 from o3dsoft.bench import scan_folder
 from o3dsoft.coarse import CoarseModel, cached_model
 from o3dsoft.config import RegisterConfig
+from o3dsoft.model import OVERLAP_SPACINGS
 from o3dsoft.pair import PreparedPair
 from o3dsoft.preprocess import normalise_pair, normalise_transform, point_spacing
 from o3dsoft.search import network_candidates
 from o3dsoft.transforms import apply_transform, axis_angle_to_matrix, rotation_angle_deg
-
-OVERLAP_SPACINGS = 3.0  # --overlap-only: a point with a point of the other cloud this many median spacings away is in the overlap
 
 DEFAULT_SCANS = Path(__file__).resolve().parents[2] / "shared" / "data" / "stanford_bunny"
 

@@ -51,7 +51,7 @@ def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: i
         near = true_partners(true_places(src, R, t), tgt, reach).to(W.dtype)
         has = near.amax(dim=-1)
         in_s, in_t = overlap_labels(src, tgt, R, t)
-        head = getattr(model, "overlap_logits", None) if model.overlap else None
+        head = model.overlap_logits if len(model.overlap) else None  # set by the forward pass above
         uniform = -(torch.log(near.sum(-1).clamp(min=1) / W.shape[-1]) * has).sum() / has.sum().clamp(min=1)
         return {
             "protocol": protocol,

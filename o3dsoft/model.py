@@ -553,7 +553,7 @@ class SoftAlignNet(nn.Module):
         """R (B, 3, 3), t (B, 3), w (B, N) from source (B, N, 3) with descriptors f (B, N, C) and
         target (B, M, 3) with g (B, M, C); a target of batch 1 serves all B sources."""
         scores = torch.matmul(f, g.transpose(1, 2)) * torch.exp(-self.log_tau)
-        in_overlap = torch.ones(source.shape[:2], dtype=source.dtype, device=source.device)
+        in_overlap: Optional[torch.Tensor] = None
         for head in self.overlap:  # at most one
             logits_s, logits_t = head(source, f, target, g)
             scores = scores + F.logsigmoid(logits_t).unsqueeze(1)  # target points outside the overlap draw less
@@ -565,7 +565,9 @@ class SoftAlignNet(nn.Module):
         if not torch.jit.is_scripting():
             self.virtual_points = virtual  # the last eager call's soft partners, for training losses
             self.soft_partners = W
-        w = W.amax(dim=-1) * in_overlap  # (B, N)
+        w = W.amax(dim=-1)  # (B, N)
+        if in_overlap is not None:
+            w = w * in_overlap
         R, t = weighted_procrustes(source, virtual, w)
         return R, t, w
 
@@ -634,15 +636,21 @@ def match_loss(source: torch.Tensor, target: torch.Tensor, W: torch.Tensor, R_gt
     return -(torch.log(mass) * has_partner).sum() / has_partner.sum().clamp(min=1.0)
 
 
+# A point with a point of the other cloud within this many median spacings of its true place lies
+# in the overlap (:func:`overlap_labels`, benchmarks/network_from_truth.py --overlap-only).
+OVERLAP_SPACINGS = 3.0
+
+
 def median_spacing(points: torch.Tensor) -> torch.Tensor:
-    """(B, N, 3) -> (B,) median distance from each point to its nearest other point."""
+    """(B, N, 3) -> (B,) median distance from each point to its nearest other point: the batched
+    torch form of :func:`o3dsoft.preprocess.point_spacing`, for labels made on the training device."""
     d = torch.cdist(points, points)
     d.diagonal(dim1=1, dim2=2).fill_(float("inf"))
     return d.amin(dim=-1).median(dim=-1).values
 
 
 def overlap_labels(
-    source: torch.Tensor, target: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor, spacings: float = 3.0
+    source: torch.Tensor, target: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor, spacings: float = OVERLAP_SPACINGS
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Which points lie in the overlap: (B, N) bool, a source point whose true place has a target
     point within `spacings` median target spacings, and (B, M) bool, a target point with a source

@@ -504,8 +504,10 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         # without an overlap head starts one with a new head: a network can start from either.
         init_config = NetConfig.from_dict(init_net)
         new_head = init_config.overlap == 0 and config.net.overlap > 0
-        comparable = replace(config.net, overlap=0, overlap_layers=init_config.overlap_layers) if new_head else config.net
-        if replace(init_config, relative=config.net.relative) != comparable:
+        adopted = {"relative": config.net.relative}
+        if new_head:
+            adopted.update(overlap=config.net.overlap, overlap_layers=config.net.overlap_layers)
+        if replace(init_config, **adopted) != config.net:
             raise InputError(f"{config.init}: its network settings differ from this run's ({init_net})")
         with _damaged(Path(config.init)):
             missing, unexpected = model.load_state_dict(weights, strict=not new_head)
