@@ -2,7 +2,7 @@
 
     python -m benchmarks.network_from_truth [--weights default incongruent partial]
         [--scans ../shared/data/stanford_bunny] [--angles 0 15 30 45 90] [--passes 3] [--seed 0]
-        [--overlap-only] [--modelnet PROTOCOL [--limit 50] [--data ../shared/data/modelnet40_ply_hdf5_1024]]
+        [--overlap-only | --trim KEEP] [--modelnet PROTOCOL [--limit 50] [--data ../shared/data/modelnet40_ply_hdf5_1024]]
 
 For every pair of a folder of scans (`o3dsoft.bench.scan_folder`, as `o3dsoft bench scans` takes
 them), the network's samples of the two clouds are prepared as `register` prepares them
@@ -16,12 +16,15 @@ start; one that does not moves away from the truth itself.
 ``--overlap-only`` gives the network only the overlap: each sample keeps the points within 3
 median spacings of the target's points from the other sample at the truth, and is centred on its own centroid again.
 What a network does there, against the whole samples, is what the part without a partner costs.
+``--trim KEEP`` (networks with an overlap head) makes each pass on the head's predicted overlap:
+the KEEP share of each sample the head scores best, re-centred, described and aligned alone.
 ``--modelnet PROTOCOL`` runs on the first ``--limit`` ModelNet40 test pairs of a protocol instead.
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import Iterable, Iterator, Tuple
 
@@ -55,10 +58,10 @@ def overlap_only(source: np.ndarray, target: np.ndarray, T: np.ndarray, min_poin
     return source[keep_s] - source[keep_s].mean(axis=0), target[keep_t] - target[keep_t].mean(axis=0)
 
 
-def scan_samples(folder: Path, k: int) -> Iterator[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per pair of the scans in `folder`: the network's two samples as `register` prepares them,
-    normalised, and the true T (4, 4) between them (target ~ T source)."""
-    config = RegisterConfig()
+def scan_samples(folder: Path, k: int, points: int = 1024) -> Iterator[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per pair of the scans in `folder`: the network's two samples as `register` prepares them
+    (`points` per cloud), normalised, and the true T (4, 4) between them (target ~ T source)."""
+    config = replace(RegisterConfig(), num_points=points)
     for p in scan_folder(folder).pairs:
         prepared = PreparedPair(p.source, p.target, config, k)
         yield (*prepared.net_normalised, normalise_transform(p.transform, prepared.norm))
@@ -96,6 +99,62 @@ def errors_from_truth(
     return np.array(errors).reshape(-1, len(angles))
 
 
+def eager_network(weights: str):
+    """The eager :class:`o3dsoft.model.SoftAlignNet` of a shipped model's name, a model file or a
+    training checkpoint, in evaluation mode."""
+    from o3dsoft.model import NetConfig, SoftAlignNet
+    from o3dsoft.train import _initial_weights
+
+    state, net_config, _ = _initial_weights(weights)
+    net = SoftAlignNet(NetConfig.from_dict(net_config))
+    net.load_state_dict(state)
+    return net.eval()
+
+
+def trimmed_pass(net, source: np.ndarray, target: np.ndarray, keep: float) -> np.ndarray:
+    """One pass of an eager network with an overlap head on its predicted overlap: the head scores
+    both clouds as given (source (N, 3), centred; target (M, 3)), each keeps its `keep` share of
+    best-scored points, re-centred, and the network describes and aligns those alone, without the
+    head's gate. Returns the rotation (3, 3) of the kept source onto the kept target."""
+    import torch
+
+    from o3dsoft.procrustes import weighted_procrustes
+
+    f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a)[None], dtype=torch.float32)  # noqa: E731
+    with torch.no_grad():
+        src, tgt = f32(source), f32(target)
+        net(src, tgt)  # sets the head's logits
+        kept = []
+        for cloud, logits in zip((source, target), net.overlap_logits):
+            scores = logits[0].numpy()
+            best = cloud[scores >= np.quantile(scores, 1.0 - keep)]
+            kept.append(f32(best - best.mean(axis=0)))
+        f = net.describe_source(kept[0], net.neighbours(kept[0]))
+        g = net.describe_target(kept[1], net.neighbours(kept[1]))
+        W = torch.softmax(torch.matmul(f, g.transpose(1, 2)) * torch.exp(-net.log_tau), dim=-1)
+        R, _ = weighted_procrustes(kept[0], torch.matmul(W, kept[1]), W.amax(dim=-1))
+        return R[0].double().numpy()
+
+
+def errors_with_trim(net, samples: Iterable[Tuple[np.ndarray, np.ndarray, np.ndarray]], angles: list, passes: int, seed: int, keep: float) -> np.ndarray:
+    """(P, A) rotation errors in degrees as :func:`errors_from_truth`, each pass a
+    :func:`trimmed_pass` of the eager network `net` (one with an overlap head)."""
+    rng = np.random.default_rng(seed)
+    errors = []
+    for source, target, T in samples:
+        R_true = T[:3, :3]
+        centred = source - source.mean(axis=0)
+        row = []
+        for a in angles:
+            axis = rng.normal(size=3)
+            R = axis_angle_to_matrix(np.radians(a) * axis / np.linalg.norm(axis)) @ R_true
+            for _ in range(passes):
+                R = trimmed_pass(net, centred @ R.T, target, keep) @ R
+            row.append(rotation_angle_deg(R.T @ R_true))
+        errors.append(row)
+    return np.array(errors).reshape(-1, len(angles))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--weights", nargs="+", default=["default", "incongruent", "partial"])
@@ -104,6 +163,9 @@ def main() -> None:
     parser.add_argument("--passes", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overlap-only", action="store_true", help="give the network only the two samples' overlap at the truth")
+    parser.add_argument(
+        "--trim", type=float, metavar="KEEP", help="networks with an overlap head: each pass on the KEEP share of each cloud the head scores best"
+    )
     parser.add_argument("--modelnet", metavar="PROTOCOL", help="ModelNet40 test pairs of this protocol instead of the scans")
     parser.add_argument("--limit", type=int, default=50, help="with --modelnet: the first N test pairs")
     parser.add_argument("--data", default=str(DEFAULT_DATA), help="with --modelnet: the ModelNet40 folder")
@@ -112,7 +174,10 @@ def main() -> None:
     for weights in args.weights:
         model = cached_model(weights, "cpu")
         samples = modelnet_samples(args.data, args.modelnet, args.limit) if args.modelnet else scan_samples(args.scans, model.config.k)
-        errors = errors_from_truth(model, samples, args.angles, args.passes, args.seed, args.overlap_only)
+        if args.trim is not None:
+            errors = errors_with_trim(eager_network(weights), samples, args.angles, args.passes, args.seed, args.trim)
+        else:
+            errors = errors_from_truth(model, samples, args.angles, args.passes, args.seed, args.overlap_only)
         for j, angle in enumerate(args.angles):
             e = errors[:, j]
             print(f"{weights} | {angle:g} | {np.median(e):.1f} [{np.quantile(e, 0.25):.1f}, {np.quantile(e, 0.75):.1f}] | {100 * np.mean(e < 5):.1f} %")

@@ -1,6 +1,8 @@
 """How sharp a network's soft assignment is at the true pose, on ModelNet40 test pairs.
 
     python -m benchmarks.soft_partners [--weights incongruent] [--protocol incongruent dcp] [--limit 20]
+        [--data ../shared/data/modelnet40_ply_hdf5_1024] [--points-per-shape 1024]
+        [--scans ../shared/data/stanford_bunny [--scan-points 1024]]
 
 Per protocol, over the first N pairs (clouds normalised as in training, the network's own
 forward pass), prints as JSON:
@@ -20,6 +22,11 @@ forward pass), prints as JSON:
 - ``head_overlap_auc``, ``head_target_overlap_auc``: the same for the overlap head's logits of the
   source's and the target's points (networks with ``NetConfig.overlap``; else None).
 
+``--scans FOLDER`` reports the three AUCs on every pair of a folder of scans instead (as
+``o3dsoft bench scans`` takes them), the network's samples prepared as ``register`` prepares them
+(``--scan-points`` per cloud), the source turned by the true rotation: scans come at any
+relative pose, far beyond the training protocols' turns.
+
 A network whose soft partners are near-uniform (``max_w_times_m`` near 1) does not find
 correspondences: its rotation comes from a small first-order term of W (docs/incongruent.md).
 """
@@ -28,7 +35,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from typing import Optional
+from pathlib import Path
+from typing import List, Optional
 
 import numpy as np
 import torch
@@ -40,9 +48,9 @@ from o3dsoft.model import NetConfig, SoftAlignNet, match_loss, overlap_labels, t
 from o3dsoft.train import _initial_weights, normalised_batch
 
 
-def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: int = 0, reach: float = 0.06) -> dict:
+def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: int = 0, reach: float = 0.06, points_per_shape: int = 1024) -> dict:
     """The figures above for the first `limit` test pairs of `protocol` (one batch: equal point counts)."""
-    pairs = load_pairs(data, "test", get_protocol(protocol), seed)
+    pairs = load_pairs(data, "test", get_protocol(protocol), seed, points_per_shape)
     src, tgt, R, t = normalised_batch([pairs[i] for i in range(min(limit, len(pairs)))])
     model.eval()
     with torch.no_grad():
@@ -67,12 +75,49 @@ def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: i
         }
 
 
+def scan_overlap_auc(model: SoftAlignNet, folder: Path, points: int = 1024) -> dict:
+    """``overlap_auc``, ``head_overlap_auc`` and ``head_target_overlap_auc`` (medians over the
+    pairs) on every pair of the scans in `folder`, `points` per cloud, the source turned by the
+    true rotation."""
+    from benchmarks.network_from_truth import scan_samples
+
+    model.eval()
+    w, head_s, head_t, in_s, in_t = [], [], [], [], []
+    with torch.no_grad():
+        for source, target, T in scan_samples(folder, model.k, points):
+            # The source turned by the true rotation (the network centres it itself); the labels
+            # then need only the true translation.
+            src, tgt = (torch.as_tensor(c, dtype=torch.float32)[None] for c in (source @ T[:3, :3].T, target))
+            R, t = torch.eye(3)[None], torch.as_tensor(T[None, :3, 3], dtype=torch.float32)
+            model(src, tgt)
+            labels = overlap_labels(src, tgt, R, t)
+            w.append(model.soft_partners.amax(-1)[0])
+            in_s.append(labels[0][0])
+            in_t.append(labels[1][0])
+            if len(model.overlap):
+                head_s.append(model.overlap_logits[0][0])
+                head_t.append(model.overlap_logits[1][0])
+    return {
+        "scans": str(folder),
+        "pairs": len(w),
+        "points": points,
+        "overlap_auc": _median_auc(w, in_s),
+        "head_overlap_auc": _median_auc(head_s, in_s) if head_s else None,
+        "head_target_overlap_auc": _median_auc(head_t, in_t) if head_t else None,
+    }
+
+
+def _median_auc(scores: List[torch.Tensor], labels: List[torch.Tensor]) -> Optional[float]:
+    """Median over pairs of the ROC AUC of each pair's scores (N,) for its labels (N,) bool."""
+    aucs = [roc_auc(s.double().numpy(), y.numpy()) for s, y in zip(scores, labels)]
+    aucs = [a for a in aucs if a is not None]
+    return float(np.median(aucs)) if aucs else None
+
+
 def partner_auc(w: torch.Tensor, has_partner: torch.Tensor) -> Optional[float]:
     """Median over pairs of the ROC AUC of the scores w (B, N) for has_partner (B, N) bool (ties
     count half); None where no pair has points of both kinds."""
-    aucs = [roc_auc(scores.double().numpy(), label.numpy()) for scores, label in zip(w.cpu(), has_partner.cpu())]
-    aucs = [a for a in aucs if a is not None]
-    return float(np.median(aucs)) if aucs else None
+    return _median_auc(list(w.cpu()), list(has_partner.cpu()))
 
 
 def main() -> None:
@@ -81,12 +126,18 @@ def main() -> None:
     ap.add_argument("--protocol", nargs="+", default=["incongruent", "dcp"])
     ap.add_argument("--limit", type=int, default=20)
     ap.add_argument("--data", default=str(DEFAULT_DATA))
+    ap.add_argument("--points-per-shape", type=int, default=1024, help="points of each shape of --data to use")
+    ap.add_argument("--scans", type=Path, help="the AUCs on every pair of this folder of scans instead")
+    ap.add_argument("--scan-points", type=int, default=1024, help="with --scans: points per cloud for the network")
     args = ap.parse_args()
     weights, net, _ = _initial_weights(args.weights)
     model = SoftAlignNet(NetConfig.from_dict(net))
     model.load_state_dict(weights)
+    if args.scans is not None:
+        print(json.dumps(scan_overlap_auc(model, args.scans, args.scan_points)), flush=True)
+        return
     for p in args.protocol:
-        print(json.dumps(sharpness(model, args.data, p, args.limit)), flush=True)
+        print(json.dumps(sharpness(model, args.data, p, args.limit, points_per_shape=args.points_per_shape)), flush=True)
 
 
 if __name__ == "__main__":

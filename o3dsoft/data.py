@@ -119,6 +119,10 @@ PROTOCOLS: Dict[str, Protocol] = {
         Protocol("incongruent-wide-dense", disjoint_share=1.0, source_share=0.7, **_WIDE45, **_NOISE),
         # (192 points per view, so that a batch's clouds have one size: a 512-point half's view has 130-350)
         Protocol("incongruent-wide-view", disjoint_share=1.0, view_deg=60.0, num_points=192, **_WIDE45, **_NOISE),
+        # Views up to 120 degrees apart at 512 points, the overlaps of scans around an object: for
+        # shapes of 4,096 points or more (o3dsoft.synthetic's objects; a 1,024-point shape's views
+        # hold fewer points than that).
+        Protocol("incongruent-far-view", disjoint_share=1.0, view_deg=120.0, num_points=512, **_WIDE45, **_NOISE),
         # Training only: the residual poses of a second network pass, for "incongruent-iterative".
         Protocol("incongruent-near", disjoint_share=1.0, **_NEAR),
         Protocol("incongruent-near-crop", disjoint_share=1.0, crop_keep=0.7, **_NEAR, **_NOISE),

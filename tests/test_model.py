@@ -450,3 +450,41 @@ def test_the_overlap_loss_is_small_for_right_logits_and_large_for_reversed_ones(
 def _rotation_about_z(angle):
     c, s = math.cos(angle), math.sin(angle)
     return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+
+
+def test_soft_partners_measures_the_overlap_aucs_on_scans_at_the_true_pose(tmp_path):
+    from benchmarks.soft_partners import scan_overlap_auc
+
+    from .conftest import EXAMPLES
+
+    (tmp_path / "pairs.txt").write_text(f"{EXAMPLES / 'bun045.ply'} {EXAMPLES / 'bun000.ply'} {EXAMPLES / 'bun045_to_bun000.txt'}\n")
+    torch.manual_seed(0)
+    net = SoftAlignNet(_with_head())
+    untrained = scan_overlap_auc(net, tmp_path, points=128)
+    assert untrained["pairs"] == 1 and untrained["points"] == 128
+    # A head whose read-out is still zero gives every point one logit: chance, whatever the overlap.
+    assert untrained["head_overlap_auc"] == pytest.approx(0.5) and untrained["head_target_overlap_auc"] == pytest.approx(0.5)
+    with torch.no_grad():
+        net.overlap[0].readout.weight.normal_()
+    assert scan_overlap_auc(net, tmp_path, points=128)["head_overlap_auc"] != pytest.approx(0.5)
+    assert scan_overlap_auc(SoftAlignNet(TINY), tmp_path, points=128)["head_overlap_auc"] is None
+
+
+def test_a_trimmed_pass_keeping_every_point_is_the_networks_own_pass_with_a_silent_head():
+    import numpy as np
+
+    from benchmarks.network_from_truth import trimmed_pass
+
+    torch.manual_seed(2)
+    net = SoftAlignNet(_with_head()).eval()  # the head's read-out starts at zero: it changes no pose
+    src, tgt = _cloud(b=1, n=64, dtype=torch.float32), _cloud(b=1, n=56, seed=1, dtype=torch.float32)
+    src, tgt = src - src.mean(dim=1, keepdim=True), tgt - tgt.mean(dim=1, keepdim=True)  # the pass re-centres what it keeps
+    with torch.no_grad():
+        net.log_tau.fill_(-3.0)  # sharper rows: an untrained network's near-uniform ones make the rotation ill-conditioned
+        R, _, _ = net(src, tgt)
+    whole = trimmed_pass(net, src[0].numpy(), tgt[0].numpy(), keep=1.0)
+    assert np.allclose(whole, R[0].numpy(), atol=1e-4)
+    with torch.no_grad():
+        net.overlap[0].readout.weight.normal_()
+    part = trimmed_pass(net, src[0].numpy(), tgt[0].numpy(), keep=0.5)
+    assert np.allclose(part @ part.T, np.eye(3), atol=1e-5) and not np.allclose(part, whole, atol=1e-3)
