@@ -78,6 +78,14 @@ def modelnet_samples(data: str, protocol: str, limit: int) -> Iterator[Tuple[np.
         yield source, target, normalise_transform(pairs[i].transform, norm)
 
 
+def start_rotations(rng: np.random.Generator, angles: list, R_true: np.ndarray) -> np.ndarray:
+    """(A, 3, 3): the true rotation R_true (3, 3) turned further by each of `angles` (degrees)
+    about a random axis."""
+    axes = rng.normal(size=(len(angles), 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    return np.stack([axis_angle_to_matrix(np.radians(a) * axis) @ R_true for a, axis in zip(angles, axes)])
+
+
 def errors_from_truth(
     model: CoarseModel, samples: Iterable[Tuple[np.ndarray, np.ndarray, np.ndarray]], angles: list, passes: int, seed: int, overlap: bool = False
 ) -> np.ndarray:
@@ -90,66 +98,62 @@ def errors_from_truth(
         if overlap:
             source, target = overlap_only(source, target, T, model.config.k)
         R_true = T[:3, :3]
-        axes = rng.normal(size=(len(angles), 3))
-        axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-        starts = np.stack([axis_angle_to_matrix(np.radians(a) * axis) @ R_true for a, axis in zip(angles, axes)])
+        starts = start_rotations(rng, angles, R_true)
         for _ in range(passes):  # each pass from the rotation so far (the network centres the source itself)
             starts = network_candidates(model, source, target, starts)[:, :3, :3]
         errors.append([rotation_angle_deg(R.T @ R_true) for R in starts])
     return np.array(errors).reshape(-1, len(angles))
 
 
-def eager_network(weights: str):
+def eager_network(weights: str, head: bool = True):
     """The eager :class:`o3dsoft.model.SoftAlignNet` of a shipped model's name, a model file or a
-    training checkpoint, in evaluation mode."""
+    training checkpoint, in evaluation mode; without its overlap head when `head` is False (an
+    alignment no head gates)."""
     from o3dsoft.model import NetConfig, SoftAlignNet
     from o3dsoft.train import _initial_weights
 
     state, net_config, _ = _initial_weights(weights)
-    net = SoftAlignNet(NetConfig.from_dict(net_config))
+    config = NetConfig.from_dict(net_config)
+    if not head:
+        config = replace(config, overlap=0)
+        state = {name: w for name, w in state.items() if not name.startswith("overlap.")}
+    net = SoftAlignNet(config)
     net.load_state_dict(state)
     return net.eval()
 
 
-def trimmed_pass(net, source: np.ndarray, target: np.ndarray, keep: float) -> np.ndarray:
+def trimmed_pass(net, plain, source: np.ndarray, target: np.ndarray, keep: float) -> np.ndarray:
     """One pass of an eager network with an overlap head on its predicted overlap: the head scores
     both clouds as given (source (N, 3), centred; target (M, 3)), each keeps its `keep` share of
-    best-scored points, re-centred, and the network describes and aligns those alone, without the
-    head's gate. Returns the rotation (3, 3) of the kept source onto the kept target."""
+    best-scored points, re-centred, and `plain` (the same network without its head) describes
+    and aligns those alone. Returns the rotation (3, 3) of the kept source onto the kept target."""
     import torch
-
-    from o3dsoft.procrustes import weighted_procrustes
 
     f32 = lambda a: torch.as_tensor(np.ascontiguousarray(a)[None], dtype=torch.float32)  # noqa: E731
     with torch.no_grad():
-        src, tgt = f32(source), f32(target)
-        net(src, tgt)  # sets the head's logits
+        net(f32(source), f32(target))  # sets the head's logits
         kept = []
         for cloud, logits in zip((source, target), net.overlap_logits):
             scores = logits[0].numpy()
             best = cloud[scores >= np.quantile(scores, 1.0 - keep)]
             kept.append(f32(best - best.mean(axis=0)))
-        f = net.describe_source(kept[0], net.neighbours(kept[0]))
-        g = net.describe_target(kept[1], net.neighbours(kept[1]))
-        W = torch.softmax(torch.matmul(f, g.transpose(1, 2)) * torch.exp(-net.log_tau), dim=-1)
-        R, _ = weighted_procrustes(kept[0], torch.matmul(W, kept[1]), W.amax(dim=-1))
+        R, _, _ = plain(*kept)
         return R[0].double().numpy()
 
 
-def errors_with_trim(net, samples: Iterable[Tuple[np.ndarray, np.ndarray, np.ndarray]], angles: list, passes: int, seed: int, keep: float) -> np.ndarray:
+def errors_with_trim(net, plain, samples: Iterable[Tuple[np.ndarray, np.ndarray, np.ndarray]], angles: list, passes: int, seed: int, keep: float) -> np.ndarray:
     """(P, A) rotation errors in degrees as :func:`errors_from_truth`, each pass a
-    :func:`trimmed_pass` of the eager network `net` (one with an overlap head)."""
+    :func:`trimmed_pass` of the eager network `net` (one with an overlap head) and `plain`, the
+    same without it."""
     rng = np.random.default_rng(seed)
     errors = []
     for source, target, T in samples:
         R_true = T[:3, :3]
         centred = source - source.mean(axis=0)
         row = []
-        for a in angles:
-            axis = rng.normal(size=3)
-            R = axis_angle_to_matrix(np.radians(a) * axis / np.linalg.norm(axis)) @ R_true
+        for R in start_rotations(rng, angles, R_true):
             for _ in range(passes):
-                R = trimmed_pass(net, centred @ R.T, target, keep) @ R
+                R = trimmed_pass(net, plain, centred @ R.T, target, keep) @ R
             row.append(rotation_angle_deg(R.T @ R_true))
         errors.append(row)
     return np.array(errors).reshape(-1, len(angles))
@@ -175,7 +179,7 @@ def main() -> None:
         model = cached_model(weights, "cpu")
         samples = modelnet_samples(args.data, args.modelnet, args.limit) if args.modelnet else scan_samples(args.scans, model.config.k)
         if args.trim is not None:
-            errors = errors_with_trim(eager_network(weights), samples, args.angles, args.passes, args.seed, args.trim)
+            errors = errors_with_trim(eager_network(weights), eager_network(weights, head=False), samples, args.angles, args.passes, args.seed, args.trim)
         else:
             errors = errors_from_truth(model, samples, args.angles, args.passes, args.seed, args.overlap_only)
         for j, angle in enumerate(args.angles):

@@ -549,6 +549,11 @@ def _format_multiway(result, out_dir: Path, merged_points: int) -> str:
 
 # Command-line options of `train` that are TrainConfig fields of the same name; given on the
 # command line, they override the --config file, which overrides TrainConfig's defaults.
+def _loss_weight(flag: str, help: str):
+    """A training loss's weight option (0, the default: that loss is not added)."""
+    return click.option(flag, type=click.FloatRange(min=0), default=0.0, show_default=True, help=help)
+
+
 _TRAIN_FIELDS = (
     "data",
     "protocol",
@@ -597,27 +602,9 @@ _TRAIN_FIELDS = (
 @click.option("--lr-schedule", type=click.Choice(["constant", "cosine"]), default="constant", show_default=True)
 @click.option("--lr-min", type=click.FloatRange(min=0), default=1e-5, show_default=True, help="Final learning rate of the cosine schedule.")
 @click.option("--grad-clip", type=click.FloatRange(min=0, min_open=True), default=None, help="Clip the gradients' L2 norm (default: no clipping).")
-@click.option(
-    "--point-loss",
-    type=click.FloatRange(min=0),
-    default=0.0,
-    show_default=True,
-    help="Weight of a loss on each source point's soft partner (where it truly lies), added to the paper's transform loss.",
-)
-@click.option(
-    "--match-loss",
-    type=click.FloatRange(min=0),
-    default=0.0,
-    show_default=True,
-    help="Weight of the soft assignment's cross-entropy against each source point's true neighbourhood, added to the loss.",
-)
-@click.option(
-    "--overlap-loss",
-    type=click.FloatRange(min=0),
-    default=0.0,
-    show_default=True,
-    help="Weight of the overlap head's cross-entropy against which points lie in the overlap, added to the loss (needs --overlap).",
-)
+@_loss_weight("--point-loss", "Weight of a loss on each source point's soft partner (where it truly lies), added to the paper's transform loss.")
+@_loss_weight("--match-loss", "Weight of the soft assignment's cross-entropy against each source point's true neighbourhood, added to the loss.")
+@_loss_weight("--overlap-loss", "Weight of the overlap head's cross-entropy against which points lie in the overlap, added to the loss (needs --overlap).")
 @click.option("--only-overlap", is_flag=True, default=False, help="Train the overlap head alone; the rest of the network stays as --init gave it.")
 @click.option(
     "--init-temperature",
