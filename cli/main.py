@@ -578,6 +578,10 @@ _TRAIN_FIELDS = (
     "max_minutes",
     "limit_train",
     "points_per_shape",
+    "extra_data",
+    "extra_protocol",
+    "extra_share",
+    "extra_points_per_shape",
     "workers",
 )
 
@@ -653,6 +657,20 @@ _TRAIN_FIELDS = (
 )
 @click.option("--limit-train", type=click.IntRange(min=1), default=None, help="Use only the first N training shapes.")
 @click.option("--points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True, help="Points per shape (first N of the HDF5 data).")
+@click.option(
+    "--extra-data",
+    default=None,
+    help="A second dataset in the same layout (e.g. python -m benchmarks.make_shapes's synthetic scans) whose pairs make --extra-share of the batches.",
+)
+@click.option("--extra-protocol", default="incongruent-far-view", show_default=True, help="Protocol or mixture of the --extra-data pairs.")
+@click.option(
+    "--extra-share",
+    type=click.FloatRange(min=0, max=1, min_open=True, max_open=True),
+    default=0.5,
+    show_default=True,
+    help="Share of the batches drawn from --extra-data.",
+)
+@click.option("--extra-points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True, help="Points per shape of --extra-data.")
 @click.option("--eval-pairs", type=click.IntRange(min=0), default=300, show_default=True, help="Test pairs evaluated after each epoch (0: none).")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.pass_context

@@ -17,14 +17,14 @@ import warnings
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
 from .coarse import export_torchscript, non_finite_weight, sha256_of
 from .configfile import read_config, write_config
-from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, check_training_recipe, evaluation_protocol, load_pairs, training_parts
+from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, Protocol, Shapes, check_training_recipe, evaluation_protocol, load_pairs, training_parts
 from .errors import InputError, O3dsoftError, UsageError
 from .io import atomic_output, make_folder, remove_stale_temporaries
 from .metrics import pair_errors, summarise
@@ -75,6 +75,13 @@ class TrainConfig:
             (None: no limit).
         limit_train: use only the first N training shapes (None: all).
         points_per_shape: points per shape (the first N of the HDF5 data, N samples on meshes).
+        extra_data: a second dataset in the same layout (e.g. ``benchmarks.make_shapes``'s
+            synthetic scan-like objects) whose pairs make a share of the batches (None: none).
+            Epochs still count the first dataset's shapes; the second's are drawn by index
+            modulo its size. Evaluation stays on the first dataset.
+        extra_protocol: protocol or mixture of the second dataset's pairs.
+        extra_share: share of the batches drawn from the second dataset (0 < share < 1).
+        extra_points_per_shape: points per shape of the second dataset.
         workers: DataLoader worker processes making pairs (0: in the training process).
         net: architecture.
     """
@@ -102,6 +109,10 @@ class TrainConfig:
     max_minutes: Optional[float] = None
     limit_train: Optional[int] = None
     points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE
+    extra_data: Optional[str] = None
+    extra_protocol: str = "incongruent-far-view"
+    extra_share: float = 0.5
+    extra_points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE
     workers: int = 0
     net: NetConfig = field(default_factory=NetConfig)
 
@@ -113,6 +124,7 @@ class TrainConfig:
     def validate(self) -> None:
         """InputError naming the first setting out of its range."""
         check_training_recipe(self.protocol)
+        check_training_recipe(self.extra_protocol)
         checks = [
             ("epochs", self.epochs >= 1, "at least 1"),
             ("batch_size", self.batch_size >= 1, "at least 1"),
@@ -135,6 +147,12 @@ class TrainConfig:
             ("max_minutes", self.max_minutes is None or self.max_minutes > 0, "positive or null"),
             ("limit_train", self.limit_train is None or self.limit_train >= 1, "at least 1 or null"),
             ("points_per_shape", self.points_per_shape is None or self.points_per_shape >= self.net.k, f"at least k = {self.net.k} or null"),
+            ("extra_share", 0 < self.extra_share < 1, "between 0 and 1 (both excluded)"),
+            (
+                "extra_points_per_shape",
+                self.extra_points_per_shape is None or self.extra_points_per_shape >= self.net.k,
+                f"at least k = {self.net.k} or null",
+            ),
             ("workers", self.workers >= 0, "0 or more"),
         ]
         for name, ok, expected in checks:
@@ -274,7 +292,19 @@ def export_checkpoint(checkpoint: Path, out: Path) -> Path:
 
 LR_SCHEDULES = ("constant", "cosine")
 # Settings that fix which pairs each step sees and the network's shape: a resumed run must keep them.
-RESUME_MUST_MATCH = ("data", "protocol", "batch_size", "seed", "net", "limit_train", "points_per_shape")
+RESUME_MUST_MATCH = (
+    "data",
+    "protocol",
+    "batch_size",
+    "seed",
+    "net",
+    "limit_train",
+    "points_per_shape",
+    "extra_data",
+    "extra_protocol",
+    "extra_share",
+    "extra_points_per_shape",
+)
 
 
 def _training_mode(model: SoftAlignNet, only_overlap: bool) -> None:
@@ -319,7 +349,9 @@ def _setup_distributed(config: TrainConfig) -> Tuple[int, int, torch.device]:
 
 class _TrainingPairs(torch.utils.data.Dataset):
     """Normalised tensors of protocol pairs, for torch's DataLoader (workers included), keyed by
-    (shape index, part): the part names which of a mixture's protocols makes the pair."""
+    (shape index, part): the part names which of a mixture's protocols, over which dataset,
+    makes the pair. The first part's dataset sets the length; a part over a smaller dataset
+    takes the index modulo its size."""
 
     def __init__(self, parts: Sequence[PairDataset]) -> None:
         self.parts = list(parts)
@@ -329,7 +361,33 @@ class _TrainingPairs(torch.utils.data.Dataset):
 
     def __getitem__(self, key: Tuple[int, int]):
         index, part = key
-        return tuple(x[0] for x in normalised_batch([self.parts[part][index]]))
+        pairs = self.parts[part]
+        return tuple(x[0] for x in normalised_batch([pairs[index % len(pairs)]]))
+
+
+class _Part(NamedTuple):
+    """One source of training batches: a protocol over a dataset's training shapes, and its weight."""
+
+    protocol: Protocol
+    weight: float
+    shapes: Shapes
+
+
+def _training_sources(config: TrainConfig, train_pairs: PairDataset) -> List[_Part]:
+    """Every (protocol, weight, shapes) batches are drawn from: the recipe's parts over the first
+    dataset, and with `extra_data` the extra recipe's parts over it, weighted by `extra_share`."""
+    parts = [_Part(p, w, train_pairs.shapes) for p, w in training_parts(config.protocol)]
+    if config.extra_data is None:
+        return parts
+    extra = training_parts(config.extra_protocol)
+    shapes = load_pairs(config.extra_data, "train", extra[0][0], config.seed, config.extra_points_per_shape).shapes
+    return _scaled(parts, 1 - config.extra_share) + _scaled([_Part(p, w, shapes) for p, w in extra], config.extra_share)
+
+
+def _scaled(parts: List[_Part], share: float) -> List[_Part]:
+    """The parts with weights rescaled to sum to `share`."""
+    total = sum(p.weight for p in parts)
+    return [p._replace(weight=share * p.weight / total) for p in parts]
 
 
 def _batches(order: Sequence[int], first_batch: int, batch_size: int, weights: Sequence[float], seed: int, epoch: int) -> List[List[Tuple[int, int]]]:
@@ -471,12 +529,20 @@ def _evaluation_line(epoch: int, m: Dict[str, float]) -> str:
 def _card_facts(config: TrainConfig, train_pairs: PairDataset, parts, state: dict) -> dict:
     """What the model card says about the data, the protocol and the progress of the run."""
     shapes = train_pairs.shapes.points
+    dataset = f"train split of {config.data or 'ModelNet40'} ({shapes.shape[0]} shapes, {shapes.shape[1]} points each)"
+    if config.limit_train:
+        dataset += f", first {config.limit_train} shapes"
+    if config.extra_data is not None:
+        extra = parts[-1].shapes.points
+        dataset += f"; {100 * config.extra_share:.0f} % of the batches from the train split of {config.extra_data} ({extra.shape[0]} shapes, {extra.shape[1]} points each)"
+    described = [{**asdict(p.protocol), "weight": p.weight, "shapes": len(p.shapes.points)} for p in parts]
     return {
         "config": config.to_dict(),
-        "dataset": f"ModelNet40 train split ({shapes.shape[0]} shapes, {shapes.shape[1]} points each)"
-        + (f", first {config.limit_train} shapes" if config.limit_train else ""),
-        "evaluated_on": f"ModelNet40 test split, first {config.eval_pairs} pairs of the protocol (seed {config.seed + 1})" if config.eval_pairs else None,
-        "protocol": asdict(parts[0][0]) if len(parts) == 1 else {"mixture": [{**asdict(p), "weight": w} for p, w in parts]},
+        "dataset": dataset,
+        "evaluated_on": f"test split of {config.data or 'ModelNet40'}, first {config.eval_pairs} pairs of the protocol (seed {config.seed + 1})"
+        if config.eval_pairs
+        else None,
+        "protocol": asdict(parts[0].protocol) if len(parts) == 1 else {"mixture": described},
         "epochs_completed": state["epoch"],
         "steps": state["global_step"],
         "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
@@ -488,8 +554,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     lead = rank == 0
     out = Path(config.out)
     ckpt_path = out / "checkpoint.pt"
-    parts = training_parts(config.protocol)
-    protocol = parts[0][0]  # which split's categories the run uses; every part of a mixture uses all
+    protocol = training_parts(config.protocol)[0][0]  # which split's categories the run uses; every part of a mixture uses all
 
     torch.manual_seed(config.seed)
     model = SoftAlignNet(config.net).to(device)
@@ -531,6 +596,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
 
     train_pairs, test_pairs = _splits(config, protocol)
+    parts = _training_sources(config, train_pairs)
     if not lead:
         test_pairs = None
     steps_per_epoch = len(train_pairs) // world // config.batch_size
@@ -575,11 +641,11 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     while state["epoch"] < config.epochs and not done:
         epoch = state["epoch"]
         # Pairs of epoch e differ from those of other epochs (seeded by epoch) but repeat on resume.
-        dataset.parts = [PairDataset(train_pairs.shapes, part, seed=config.seed * 1000 + epoch) for part, _ in parts]
+        dataset.parts = [PairDataset(part.shapes, part.protocol, seed=config.seed * 1000 + epoch) for part in parts]
         sampler = torch.utils.data.DistributedSampler(dataset, num_replicas=world, rank=rank, shuffle=True, seed=config.seed, drop_last=True)
         sampler.set_epoch(epoch)
         order = list(sampler)[state["step_in_epoch"] * config.batch_size : steps_per_epoch * config.batch_size]
-        batches = _batches(order, state["step_in_epoch"], config.batch_size, [w for _, w in parts], config.seed + 1000 * rank, epoch)
+        batches = _batches(order, state["step_in_epoch"], config.batch_size, [part.weight for part in parts], config.seed + 1000 * rank, epoch)
         loader = torch.utils.data.DataLoader(dataset, batch_sampler=batches, num_workers=config.workers)
         losses: List[float] = state.get("epoch_losses", [])
         progress = _Progress(lead, epoch, config, steps_per_epoch, state["step_in_epoch"], world, log)

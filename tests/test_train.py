@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 from o3dsoft.cli.main import main
 from o3dsoft.coarse import load_model, sha256_of
+from o3dsoft.data import PairDataset, get_protocol, load_pairs
 from o3dsoft.errors import InputError, O3dsoftError, UsageError
 from o3dsoft.model import NetConfig
 from o3dsoft.train import TrainConfig, train
@@ -387,3 +388,39 @@ def test_every_recipe_in_the_docs_is_a_valid_training_config(recipe):
 
     config = settings_from({}, {}, recipe)
     assert config.protocol and config.epochs >= 1
+
+
+def test_a_second_dataset_makes_its_share_of_the_batches(modelnet_root, tmp_path):
+    from benchmarks.make_shapes import write
+    from o3dsoft.train import _training_sources, _TrainingPairs
+
+    shapes = tmp_path / "shapes"
+    write(shapes, train=3, test=1, points=1024, seed=0)
+    config = _config(modelnet_root, tmp_path / "run", protocol="incongruent-mix", extra_data=str(shapes), extra_share=0.25, max_steps=2, eval_pairs=4)
+    first = load_pairs(str(modelnet_root), "train", get_protocol("incongruent"), 0)
+    parts = _training_sources(config, first)
+    own, extra = parts[:-1], parts[-1:]
+    assert np.isclose(sum(p.weight for p in own), 0.75) and np.isclose(sum(p.weight for p in extra), 0.25)
+    assert extra[0].protocol.name == "incongruent-far-view" and len(extra[0].shapes.points) == 3
+    # Indices past the smaller dataset wrap around it.
+    pairs = _TrainingPairs([PairDataset(p.shapes, p.protocol, seed=0) for p in parts])
+    assert torch.equal(pairs[(3, len(parts) - 1)][0], pairs[(0, len(parts) - 1)][0])
+
+    train(config, log=lambda m: None)
+    card = json.loads((tmp_path / "run" / "model_card.json").read_text())
+    mixture = card["protocol"]["mixture"]
+    assert mixture[-1]["name"] == "incongruent-far-view" and mixture[-1]["shapes"] == 3
+    assert "25 % of the batches" in card["dataset"] and card["config"]["extra_data"] == str(shapes)
+
+
+def test_a_second_dataset_must_match_on_resume(modelnet_root, tmp_path):
+    from benchmarks.make_shapes import write
+
+    shapes = tmp_path / "shapes"
+    write(shapes, train=2, test=1, points=1024, seed=0)
+    train(_config(modelnet_root, tmp_path / "run", protocol="incongruent", extra_data=str(shapes), max_steps=1, eval_pairs=0), log=lambda m: None)
+    again = _config(modelnet_root, tmp_path / "run", protocol="incongruent", extra_data=str(shapes), extra_share=0.3, max_steps=2, eval_pairs=0)
+    with pytest.raises(InputError, match="extra_share"):
+        train(again, resume=True, log=lambda m: None)
+    with pytest.raises(InputError, match="extra_share"):
+        _config(modelnet_root, tmp_path / "bad", extra_share=1.0).validate()
