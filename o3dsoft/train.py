@@ -15,7 +15,7 @@ import time
 import traceback
 import warnings
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 
@@ -292,18 +292,8 @@ def export_checkpoint(checkpoint: Path, out: Path) -> Path:
 
 LR_SCHEDULES = ("constant", "cosine")
 # Settings that fix which pairs each step sees and the network's shape: a resumed run must keep them.
-RESUME_MUST_MATCH = (
-    "data",
-    "protocol",
-    "batch_size",
-    "seed",
-    "net",
-    "limit_train",
-    "points_per_shape",
-    "extra_data",
-    "extra_protocol",
-    "extra_share",
-    "extra_points_per_shape",
+RESUME_MUST_MATCH = ("data", "protocol", "batch_size", "seed", "net", "limit_train", "points_per_shape") + tuple(
+    f.name for f in fields(TrainConfig) if f.name.startswith("extra_")
 )
 
 
