@@ -370,7 +370,10 @@ def _training_sources(config: TrainConfig, train_pairs: PairDataset) -> List[_Pa
     if config.extra_data is None:
         return parts
     extra = training_parts(config.extra_protocol)
-    shapes = load_pairs(config.extra_data, "train", extra[0][0], config.seed, config.extra_points_per_shape).shapes
+    try:
+        shapes = load_pairs(config.extra_data, "train", extra[0][0], config.seed, config.extra_points_per_shape).shapes
+    except InputError as e:
+        raise InputError(f"the second dataset (extra_data, --extra-data): {e}") from None
     return _scaled(parts, 1 - config.extra_share) + _scaled([_Part(p, w, shapes) for p, w in extra], config.extra_share)
 
 

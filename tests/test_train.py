@@ -424,3 +424,5 @@ def test_a_second_dataset_must_match_on_resume(modelnet_root, tmp_path):
         train(again, resume=True, log=lambda m: None)
     with pytest.raises(InputError, match="extra_share"):
         _config(modelnet_root, tmp_path / "bad", extra_share=1.0).validate()
+    with pytest.raises(InputError, match="second dataset.*4096"):
+        train(_config(modelnet_root, tmp_path / "big", extra_data=str(shapes), extra_points_per_shape=4096, max_steps=1), log=lambda m: None)
