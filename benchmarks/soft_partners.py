@@ -42,10 +42,11 @@ import numpy as np
 import torch
 
 from benchmarks.eval_model import DEFAULT_DATA
+from benchmarks.network_from_truth import eager_network, scan_samples
 from o3dsoft.bench import roc_auc
 from o3dsoft.data import get_protocol, load_pairs
-from o3dsoft.model import NetConfig, SoftAlignNet, match_loss, overlap_labels, true_partners, true_places
-from o3dsoft.train import _initial_weights, normalised_batch
+from o3dsoft.model import SoftAlignNet, match_loss, overlap_labels, true_partners, true_places
+from o3dsoft.train import normalised_batch
 
 
 def sharpness(model: SoftAlignNet, data: str, protocol: str, limit: int, seed: int = 0, reach: float = 0.06, points_per_shape: int = 1024) -> dict:
@@ -79,8 +80,6 @@ def scan_overlap_auc(model: SoftAlignNet, folder: Path, points: int = 1024) -> d
     """``overlap_auc``, ``head_overlap_auc`` and ``head_target_overlap_auc`` (medians over the
     pairs) on every pair of the scans in `folder`, `points` per cloud, the source turned by the
     true rotation."""
-    from benchmarks.network_from_truth import scan_samples
-
     model.eval()
     w, head_s, head_t, in_s, in_t = [], [], [], [], []
     with torch.no_grad():
@@ -130,9 +129,7 @@ def main() -> None:
     ap.add_argument("--scans", type=Path, help="the AUCs on every pair of this folder of scans instead")
     ap.add_argument("--scan-points", type=int, default=1024, help="with --scans: points per cloud for the network")
     args = ap.parse_args()
-    weights, net, _ = _initial_weights(args.weights)
-    model = SoftAlignNet(NetConfig.from_dict(net))
-    model.load_state_dict(weights)
+    model = eager_network(args.weights)
     if args.scans is not None:
         print(json.dumps(scan_overlap_auc(model, args.scans, args.scan_points)), flush=True)
         return
