@@ -207,10 +207,24 @@ class SecondNetworkConfig:
             independently sampled pairs; weights/o3dsoft_incongruent.json); None: off.
         iterations: its passes, each from the estimate so far (default 3: it recovers about 60 %
             of the remaining rotation per pass, docs/incongruent.md).
+        ends_search: its result ends the search (the search does not run) where both clouds look
+            complete (``PreparedPair.complete``), its pose shows no shared point (spacing ratio at
+            least ``search.independent_spacing``) and the complete confidence
+            (:func:`~o3dsoft.confidence.complete_confidence`) is at least this (default 0.8). The
+            strict confidence flags most right poses of two independent samplings, and the search
+            that follows replaces some right ones with turns onto a near-symmetric copy; the
+            degeneracy test still sends a pose it does not hold to the search. None: only the
+            strict confidence ends the search, as for every other estimate.
+        shared_check: before it ends the search, the feature match's first this many candidates
+            are tried (where the feature match is on; default 10): noisy crops of one point set
+            look like two independent samplings at a wrong pose, and their right pose is most
+            often the first candidate, which the strict confidence trusts.
     """
 
     weights: Optional[str] = "incongruent"
     iterations: int = 3
+    ends_search: Optional[float] = 0.8
+    shared_check: int = 10
 
 
 @dataclass(frozen=True)
@@ -317,6 +331,11 @@ class RegisterConfig:
                 raise InputError(f"search.{name} must be in [0, 1], got {getattr(search, name)}")
         if self.second_network.iterations < 1:
             raise InputError(f"second_network.iterations must be at least 1, got {self.second_network.iterations}")
+        ends = self.second_network.ends_search
+        if ends is not None and not threshold <= ends <= 1:
+            raise InputError(f"second_network.ends_search must be None or in [{threshold}, 1], got {ends}")
+        if self.second_network.shared_check < 0:
+            raise InputError(f"second_network.shared_check must not be negative, got {self.second_network.shared_check}")
         if search.starts.refine < 1:
             raise InputError(f"search.starts.refine must be at least 1, got {search.starts.refine}")
         if search.features.first_round < 1:

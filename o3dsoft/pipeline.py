@@ -3,7 +3,9 @@
     (a target much sparser than the source: the roles swapped, the result inverted)
     prepare the pair (clean, voxel grid, samples for the network, normalisation, work clouds)
     -> propose estimates (the network; when flagged, a second network trained on clouds that share
-       no point, except on scans; when still flagged, the search's strategies in turn)
+       no point, except on scans; when still flagged, the search's strategies in turn, unless the
+       second network's pose of two complete-looking clouds shows no shared point and the complete
+       confidence trusts it, and the feature match's first candidates find no shared point either)
     -> verify each (ICP on the work clouds, confidence)
     -> select the most trusted (within the rotation prior, if any; among those bringing at least
        half as many points into contact as the one that brings most)
@@ -214,12 +216,17 @@ def _register(
     if not (features_first and verifier.confident()):
         network.propose(pair, verifier)
     second_pending = config.second_network.weights is not None and not features_first and not pair.scans
+    second_ends = False
     if second_pending and not verifier.confident():
-        _second_network(pair, verifier)
+        second_ends = _second_network(pair, verifier)
         second_pending = False
+        if second_ends:
+            _check_shared_points(pair, verifier)
 
-    # Search while nothing is confident: feature match, networks from many starts, votes, restart.
-    searched = features_first or search.mode == "always" or (search.mode == "auto" and not verifier.confident())
+    # Search while nothing is confident (and the second network's pose of two complete-looking
+    # clouds is not trusted by the complete confidence): feature match, networks from many starts,
+    # votes, restart.
+    searched = features_first or search.mode == "always" or (search.mode == "auto" and not verifier.confident() and not second_ends)
     if searched:
         _search(pair, verifier, model, search_model, features_done=features_first)
 
@@ -340,13 +347,34 @@ def _search(pair: PreparedPair, verifier: Verifier, model, search_model, feature
         Restart().propose(pair, verifier)
 
 
-def _second_network(pair: PreparedPair, verifier: Verifier) -> None:
+def _second_network(pair: PreparedPair, verifier: Verifier) -> bool:
     """The second network's passes from the pose as given (skipped on samples smaller than its
-    neighbourhood size K, which only a network with a larger K than the first one meets)."""
+    neighbourhood size K, which only a network with a larger K than the first one meets). Returns
+    whether its result ends the search: both clouds look complete, its pose shows no shared point
+    and the complete confidence reaches ``second_network.ends_search``."""
     settings = pair.config.second_network
     model = coarse_stage.cached_model(settings.weights, pair.config.device)
-    if min(len(pair.net[0]), len(pair.net[1])) >= model.config.k:
-        NetworkPass(model, settings.iterations, stage="second_network", name="second network").propose(pair, verifier)
+    if min(len(pair.net[0]), len(pair.net[1])) < model.config.k:
+        return False
+    NetworkPass(model, settings.iterations, stage="second_network", name="second network").propose(pair, verifier)
+    mine = verifier.attempts[-1]
+    return (
+        settings.ends_search is not None
+        and pair.complete
+        and mine.scored.spacing_ratio >= pair.config.search.independent_spacing
+        and verifier.reported(mine).trust >= settings.ends_search
+    )
+
+
+def _check_shared_points(pair: PreparedPair, verifier: Verifier) -> None:
+    """Before the second network's pose ends the search: the feature match's first
+    ``second_network.shared_check`` candidates, as the search's estimates. Clouds that share
+    points look like two independent samplings at a wrong pose; their right pose is most often
+    among these, the strict confidence trusts it, and the choice takes it."""
+    count = pair.config.second_network.shared_check
+    if pair.config.search.features_on and count > 0:
+        verifier.begin_search()
+        FeatureMatchProposals(limit=count).propose(pair, verifier)
 
 
 def _match_features(pair: PreparedPair, verifier: Verifier) -> None:

@@ -700,3 +700,45 @@ def test_right_alignments_of_scans_whose_overlap_grazes_are_reported_trusted(bun
     monkeypatch.setattr(confidence, "scan_confidence", lambda f, config=None: 0.0)
     strict = register(src, tgt)
     assert np.allclose(strict.transformation, res.transformation, atol=1e-9) and strict.likely_failed
+
+
+def test_the_second_networks_trusted_pose_of_two_independent_samplings_ends_the_search(modelnet_root):
+    from o3dsoft.config import SecondNetworkConfig
+    from o3dsoft.data import get_protocol, load_pairs
+
+    pairs = load_pairs(modelnet_root, "test", get_protocol("incongruent"), 0)
+    for i in (4, 10):  # each cloud 512 of a shape's 1,024 points, none shared; the first network is far off
+        result = o3dsoft.register(pairs[i].source, pairs[i].target)
+        errors = pair_errors(result.transformation, pairs[i].transform)
+        assert errors.rotation_deg < 2 and errors.translation < 0.02 and not result.likely_failed, (i, errors, result.confidence)
+        assert result.estimate_from == "second network" and not result.searched
+        assert pair_errors(result.network_transformation, pairs[i].transform).rotation_deg > 10
+    # Without the rule only the strict confidence ends the search, and it flags the second network's pose.
+    searched = o3dsoft.register(pairs[4].source, pairs[4].target, RegisterConfig(second_network=SecondNetworkConfig(ends_search=None)))
+    assert searched.searched and searched.attempts > 20
+
+
+def test_before_the_second_network_ends_the_search_the_feature_match_looks_for_shared_points(modelnet_root):
+    from o3dsoft.config import SecondNetworkConfig
+    from o3dsoft.data import get_protocol, load_pairs
+
+    # A bowl and a table cropped from one noisy point set: the second network's pose is a wrong
+    # turn that fits like two independent samplings; the feature match's first candidate is right.
+    pairs = load_pairs(modelnet_root, "test", get_protocol("rpmnet-crop"), 0)
+    for i in (25, 26):
+        result = o3dsoft.register(pairs[i].source, pairs[i].target)
+        assert pair_errors(result.transformation, pairs[i].transform).rotation_deg < 1 and not result.likely_failed, i
+        assert result.estimate_from == "feature match" and not result.searched
+        unchecked = o3dsoft.register(pairs[i].source, pairs[i].target, RegisterConfig(second_network=SecondNetworkConfig(shared_check=0)))
+        assert unchecked.estimate_from == "second network" and not unchecked.searched
+        assert pair_errors(unchecked.transformation, pairs[i].transform).rotation_deg > 45 and not unchecked.likely_failed, i
+
+
+def test_the_second_networks_search_settings_are_checked():
+    from o3dsoft.config import SecondNetworkConfig
+
+    src, tgt, _ = blob_pair()
+    with pytest.raises(InputError, match="second_network.ends_search"):
+        register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(ends_search=0.3)))
+    with pytest.raises(InputError, match="second_network.shared_check"):
+        register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(shared_check=-1)))

@@ -4,6 +4,8 @@ that do not depend on how the network was trained (partial scans, large rotation
 
 from __future__ import annotations
 
+from typing import Optional
+
 from ..pair import PreparedPair
 from ..refine import ICPConfig
 from ..verify import Verifier
@@ -20,13 +22,17 @@ class FeatureMatchProposals:
     """The feature match's candidates, best-supported first, each tried in turn until one
     reaches the feature stop (``search.features.stop``). In two rounds: most pairs have a
     confident estimate among the first ``first_round``, and the rest cost only the pairs that
-    need them."""
+    need them. With `limit`, only the first `limit` candidates, in one round."""
+
+    def __init__(self, limit: Optional[int] = None) -> None:
+        self.limit = limit
 
     def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
         settings = pair.config.search.features
         icp = matched_icp(pair)
         before, tried = len(verifier.attempts), 0
-        for count in sorted({min(settings.first_round, settings.candidates), settings.candidates}):
+        rounds = (self.limit,) if self.limit is not None else sorted({min(settings.first_round, settings.candidates), settings.candidates})
+        for count in rounds:
             if tried and verifier.settled():
                 break
             found = pair.feature_match.candidates(pair.config.seed, count)[tried:]  # each round extends the last
