@@ -87,7 +87,8 @@ class RegistrationResult:
         icp_method: "point" (point-to-point) or "plane" (point-to-plane), as ICP ran.
         attempts: estimates refined and scored on the work clouds.
         screened: estimates refined and scored on the screen clouds first.
-        searched: whether the global search ran.
+        searched: whether the global search ran (not counting the feature match's first candidates
+            tried before the second network's pose ends it, ``second_network.shared_check``).
         removed: rows dropped by cleaning, per cloud: {"source_non_finite": ..., ...}.
         network_transformation: (4, 4) the network's own estimate from the pose as given, before
             ICP; None when the network did not run (a feature match tried first was confident).
