@@ -22,7 +22,7 @@ class FeatureMatchProposals:
     """The feature match's candidates, best-supported first, each tried in turn until one
     reaches the feature stop (``search.features.stop``). In two rounds: most pairs have a
     confident estimate among the first ``first_round``, and the rest cost only the pairs that
-    need them. With `limit`, only the first `limit` candidates, in one round."""
+    need them. With `limit`, only the first `limit` candidates (at most ``candidates``), in one round."""
 
     def __init__(self, limit: Optional[int] = None) -> None:
         self.limit = limit
@@ -31,7 +31,9 @@ class FeatureMatchProposals:
         settings = pair.config.search.features
         icp = matched_icp(pair)
         before, tried = len(verifier.attempts), 0
-        rounds = (self.limit,) if self.limit is not None else sorted({min(settings.first_round, settings.candidates), settings.candidates})
+        rounds = (
+            (min(self.limit, settings.candidates),) if self.limit is not None else sorted({min(settings.first_round, settings.candidates), settings.candidates})
+        )
         for count in rounds:
             if tried and verifier.settled():
                 break
