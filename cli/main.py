@@ -407,6 +407,13 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
             if result.constraint is not None
             else ["  constraint   not measured: the clouds share their points, which fix the pose"]
         ),
+        *(
+            [
+                f"  copy fit     {result.copy_fit:.3f}   the best half-turned copy's Chamfer distance over the result's (higher is better; at most {config.symmetry.max_ratio:g}: ambiguous)"
+            ]
+            if result.copy_fit is not None
+            else []
+        ),
         f"  estimate     the {result.estimate_from}'s" + (", refined by ICP" if refined else ""),
     ]
     if result.sparser_moved:

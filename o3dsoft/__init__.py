@@ -44,6 +44,7 @@ _LAZY = {
     "ICPConfig": "refine",
     "ConfidenceConfig": "confidence",
     "FeatureMatchConfig": "search",
+    "SymmetryConfig": "symmetry",
 }
 
 if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
@@ -56,6 +57,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
     from .pipeline import RegistrationResult, register
     from .refine import ICPConfig
     from .search import FeatureMatchConfig
+    from .symmetry import SymmetryConfig
 
 
 def __getattr__(name: str) -> Any:
@@ -89,6 +91,7 @@ __all__ = [
     "ScreenConfig",
     "SearchConfig",
     "StartsConfig",
+    "SymmetryConfig",
     "UsageError",
     "load_model",
     "multiway",

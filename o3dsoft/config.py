@@ -13,6 +13,7 @@ from .degeneracy import DegeneracyConfig
 from .errors import InputError, UsageError
 from .refine import ICPConfig
 from .search import FeatureMatchConfig
+from .symmetry import SymmetryConfig
 
 SEARCH_MODES = ("auto", "always", "off")
 
@@ -272,6 +273,7 @@ class RegisterConfig:
         search: the global search.
         confidence: how results are scored and flagged.
         degeneracy: when the geometry is taken not to determine the pose (the result flagged).
+        symmetry: when a half-turned copy of the result fits as closely (the confidence halved).
     """
 
     voxel: Optional[float] = None
@@ -291,6 +293,7 @@ class RegisterConfig:
     search: SearchConfig = field(default_factory=SearchConfig)
     confidence: ConfidenceConfig = field(default_factory=ConfidenceConfig)
     degeneracy: DegeneracyConfig = field(default_factory=DegeneracyConfig)
+    symmetry: SymmetryConfig = field(default_factory=SymmetryConfig)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -352,6 +355,10 @@ class RegisterConfig:
             self.confidence.validate()
         except ValueError as e:
             raise InputError(f"confidence: {e}") from None
+        if not self.symmetry.max_ratio >= 1 or not 0 <= self.symmetry.min_away_deg <= 180:
+            raise InputError(
+                f"symmetry: max_ratio must be at least 1 and min_away_deg in [0, 180]; got {self.symmetry.max_ratio}, {self.symmetry.min_away_deg}"
+            )
         degeneracy = self.degeneracy
         if not 0 <= degeneracy.min_constraint < 1 or degeneracy.neighbours < 3 or degeneracy.shared_below < 0 or not degeneracy.max_flatness > 0:
             raise InputError(

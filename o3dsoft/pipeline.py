@@ -13,7 +13,9 @@
        with point-to-plane ICP, its tight stages with point-to-point)
     -> test whether the geometry determines the pose; where it does not and the pose shows no
        shared point (not on scans), a result no flag had sent to the search goes there now (the
-       second network, the search), and what they find replaces it where it fits clearly closer.
+       second network, the search), and what they find replaces it where it fits clearly closer
+    -> on two complete-looking clouds whose trusted pose shows no shared point, test whether a
+       half-turned copy fits as closely (a symmetric shape): then the confidence is halved.
 
 Where each stage lives: :class:`o3dsoft.pair.PreparedPair`, :mod:`o3dsoft.strategies`,
 :class:`o3dsoft.verify.Verifier`, :mod:`o3dsoft.refine`, :mod:`o3dsoft.confidence`. The settings
@@ -31,6 +33,7 @@ from . import coarse as coarse_stage
 from . import confidence as confidence_stage
 from . import degeneracy as degeneracy_stage
 from . import refine as refine_stage
+from . import symmetry as symmetry_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
 from .metrics import input_chamfer_distance
@@ -102,6 +105,13 @@ class RegistrationResult:
         flatness: how well the clouds still fit with the source turned 30 degrees, over the
             result's fit (0-1, lower is better; from ``degeneracy.max_flatness`` = 0.85 the result
             is flagged with confidence 0). None where the clouds share their points.
+        copy_transformation: (4, 4) where both clouds look complete and the trusted pose shows no
+            shared point: the result followed by a half turn of the source about one of its
+            axes, refined by ICP, that fits the clouds closest (:mod:`o3dsoft.symmetry`); None
+            where not probed or every copy came back to the result.
+        copy_fit: its input Chamfer distance over the result's (higher is better for the
+            result; at most ``symmetry.max_ratio`` = 1.1: the two fit as closely, the shape is
+            symmetric, and the confidence is halved).
         sparser_moved: the target was much sparser than the source (``sparser_moves``), so it was
             registered onto the source and the result inverted; every field still speaks of the
             source onto the target.
@@ -135,11 +145,13 @@ class RegistrationResult:
     icp_method: str = "point"
     estimate_from: str = "network"
     sparser_moved: bool = False
+    copy_transformation: Optional[np.ndarray] = None
+    copy_fit: Optional[float] = None
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
         d = asdict(self)
-        for name in ("transformation", "coarse_transformation", "network_transformation"):
+        for name in ("transformation", "coarse_transformation", "network_transformation", "copy_transformation"):
             if d[name] is not None:
                 d[name] = np.asarray(d[name]).tolist()
         return d
@@ -263,9 +275,12 @@ def _register(
         if _fits_closer(pair, found, best, search.undetermined_gain):
             best, geometry = found, _assess(pair, found)
         clock.lap("degeneracy")
+    # Whether a symmetric copy fits as closely: nothing measured on the clouds tells the two apart.
+    copy = _probe_symmetry(pair, verifier, best, geometry)
+    clock.lap("symmetry")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
     final_level = "work" if unrefined else "full"
-    return _result(best, pair, verifier, network, searched, geometry, clock.timings_ms, final_level), pair.clouds(final_level)
+    return _result(best, pair, verifier, network, searched, geometry, copy, clock.timings_ms, final_level), pair.clouds(final_level)
 
 
 def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
@@ -281,6 +296,27 @@ def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
         pair.config.degeneracy,
         lambda: pair.scorer("screen"),
     )
+
+
+def _probe_symmetry(pair: PreparedPair, verifier: Verifier, best: Attempt, geometry: degeneracy_stage.Degeneracy) -> symmetry_stage.Symmetry:
+    """The half-turned copy of a trusted result that fits the work clouds closest
+    (:func:`o3dsoft.symmetry.probe`), where both clouds look complete, the pose shows no shared
+    point and the geometry determines it; otherwise not probed. (Clouds that share points fix
+    the pose by them; on scans and partial overlaps a turned copy seldom fits.)"""
+    config = pair.config
+    probed = (
+        config.symmetry.enabled
+        and config.refine
+        and pair.complete
+        and geometry.reason is None
+        and best.trust >= config.confidence.likely_failed_below
+        and best.scored.spacing_ratio >= config.search.independent_spacing
+    )
+    if not probed:
+        return symmetry_stage.NOT_PROBED
+    work = pair.clouds("work")
+    icp = lambda T: refine_stage.icp(*work, T, pair.distance, config.icp).transformation  # noqa: E731 - ICP alone: the copies are not scored
+    return symmetry_stage.probe(*work, best.fine.transformation, icp, config.symmetry, verifier.admissible)
 
 
 def _fits_closer(pair: PreparedPair, new: Attempt, old: Attempt, gain: float) -> bool:
@@ -322,6 +358,7 @@ def _inverted(result: RegistrationResult, source: np.ndarray, target: np.ndarray
         transformation=T,
         coarse_transformation=np.linalg.inv(result.coarse_transformation),
         network_transformation=None if result.network_transformation is None else np.linalg.inv(result.network_transformation),
+        copy_transformation=None if result.copy_transformation is None else np.linalg.inv(result.copy_transformation),
         fitness=scored.fitness,
         inlier_rmse=scored.inlier_rmse,
         num_source=result.num_target,
@@ -447,6 +484,7 @@ def _result(
     network: NetworkPass,
     searched: bool,
     geometry: degeneracy_stage.Degeneracy,
+    copy: symmetry_stage.Symmetry,
     timings_ms: Dict[str, float],
     final_level: str = "full",
 ) -> RegistrationResult:
@@ -454,6 +492,8 @@ def _result(
     (src, tgt), (src_report, tgt_report) = pair.clouds(final_level), pair.cleaned
     trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
     reason = geometry.reason or _failure_reason(best, config, searched, pair.complete)
+    if copy.reason:  # two poses fit as closely: the confidence is shared between them
+        trust, reason = best.trust / 2, copy.reason
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
         reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units?); {reason}"
     return RegistrationResult(
@@ -481,6 +521,8 @@ def _result(
         points_used={"network": (len(pair.net[0]), len(pair.net[1])), "attempts": (len(pair.work[0]), len(pair.work[1])), "final": (len(src), len(tgt))},
         constraint=geometry.constraint,
         flatness=geometry.flatness,
+        copy_transformation=copy.copy,
+        copy_fit=copy.fit,
         voxel=pair.voxel,
         icp_method=pair.config.icp.method,
         removed={
