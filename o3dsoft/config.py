@@ -5,8 +5,9 @@ values a stage cannot run with (:class:`o3dsoft.errors.InputError`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
-from typing import Optional
+from typing import Optional, Tuple
 
 from .confidence import ConfidenceConfig
 from .degeneracy import DegeneracyConfig
@@ -158,6 +159,14 @@ class SearchConfig:
         min_contact: an estimate is chosen only if it brings at least this share as many points
             into close contact (``fitness_tight``) as the estimate that brings most (0-1, default
             0.5; 0: any; docs/incongruent.md).
+        partial_choice: where the clouds neither both look complete nor are scans (a partial
+            overlap of small clouds, :meth:`o3dsoft.verify.Verifier.scores_choice`), the choice
+            takes, among the estimates in contact, the one with the highest w . (consistency,
+            overlap, spacing ratio capped at 3, fitness_tight over the most of the pair's
+            estimates) instead of the most trusted: there the strict confidence trusts poses that
+            fit a small part closely, and the right pose brings the most points into contact at
+            the sampling's spacing. Fitted on train pairs by ``python -m benchmarks.fit_choice``
+            (docs/incongruent.md); None: the most trusted.
         undetermined_gain: a trusted result that the degeneracy test flags and whose pose shows no
             shared point (not on scans) starts the second network and the search after all; what
             they find replaces it only where its input Chamfer distance on the work clouds is this
@@ -179,6 +188,7 @@ class SearchConfig:
     independent_contact: float = 0.9
     independent_spacing: float = 0.85
     min_contact: float = 0.5
+    partial_choice: Optional[Tuple[float, float, float, float]] = (5.57, 0.54, -10.73, 7.45)
     undetermined_gain: float = 1.5
     features: FeatureSearchConfig = field(default_factory=FeatureSearchConfig)
     starts: StartsConfig = field(default_factory=StartsConfig)
@@ -329,6 +339,8 @@ class RegisterConfig:
                 raise InputError(f"search.{name} must be positive, got {getattr(search, name)}")
         if not search.independent_spacing >= 0:
             raise InputError(f"search.independent_spacing must be at least 0, got {search.independent_spacing}")
+        if search.partial_choice is not None and (len(search.partial_choice) != 4 or not all(math.isfinite(w) for w in search.partial_choice)):
+            raise InputError(f"search.partial_choice must be None or 4 finite weights, got {search.partial_choice}")
         for name in ("min_contact", "independent_contact"):
             if not 0 <= getattr(search, name) <= 1:
                 raise InputError(f"search.{name} must be in [0, 1], got {getattr(search, name)}")

@@ -96,7 +96,11 @@ class Verifier:
         bring nearly as many points into close contact as any (``search.independent_contact``)
         still replaces that choice where its strict odds are ``search.replace_odds`` times
         higher: noisy crops of one point set can pass for independent samplings, and the strict
-        confidence knows their right pose."""
+        confidence knows their right pose.
+
+        Where the clouds neither both look complete nor are scans (:meth:`scores_choice`), the
+        attempt in contact with the highest ``search.partial_choice`` score is chosen instead:
+        on partial overlaps the strict confidence trusts poses that fit a small part closely."""
 
         def strict(a: Attempt) -> float:
             return a.trust
@@ -108,6 +112,13 @@ class Verifier:
             assert self.screened, "no estimate was proposed"
             self.promote(max(self.screened, key=lambda a: self._rank(a, strict)))
         search = self.config.search
+        if self.scores_choice():
+            weights = np.asarray(search.partial_choice)
+
+            def score(a: Attempt) -> float:
+                return float(weights @ choice_features(a, self.attempts))
+
+            return max(self.in_contact(self.attempts, search.min_contact), key=lambda a: self._rank(a, score))
         if not self.independent():
             return self._choose(strict, search.replace_odds, search.min_contact)[0]
         chosen, replaced = self._choose(reported_trust, search.independent_odds, search.min_contact)
@@ -146,6 +157,12 @@ class Verifier:
         if new_within != old_within:
             return new_within
         return _log_odds(trust(new)) - _log_odds(trust(old)) >= math.log(odds)
+
+    def scores_choice(self) -> bool:
+        """The choice weighs each estimate's measurements (``search.partial_choice``, by
+        :func:`choice_features`) rather than taking the most trusted: the clouds neither both
+        look complete nor are scans."""
+        return self.config.search.partial_choice is not None and not self.pair.complete and not self.pair.scans
 
     def independent(self) -> bool:
         """Both clouds look complete (:attr:`PreparedPair.complete`) and no attempt shows a point
@@ -266,6 +283,15 @@ class Verifier:
         s = self.refine(start, start, "screen", icp.quick(quick) if quick else icp, by=by)
         self.screened.append(s)
         return s
+
+
+def choice_features(attempt: Attempt, attempts: List[Attempt]) -> np.ndarray:
+    """(4,) what the choice on partial overlaps weighs (``search.partial_choice``): the
+    attempt's consistency, overlap, spacing ratio (capped at 3: beyond, the clouds lie apart) and
+    fitness_tight over the most of `attempts` (the pair's)."""
+    s = attempt.scored
+    most = max(a.scored.fitness_tight for a in attempts)
+    return np.array([s.consistency, s.overlap, min(s.spacing_ratio, 3.0), s.fitness_tight / max(most, 1e-12)])
 
 
 def _log_odds(p: float) -> float:

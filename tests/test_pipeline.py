@@ -752,3 +752,23 @@ def test_the_second_networks_search_settings_are_checked():
         register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(ends_search=0.3)))
     with pytest.raises(InputError, match="second_network.shared_check"):
         register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(shared_check=-1)))
+
+
+def test_on_partial_overlaps_the_choice_takes_the_pose_that_brings_most_points_into_contact(modelnet_root):
+    from o3dsoft.data import get_protocol, load_pairs
+
+    # A sink and a guitar, each cloud half of a shape's points cropped to about 70 %, none shared:
+    # the strict confidence trusts most a half turn whose part fits closely.
+    pairs = load_pairs(modelnet_root, "test", get_protocol("incongruent-crop"), 0)
+    most_trusted = RegisterConfig(search=SearchConfig(partial_choice=None))
+    for i in (15, 19):
+        result = o3dsoft.register(pairs[i].source, pairs[i].target)
+        assert pair_errors(result.transformation, pairs[i].transform).rotation_deg < 2, i
+        assert pair_errors(o3dsoft.register(pairs[i].source, pairs[i].target, most_trusted).transformation, pairs[i].transform).rotation_deg > 150, i
+
+
+def test_the_partial_choice_weights_are_checked():
+    src, tgt, _ = blob_pair()
+    for bad in ((1.0, 2.0), (1.0, 2.0, float("nan"), 0.0)):
+        with pytest.raises(InputError, match="search.partial_choice"):
+            register(src, tgt, RegisterConfig(search=SearchConfig(partial_choice=bad)))

@@ -1,3 +1,4 @@
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -7,7 +8,7 @@ from o3dsoft.confidence import Features, complete_confidence, scan_confidence
 from o3dsoft.config import RegisterConfig, SearchConfig
 from o3dsoft.refine import ICPResult
 from o3dsoft.transforms import euler_to_matrix, rigid
-from o3dsoft.verify import Attempt, Verifier
+from o3dsoft.verify import Attempt, Verifier, choice_features
 
 
 def _attempt(trust, turn_deg=0.0):
@@ -15,14 +16,17 @@ def _attempt(trust, turn_deg=0.0):
     return Attempt(trust, Features(0.0, 0.0, 0.0, 0.0), ICPResult(T, 1.0, 0.0), T, T)
 
 
-def _pair(config=RegisterConfig(), complete=False, scans=False):
+def _pair(config=RegisterConfig(), complete=False, scans=False, scored=False):
     """As much of a PreparedPair as the choice reads: `complete`, two complete-looking clouds;
-    `scans`, two scans."""
+    `scans`, two scans; `scored`: the choice on partial overlaps (``search.partial_choice``) kept,
+    else off, so that the other rules are tested on their own."""
+    if not scored:
+        config = replace(config, search=replace(config.search, partial_choice=None))
     return SimpleNamespace(config=config, complete=complete, scans=scans)
 
 
-def _verifier(own, searched, config=RegisterConfig(), complete=False):
-    verifier = Verifier(_pair(config, complete), StageClock())
+def _verifier(own, searched, config=RegisterConfig(), complete=False, scored=False, scans=False):
+    verifier = Verifier(_pair(config, complete, scans, scored), StageClock())
     verifier.attempts = list(own)
     verifier.begin_search()
     verifier.attempts += list(searched)
@@ -151,3 +155,22 @@ def test_on_scans_the_result_reports_the_scan_confidence_where_it_is_larger():
     assert scans.reported(scan_attempt(0.2, float("nan"))).trust == 0.2  # not measured: the strict one
     assert scans.reported(scan_attempt(0.0, 0.9)).trust == 0.0  # beyond the prior stays 0
     assert Verifier(_pair(), StageClock()).reported(grazing).trust == 0.2  # not scans: the strict one
+
+
+def test_on_partial_overlaps_the_choice_weighs_contact_and_spacing():
+    patch = _fitting(0.9, consistency=0.95, overlap=0.45, spacing_ratio=1.3, turn_deg=180.0, contact=0.5)  # a part fits closely
+    whole = _fitting(0.05, consistency=0.85, overlap=0.7, spacing_ratio=1.0, contact=0.8)  # more points in contact at the spacing
+    assert np.allclose(choice_features(patch, [patch, whole]), [0.95, 0.45, 1.3, 0.625])
+    assert np.allclose(choice_features(whole, [patch, whole]), [0.85, 0.7, 1.0, 1.0])
+    assert _verifier([patch], [whole], scored=True).most_trusted() is whole
+    assert _verifier([whole], [patch], scored=True).most_trusted() is whole
+    # off (partial_choice None), on scans, and on complete-looking clouds: the most trusted
+    assert _verifier([patch], [whole]).most_trusted() is patch
+    assert _verifier([patch], [whole], scored=True, scans=True).most_trusted() is patch
+    assert _verifier([patch], [whole], RegisterConfig(search=SearchConfig(independent_spacing=2.0)), complete=True, scored=True).most_trusted() is patch
+    # the rotation prior still comes first
+    bounded = RegisterConfig(max_rotation=90.0)
+    assert _verifier([whole._replace(fine=patch.fine)], [patch._replace(fine=whole.fine)], bounded, scored=True).most_trusted().scored == patch.scored
+    # the spacing ratio counts up to 3 (beyond, the clouds lie apart)
+    apart = _fitting(0.0, consistency=0.0, overlap=0.0, spacing_ratio=40.0)
+    assert choice_features(apart, [apart])[2] == 3.0
