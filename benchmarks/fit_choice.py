@@ -62,8 +62,7 @@ def record(data: str, protocol: str, count: int, seed: int = 0) -> list:
             candidates = v.in_contact(v.attempts, config.search.min_contact)
             X = np.array([verify.choice_features(a, v.attempts) for a in candidates])
             y = np.array([_right(a.fine.transformation, p.transform) for a in candidates])
-            applies = not v.pair.complete and not v.pair.scans  # where Verifier.scores_choice holds with weights set
-            rows.append((X, y, _right(result.transformation, p.transform), applies))
+            rows.append((X, y, _right(result.transformation, p.transform), verify.choice_applies(v.pair)))
         return rows
     finally:
         verify.Verifier.__init__ = init

@@ -259,7 +259,7 @@ def _register(
     best = verifier.reported(best)
     geometry = _assess(pair, best)
     clock.lap("degeneracy")
-    if search.mode == "auto" and not searched and geometry.reason and not pair.scans and best.scored.spacing_ratio >= search.independent_spacing:
+    if search.mode == "auto" and not searched and geometry.reason and not pair.scans and verifier.shares_no_point(best):
         # Trusted, but the pose does not hold and shows no shared point: on two independent
         # samplings a wrong pose that fits a part closely is trusted strictly and fits as well
         # turned. (A symmetric shape's right pose shows the points noisy clouds share; on scans
@@ -310,7 +310,7 @@ def _probe_symmetry(pair: PreparedPair, verifier: Verifier, best: Attempt, geome
         and pair.complete
         and geometry.reason is None
         and best.trust >= config.confidence.likely_failed_below
-        and best.scored.spacing_ratio >= config.search.independent_spacing
+        and verifier.shares_no_point(best)
     )
     if not probed:
         return symmetry_stage.NOT_PROBED
@@ -396,12 +396,7 @@ def _second_network(pair: PreparedPair, verifier: Verifier) -> bool:
         return False
     NetworkPass(model, settings.iterations, stage="second_network", name="second network").propose(pair, verifier)
     mine = verifier.attempts[-1]
-    return (
-        settings.ends_search is not None
-        and pair.complete
-        and mine.scored.spacing_ratio >= pair.config.search.independent_spacing
-        and verifier.reported(mine).trust >= settings.ends_search
-    )
+    return settings.ends_search is not None and pair.complete and verifier.shares_no_point(mine) and verifier.reported(mine).trust >= settings.ends_search
 
 
 def _check_shared_points(pair: PreparedPair, verifier: Verifier) -> None:

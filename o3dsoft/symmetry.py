@@ -16,6 +16,7 @@ from typing import Callable, List, NamedTuple, Optional
 
 import numpy as np
 
+from . import search as search_stage
 from .metrics import input_chamfer_distance
 from .transforms import apply_transform, rigid, rotation_angle_deg
 
@@ -65,12 +66,7 @@ def half_turns(source: np.ndarray, transformation: np.ndarray) -> List[np.ndarra
     each of its principal axes through its centroid, largest variance first."""
     moved = apply_transform(transformation, np.asarray(source, np.float64))
     centre = moved.mean(axis=0)
-    _, _, axes = np.linalg.svd(moved - centre, full_matrices=False)
-    poses = []
-    for axis in axes:
-        R = 2.0 * np.outer(axis, axis) - np.eye(3)  # a half turn about the unit `axis`
-        poses.append(rigid(R, centre - R @ centre) @ transformation)
-    return poses
+    return [rigid(R, centre - R @ centre) @ transformation for R in search_stage.half_turns(moved)]
 
 
 def probe(

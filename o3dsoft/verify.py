@@ -160,16 +160,21 @@ class Verifier:
 
     def scores_choice(self) -> bool:
         """The choice weighs each estimate's measurements (``search.partial_choice``, by
-        :func:`choice_features`) rather than taking the most trusted: the clouds neither both
-        look complete nor are scans."""
-        return self.config.search.partial_choice is not None and not self.pair.complete and not self.pair.scans
+        :func:`choice_features`) rather than taking the most trusted: set, and the pair is one it
+        applies to (:func:`choice_applies`)."""
+        return self.config.search.partial_choice is not None and choice_applies(self.pair)
+
+    def shares_no_point(self, attempt: Attempt) -> bool:
+        """`attempt`'s pose shows no point the clouds share: its spacing ratio is at least
+        ``search.independent_spacing`` (right poses of two independent samplings seldom fall
+        under 0.85, those of noisy clouds that share their points reach 0.9)."""
+        return attempt.scored.spacing_ratio >= self.config.search.independent_spacing
 
     def independent(self) -> bool:
         """Both clouds look complete (:attr:`PreparedPair.complete`) and no attempt shows a point
-        they share (every spacing ratio at least ``search.independent_spacing``): two independent
-        samplings of one shape, as far as the attempts tell."""
-        spacing = self.config.search.independent_spacing
-        return self.pair.complete and all(a.scored.spacing_ratio >= spacing for a in self.attempts)
+        they share (:meth:`shares_no_point`): two independent samplings of one shape, as far as
+        the attempts tell."""
+        return self.pair.complete and all(self.shares_no_point(a) for a in self.attempts)
 
     def reported(self, attempt: Attempt) -> Attempt:
         """`attempt` with the confidence a result reports: the larger of the strict one and, on a
@@ -283,6 +288,12 @@ class Verifier:
         s = self.refine(start, start, "screen", icp.quick(quick) if quick else icp, by=by)
         self.screened.append(s)
         return s
+
+
+def choice_applies(pair: PreparedPair) -> bool:
+    """The pairs ``search.partial_choice`` weighs: clouds that neither both look complete nor are
+    scans (a partial overlap of small clouds)."""
+    return not pair.complete and not pair.scans
 
 
 def choice_features(attempt: Attempt, attempts: List[Attempt]) -> np.ndarray:
