@@ -421,7 +421,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     if result.searched:
         why = "the strict confidence flagged the first result, or the clouds look partial" if search_mode == "auto" else "--search always"
         screened = f" ({result.screened} screened on at most {config.search.screen.points:,} points per cloud first)" if result.screened else ""
-        lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}")
+        lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}, {result.agreeing} of them reached the result's pose")
     if errors is not None:
         f, c = errors["final"], errors["coarse"]
         estimate = result.estimate_from

@@ -30,9 +30,17 @@ are seen at grazing angles, about one in eight of the nearby points lies off the
 other scan's surface (its tangent planes, from point-to-plane ICP's normals). It is fitted with a
 wrong pose weighing a hundred right ones, and the result reports the larger of the two too.
 
+On other partial overlaps (crops of small clouds) whose pose shows no shared point, no
+measurement of the alignment tells the right pose from a wrong one that fits a part as closely;
+what does is how many of the pair's estimates reached it (``agreeing``: the search's feature
+match, networks and votes start from many poses, and more of them end at the right one).
+:func:`partial_confidence` is a logistic function of its logarithm, fitted with a wrong pose
+weighing ten right ones, and the result reports the larger of the two.
+
 An alignment that leaves the clouds barely touching (counted points under ``min_overlap`` of the
 smaller cloud) gets confidence 0. The coefficients are fitted by logistic regression
-(``python -m benchmarks.fit_confidence``, ``fit_complete_confidence``, ``fit_scan_confidence``);
+(``python -m benchmarks.fit_confidence``, ``fit_complete_confidence``, ``fit_scan_confidence``,
+``fit_partial_confidence``);
 the data, the measurements and the rejected alternatives are in docs/pipeline.md (The
 confidence). Below 0.5 a result is flagged ``likely_failed``.
 """
@@ -55,6 +63,8 @@ FEATURE_NAMES = ("consistency", "spacing_ratio")
 COMPLETE_FEATURE_NAMES = ("consistency", "overlap", "spacing_ratio")
 # ... and those of :func:`scan_confidence`.
 SCAN_FEATURE_NAMES = ("planar",)
+# ... and those of :func:`partial_confidence`.
+PARTIAL_FEATURE_NAMES = ("log_agreeing",)
 
 
 @dataclass(frozen=True)
@@ -88,6 +98,12 @@ class ConfidenceConfig:
             distance of their partner's tangent plane.
         scan_coefficients: intercept, then one weight per name of :data:`SCAN_FEATURE_NAMES`:
             :func:`scan_confidence` (fitted by ``python -m benchmarks.fit_scan_confidence``).
+        partial_coefficients: intercept, then one weight per name of
+            :data:`PARTIAL_FEATURE_NAMES`: :func:`partial_confidence` (fitted by
+            ``python -m benchmarks.fit_partial_confidence``); None: not used.
+        agree_deg, agree_shift: two estimates agree (reach one pose) when their rotations lie
+            within `agree_deg` degrees and they put the source's centre within `agree_shift` x
+            the pair's scale of each other.
     """
 
     distance: float = 0.1
@@ -103,12 +119,16 @@ class ConfidenceConfig:
     independent_from: float = 0.6
     planar_tolerance: float = 0.1
     scan_coefficients: Tuple[float, ...] = (-10.02, 19.68)
+    partial_coefficients: Optional[Tuple[float, ...]] = (-3.52, 0.94)
+    agree_deg: float = 5.0
+    agree_shift: float = 0.05
 
     def validate(self) -> None:
         for name, coefficients, names in (
             ("coefficients", self.coefficients, FEATURE_NAMES),
             ("complete_coefficients", self.complete_coefficients, COMPLETE_FEATURE_NAMES),
             ("scan_coefficients", self.scan_coefficients, SCAN_FEATURE_NAMES),
+            ("partial_coefficients", self.partial_coefficients or (0.0,) * (len(PARTIAL_FEATURE_NAMES) + 1), PARTIAL_FEATURE_NAMES),
         ):
             if len(coefficients) != len(names) + 1:
                 raise ValueError(f"{name}: expected {len(names) + 1} (intercept, {', '.join(names)}), got {len(coefficients)}")
@@ -118,6 +138,8 @@ class ConfidenceConfig:
             raise ValueError(f"planar_tolerance must be in (0, 1], got {self.planar_tolerance}")
         if not self.independent_from >= 0:
             raise ValueError(f"independent_from must be at least 0, got {self.independent_from}")
+        if not (self.agree_deg > 0 and self.agree_shift > 0):
+            raise ValueError(f"agree_deg and agree_shift must be positive, got {self.agree_deg} and {self.agree_shift}")
         if not 0 < self.likely_failed_below < 1:
             raise ValueError(f"likely_failed_below must be in (0, 1), got {self.likely_failed_below}")
 
@@ -282,6 +304,19 @@ def scan_confidence(f: Features, config: ConfidenceConfig = ConfidenceConfig()) 
     if f.overlap < config.min_overlap or not f.planar >= 0:  # NaN: not measured
         return 0.0
     return _logistic(config.scan_coefficients, np.array([f.planar]))
+
+
+def partial_confidence(f: Features, agreeing: int, config: ConfidenceConfig = ConfidenceConfig()) -> float:
+    """Estimated probability (0-1, higher is better) that an alignment of two partial clouds
+    (neither both complete-looking nor scans) whose pose shows no shared point is right, from how
+    many of the pair's estimates reached that pose (`agreeing`, itself included): on such crops
+    a wrong pose that fits a part closely scores as well by every measurement of the alignment as
+    the right one, but fewer estimates from other starts end there. 0 where the pose shows shared
+    points (spacing ratio under ``independent_from``: the strict :func:`confidence` judges those),
+    the clouds barely touch, or ``partial_coefficients`` is None."""
+    if config.partial_coefficients is None or f.overlap < config.min_overlap or not f.spacing_ratio >= config.independent_from:
+        return 0.0
+    return _logistic(config.partial_coefficients, np.array([math.log(max(agreeing, 1))]))
 
 
 def complete_feature_vector(f: Features, config: ConfidenceConfig = ConfidenceConfig()) -> np.ndarray:

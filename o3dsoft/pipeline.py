@@ -41,7 +41,7 @@ from .pair import CloudLike, Clouds, PreparedPair, as_points
 from .preprocess import point_spacing, scene_size
 from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, kiss_available
 from .transforms import rotation_angle_deg
-from .verify import Attempt, Verifier
+from .verify import Attempt, Verifier, choice_applies
 
 # Scenes whose sizes differ more than this are named in the failure reason: most often one is in
 # millimetres and the other in metres.
@@ -66,7 +66,9 @@ class RegistrationResult:
         confidence: estimated probability that the alignment is right (0-1, higher is better); on
             two complete-looking clouds whose pose shows no shared point, the larger of the strict
             function and :func:`~o3dsoft.confidence.complete_confidence`, on scans the larger of
-            the strict function and :func:`~o3dsoft.confidence.scan_confidence` (fits, each on its
+            the strict function and :func:`~o3dsoft.confidence.scan_confidence`, on other partial
+            overlaps whose pose shows no shared point the larger of the strict function and
+            :func:`~o3dsoft.confidence.partial_confidence` (fits, each on its
             own data: a score to rank and threshold by, not a calibrated probability).
         likely_failed: confidence below the threshold (0.5): treat the transform as wrong.
         failure_reason: why it is flagged, in words; None when it is not.
@@ -112,6 +114,10 @@ class RegistrationResult:
         copy_fit: its input Chamfer distance over the result's (higher is better for the
             result; at most ``symmetry.max_ratio`` = 1.1: the two fit as closely, the shape is
             symmetric, and the confidence is halved).
+        agreeing: how many of the attempts reached the result's pose (within
+            ``confidence.agree_deg`` and ``agree_shift``; at least 1): on a partial overlap whose
+            pose shows no shared point the confidence weighs it
+            (:func:`~o3dsoft.confidence.partial_confidence`).
         sparser_moved: the target was much sparser than the source (``sparser_moves``), so it was
             registered onto the source and the result inverted; every field still speaks of the
             source onto the target.
@@ -147,6 +153,7 @@ class RegistrationResult:
     sparser_moved: bool = False
     copy_transformation: Optional[np.ndarray] = None
     copy_fit: Optional[float] = None
+    agreeing: int = 1
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
@@ -254,8 +261,9 @@ def _register(
         _search(pair, verifier, model, search_model, features_done=False)
         best = _refine_full(pair, verifier, _select(verifier))
     # Report: where both clouds look complete and the pose shows no shared point, the confidence
-    # that weighs the overlap too; on scans, the one of the overlap on the other scan's surface
-    # (the search ran by the strict one).
+    # that weighs the overlap too; on scans, the one of the overlap on the other scan's surface;
+    # on other partial overlaps, the one of how many attempts reached the pose (the search ran by
+    # the strict one).
     best = verifier.reported(best)
     geometry = _assess(pair, best)
     clock.lap("degeneracy")
@@ -447,10 +455,11 @@ def _select(verifier: Verifier) -> Attempt:
     return verifier.refine(identity, identity, refine=False, by="pose as given")._replace(trust=0.0)
 
 
-def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, complete: bool = False) -> Optional[str]:
+def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, complete: bool = False, agreeing: Optional[Tuple[int, int]] = None) -> Optional[str]:
     """Why a result is flagged likely failed, in words (None when it is not). `complete`: both
     clouds look complete (:attr:`PreparedPair.complete`), so the share of them near each other
-    counts too."""
+    counts too. `agreeing`: (attempts that reached the pose, attempts), where the partial
+    confidence weighed it."""
     if best.trust >= config.confidence.likely_failed_below:
         return None
     bound = config.max_rotation
@@ -469,6 +478,8 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, compl
         full_overlap = best.scored._replace(overlap=1.0)  # would the pose be trusted with a partner for every point?
         if complete and confidence_stage.complete_confidence(full_overlap, config.confidence) >= config.confidence.likely_failed_below:
             why += f", and both clouds look complete but those points are only {100 * best.scored.overlap:.0f} % of the smaller one"
+        if agreeing is not None:
+            why += f", and only {agreeing[0]} of the {agreeing[1]} estimates reached this pose"
     return why + ("; the global search found nothing clearly better" if searched else "")
 
 
@@ -486,7 +497,9 @@ def _result(
     config = pair.config
     (src, tgt), (src_report, tgt_report) = pair.clouds(final_level), pair.cleaned
     trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
-    reason = geometry.reason or _failure_reason(best, config, searched, pair.complete)
+    agreeing = verifier.agreeing(best)
+    partial = choice_applies(pair) and confidence_stage.partial_confidence(best.scored, agreeing, config.confidence) > 0
+    reason = geometry.reason or _failure_reason(best, config, searched, pair.complete, (agreeing, len(verifier.attempts)) if partial else None)
     if copy.reason:  # two poses fit as closely: the confidence is shared between them
         trust, reason = best.trust / 2, copy.reason
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
@@ -518,6 +531,7 @@ def _result(
         flatness=geometry.flatness,
         copy_transformation=copy.copy,
         copy_fit=copy.fit,
+        agreeing=agreeing,
         voxel=pair.voxel,
         icp_method=pair.config.icp.method,
         removed={

@@ -12,7 +12,7 @@ from . import confidence as confidence_stage
 from . import refine as refine_stage
 from .clock import StageClock
 from .pair import PreparedPair
-from .transforms import rotation_angle_deg
+from .transforms import near_poses, rotation_angle_deg
 
 
 class Attempt(NamedTuple):
@@ -191,8 +191,22 @@ class Verifier:
         elif self.pair.scans:
             second = confidence_stage.scan_confidence(attempt.scored, self.config.confidence)
         else:
-            return attempt
+            second = confidence_stage.partial_confidence(attempt.scored, self.agreeing(attempt), self.config.confidence)
         return attempt._replace(trust=max(attempt.trust, second))
+
+    def agreeing(self, attempt: Attempt) -> int:
+        """How many attempts reach `attempt`'s pose (``confidence.agree_deg``, ``agree_shift``),
+        itself included where it is kept (at least 1)."""
+        if not self.attempts:
+            return 1
+        c = self.config.confidence
+        centre = self.pair.clouds("work")[0].mean(axis=0)
+        T = np.stack([a.fine.transformation for a in self.attempts])
+        T0 = attempt.fine.transformation
+        near = near_poses(
+            T[:, :3, :3], T[:, :3, :3] @ centre + T[:, :3, 3], T0[:3, :3], T0[:3, :3] @ centre + T0[:3, 3], self.pair.norm.scale, c.agree_deg, c.agree_shift
+        )
+        return max(int(near.sum()), 1)
 
     def in_contact(self, attempts: List[Attempt], min_contact: float) -> List[Attempt]:
         """Those of `attempts` that bring at least `min_contact` (``search.min_contact`` for the

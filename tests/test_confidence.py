@@ -201,6 +201,26 @@ def test_the_complete_confidence_judges_only_poses_that_show_no_shared_point():
         confidence.ConfidenceConfig(complete_coefficients=(1.0, 2.0)).validate()
 
 
+def test_the_partial_confidence_trusts_a_pose_many_estimates_reach_and_judges_only_unshared_poses():
+    config = confidence.ConfidenceConfig()
+    assert config.partial_coefficients is not None and len(config.partial_coefficients) == len(confidence.PARTIAL_FEATURE_NAMES) + 1
+    # A right crop of two independent samplings: a fifth of the points beyond the tight distance.
+    f = confidence.Features(fitness_tight=0.6, tight_distance=0.1, consistency=0.82, overlap=0.75, spacing_ratio=1.0)
+    z = config.partial_coefficients[0] + config.partial_coefficients[1] * np.log(20)
+    assert confidence.partial_confidence(f, 20) == pytest.approx(1 / (1 + np.exp(-z)))
+    # One estimate alone is not enough: a wrong pose fitting a part closely scores as well.
+    assert confidence.partial_confidence(f, 1) < 0.5 <= confidence.partial_confidence(f, 80)
+    values = [confidence.partial_confidence(f, n) for n in (1, 2, 5, 10, 20, 40, 80)]
+    assert values == sorted(values)
+    assert confidence.partial_confidence(f._replace(spacing_ratio=0.3), 80) == 0.0  # shared points: the strict one's
+    assert confidence.partial_confidence(f._replace(overlap=0.05), 80) == 0.0  # barely touching
+    assert confidence.partial_confidence(f, 80, replace(config, partial_coefficients=None)) == 0.0
+    with pytest.raises(ValueError, match="partial_coefficients"):
+        confidence.ConfidenceConfig(partial_coefficients=(1.0,)).validate()
+    with pytest.raises(ValueError, match="agree_deg"):
+        confidence.ConfidenceConfig(agree_deg=0.0).validate()
+
+
 @settings(max_examples=60, deadline=None, derandomize=True)
 @given(
     consistency=st.floats(0, 1),

@@ -772,3 +772,22 @@ def test_the_partial_choice_weights_are_checked():
     for bad in ((1.0, 2.0), (1.0, 2.0, float("nan"), 0.0)):
         with pytest.raises(InputError, match="search.partial_choice"):
             register(src, tgt, RegisterConfig(search=SearchConfig(partial_choice=bad)))
+
+
+def test_on_a_partial_overlap_the_confidence_counts_the_estimates_that_reached_the_pose(modelnet_root):
+    from o3dsoft.confidence import ConfidenceConfig
+    from o3dsoft.data import get_protocol, load_pairs
+
+    # A crop pair of independent samplings that the search ran on: its right pose, reached by
+    # several estimates, fits no closer than the wrong poses the strict confidence flags alike.
+    pair = load_pairs(modelnet_root, "test", get_protocol("incongruent-crop"), 0)[13]
+    result = o3dsoft.register(pair.source, pair.target)
+    off = o3dsoft.register(pair.source, pair.target, RegisterConfig(confidence=ConfidenceConfig(partial_coefficients=None)))
+    np.testing.assert_allclose(result.transformation, off.transformation)  # the confidence changes no pose
+    assert pair_errors(result.transformation, pair.transform).rotation_deg < 2 and result.searched
+    c0, c1 = ConfidenceConfig().partial_coefficients
+    assert 5 <= result.agreeing < result.attempts
+    assert result.confidence == pytest.approx(1 / (1 + np.exp(-(c0 + c1 * np.log(result.agreeing)))))
+    assert result.confidence > 2 * off.confidence
+    assert f"only {result.agreeing} of the {result.attempts} estimates reached this pose" in result.failure_reason
+    assert off.agreeing == result.agreeing and "estimates reached" not in off.failure_reason

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from o3dsoft.clock import StageClock
-from o3dsoft.confidence import Features, complete_confidence, scan_confidence
+from o3dsoft.confidence import Features, complete_confidence, partial_confidence, scan_confidence
 from o3dsoft.config import RegisterConfig, SearchConfig
 from o3dsoft.refine import ICPResult
 from o3dsoft.transforms import euler_to_matrix, rigid
@@ -22,7 +22,8 @@ def _pair(config=RegisterConfig(), complete=False, scans=False, scored=False):
     else off, so that the other rules are tested on their own."""
     if not scored:
         config = replace(config, search=replace(config.search, partial_choice=None))
-    return SimpleNamespace(config=config, complete=complete, scans=scans)
+    work = (np.zeros((4, 3)), np.zeros((4, 3)))  # the source's centre at the origin
+    return SimpleNamespace(config=config, complete=complete, scans=scans, clouds=lambda level: work, norm=SimpleNamespace(scale=1.0))
 
 
 def _verifier(own, searched, config=RegisterConfig(), complete=False, scored=False, scans=False):
@@ -103,6 +104,38 @@ def test_on_two_independent_samplings_of_a_complete_shape_the_choice_weighs_the_
     wider = _fitting(0.02, consistency=0.5, overlap=0.9, turn_deg=90.0, contact=1.0)
     assert _verifier([whole], [wider], complete=True).most_trusted() is whole
     assert _verifier([whole], [wider._replace(trust=0.95)], complete=True).most_trusted().trust == 0.95
+
+
+def _posed(trust, turn_deg=0.0, shift=0.0, spacing_ratio=1.0):
+    """An attempt turned by `turn_deg` about z and shifted by `shift` along x, whose pose shows no
+    shared point (`spacing_ratio` 1) and which its strict confidence `trust` flags."""
+    T = rigid(euler_to_matrix([0.0, 0.0, turn_deg]), np.array([shift, 0.0, 0.0]))
+    return Attempt(trust, Features(0.6, 0.07, 0.82, 0.75, spacing_ratio), ICPResult(T, 1.0, 0.0), T, T)
+
+
+def test_agreeing_counts_the_attempts_that_reach_a_pose():
+    right = _posed(0.1)
+    near = [_posed(0.1, 2.0), _posed(0.1, -4.0), _posed(0.1, shift=0.03)]
+    apart = [_posed(0.1, 6.0), _posed(0.1, shift=0.06), _posed(0.1, 180.0)]
+    verifier = _verifier([right], near + apart)
+    assert verifier.agreeing(right) == 4  # itself and the three within 5 degrees and 0.05 x scale
+    assert verifier.agreeing(apart[2]) == 1
+    assert verifier.agreeing(_posed(0.1, 0.5)) == 4  # an attempt not kept (refined again): those it meets
+    assert verifier.agreeing(_posed(0.1, 90.0)) == 1  # none: at least 1
+    loose = replace(RegisterConfig(), confidence=replace(RegisterConfig().confidence, agree_deg=10.0, agree_shift=0.1))
+    assert _verifier([right], near + apart, loose).agreeing(right) == 6
+
+
+def test_on_partial_overlaps_the_reported_confidence_weighs_the_attempts_that_agree():
+    many = [_posed(0.1, 0.05 * k) for k in range(60)]
+    verifier = _verifier(many[:1], many[1:] + [_posed(0.2, 180.0)])
+    assert verifier.reported(many[0]).trust == partial_confidence(many[0].scored, 60) >= 0.5
+    assert verifier.reported(verifier.attempts[-1]).trust == 0.2  # alone at its pose: the strict one
+    # shared points, complete-looking clouds or scans: not this confidence
+    shared = [a._replace(scored=a.scored._replace(spacing_ratio=0.3)) for a in many]
+    assert _verifier(shared[:1], shared[1:]).reported(shared[0]).trust == 0.1
+    assert _verifier(many[:1], many[1:], complete=True).reported(many[0]).trust == max(0.1, complete_confidence(many[0].scored)) < 0.5
+    assert _verifier(many[:1], many[1:], scans=True).reported(many[0]).trust == 0.1
 
 
 def test_min_contact_is_validated():
