@@ -19,19 +19,17 @@ pairs when fitted on the odd ones and the other way round.
 from __future__ import annotations
 
 import argparse
-import json
 import pickle
 from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
 
+from benchmarks.recorded import print_report, registered
 from o3dsoft import verify
-from o3dsoft.coarse import load_model
 from o3dsoft.config import SearchConfig
-from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.metrics import pair_errors
-from o3dsoft.pipeline import RegisterConfig, register
+from o3dsoft.pipeline import RegisterConfig
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 PROTOCOLS = ("incongruent-crop", "so3-crop", "rpmnet-crop")
@@ -42,30 +40,13 @@ def record(data: str, protocol: str, count: int, seed: int = 0) -> list:
     """Per pair: (X (A, 4) the measurements of the attempts the choice may take, y (A,) which are
     right, whether the shipped choice is right, whether the choice's rule applies)."""
     config = RegisterConfig(search=SearchConfig(partial_choice=None))
-    model, search_model = load_model(config.weights, config.device), load_model(config.search.starts.weights, config.device)
-    seen = []
-    init = verify.Verifier.__init__
-
-    def keep(self, *args, **kwargs):  # the verifier of each call, whose attempts are recorded
-        init(self, *args, **kwargs)
-        seen.append(self)
-
-    verify.Verifier.__init__ = keep
-    try:
-        pairs = load_pairs(data, "train", get_protocol(protocol), seed)
-        rows = []
-        for i in np.linspace(0, len(pairs) - 1, count).astype(int):
-            p = pairs[int(i)]
-            seen.clear()
-            result = register(p.source, p.target, config, model=model, search_model=search_model)
-            v = seen[-1]
-            candidates = v.in_contact(v.attempts, config.search.min_contact)
-            X = np.array([verify.choice_features(a, v.attempts) for a in candidates])
-            y = np.array([_right(a.fine.transformation, p.transform) for a in candidates])
-            rows.append((X, y, _right(result.transformation, p.transform), verify.choice_applies(v.pair)))
-        return rows
-    finally:
-        verify.Verifier.__init__ = init
+    rows = []
+    for p, result, v in registered(data, protocol, count, config, seed):
+        candidates = v.in_contact(v.attempts, config.search.min_contact)
+        X = np.array([verify.choice_features(a, v.attempts) for a in candidates])
+        y = np.array([_right(a.fine.transformation, p.transform) for a in candidates])
+        rows.append((X, y, _right(result.transformation, p.transform), verify.choice_applies(v.pair)))
+    return rows
 
 
 def _right(T: np.ndarray, truth: np.ndarray) -> bool:
@@ -115,10 +96,7 @@ def main() -> None:
         other = [r for p in PROTOCOLS if p != protocol for r in rows[p]]
         counts = [right_count(fit(other + train, args.l2), test) for train, test in ((odd, even), (even, odd))]
         report["held_out"][protocol] = dict(zip(("pairs", "shipped", "fitted", "among_attempts"), np.sum(counts, axis=0).tolist()))
-    print(json.dumps(report, indent=1))
-    print(f"SearchConfig.partial_choice = {tuple(np.round(w, 2).tolist())}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    print_report(report, f"SearchConfig.partial_choice = {tuple(np.round(w, 2).tolist())}", args.out)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ it and with it (fitted on the other protocols and the other half of the pairs).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import pickle
 from dataclasses import replace
@@ -28,12 +27,11 @@ from typing import List, NamedTuple
 import numpy as np
 
 from benchmarks.fit_confidence import auc, fit_logistic
+from benchmarks.recorded import print_report, registered
 from o3dsoft import confidence as conf
 from o3dsoft import verify
-from o3dsoft.coarse import load_model
-from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.metrics import pair_errors
-from o3dsoft.pipeline import RegisterConfig, register
+from o3dsoft.pipeline import RegisterConfig
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 PROTOCOLS = ("incongruent-crop", "so3-crop", "rpmnet-crop")
@@ -55,42 +53,16 @@ class Record(NamedTuple):
 def record(data: str, protocol: str, count: int, config: RegisterConfig, seed: int = 0) -> List[Record]:
     """The Record of each of `count` train pairs spread evenly over the split that the choice on
     partial overlaps applies to, registered with `config`."""
-    model, search_model = load_model(config.weights, config.device), load_model(config.search.starts.weights, config.device)
-    seen = []
-    init = verify.Verifier.__init__
-
-    def keep(self, *args, **kwargs):  # the verifier of each call, whose attempts are recorded
-        init(self, *args, **kwargs)
-        seen.append(self)
-
-    verify.Verifier.__init__ = keep
-    try:
-        pairs = load_pairs(data, "train", get_protocol(protocol), seed)
-        rows = []
-        for i in np.linspace(0, len(pairs) - 1, count).astype(int):
-            p = pairs[int(i)]
-            seen.clear()
-            result = register(p.source, p.target, config, model=model, search_model=search_model)
-            v = seen[-1]
-            if not verify.choice_applies(v.pair) or result.sparser_moved:
-                continue
-            chosen = v.most_trusted()  # the attempt the result was refined from
-            e = pair_errors(result.transformation, p.transform)
-            s = chosen.scored
-            rows.append(
-                Record(
-                    bool(e.rotation_deg < SUCCESS[0] and e.translation < SUCCESS[1]),
-                    result.confidence,
-                    conf.confidence(s, config.confidence),
-                    s.spacing_ratio,
-                    s.overlap,
-                    v.agreeing(chosen),
-                    len(v.attempts),
-                )
-            )
-        return rows
-    finally:
-        verify.Verifier.__init__ = init
+    rows = []
+    for p, result, v in registered(data, protocol, count, config, seed):
+        if not verify.choice_applies(v.pair) or result.sparser_moved:
+            continue
+        chosen = v.most_trusted()  # the attempt the result was refined from
+        e = pair_errors(result.transformation, p.transform)
+        s = chosen.scored
+        right = bool(e.rotation_deg < SUCCESS[0] and e.translation < SUCCESS[1])
+        rows.append(Record(right, result.confidence, conf.confidence(s, config.confidence), s.spacing_ratio, s.overlap, v.agreeing(chosen), len(v.attempts)))
+    return rows
 
 
 def decided(r: Record, config: conf.ConfidenceConfig) -> bool:
@@ -164,10 +136,7 @@ def main() -> None:
             "with": summary(tested, scores, c.likely_failed_below),
             "decided": sum(decided(r, c) for r in tested),
         }
-    print(json.dumps(report, indent=1))
-    print(f"ConfidenceConfig.partial_coefficients = {coefficients}")
-    if args.out:
-        Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    print_report(report, f"ConfidenceConfig.partial_coefficients = {coefficients}", args.out)
 
 
 if __name__ == "__main__":
