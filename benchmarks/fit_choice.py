@@ -25,15 +25,13 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-from benchmarks.recorded import print_report, registered
+from benchmarks.eval_model import DEFAULT_DATA
+from benchmarks.recorded import print_report, registered, right
 from o3dsoft import verify
 from o3dsoft.config import SearchConfig
-from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig
 
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 PROTOCOLS = ("incongruent-crop", "so3-crop", "rpmnet-crop")
-SUCCESS = (5.0, 0.05)
 
 
 def record(data: str, protocol: str, count: int, seed: int = 0) -> list:
@@ -44,14 +42,9 @@ def record(data: str, protocol: str, count: int, seed: int = 0) -> list:
     for p, result, v in registered(data, protocol, count, config, seed):
         candidates = v.in_contact(v.attempts, config.search.min_contact)
         X = np.array([verify.choice_features(a, v.attempts) for a in candidates])
-        y = np.array([_right(a.fine.transformation, p.transform) for a in candidates])
-        rows.append((X, y, _right(result.transformation, p.transform), verify.choice_applies(v.pair)))
+        y = np.array([right(a.fine.transformation, p.transform) for a in candidates])
+        rows.append((X, y, right(result.transformation, p.transform), verify.choice_applies(v.pair)))
     return rows
-
-
-def _right(T: np.ndarray, truth: np.ndarray) -> bool:
-    e = pair_errors(T, truth)
-    return bool(e.rotation_deg < SUCCESS[0] and e.translation < SUCCESS[1])
 
 
 def negative_log_likelihood(w: np.ndarray, rows: list, l2: float) -> float:

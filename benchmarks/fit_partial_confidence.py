@@ -26,28 +26,25 @@ from typing import List, NamedTuple
 
 import numpy as np
 
+from benchmarks.eval_model import DEFAULT_DATA
 from benchmarks.fit_confidence import auc, fit_logistic
-from benchmarks.recorded import print_report, registered
+from benchmarks.recorded import print_report, registered, right
 from o3dsoft import confidence as conf
 from o3dsoft import verify
-from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig
 
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 PROTOCOLS = ("incongruent-crop", "so3-crop", "rpmnet-crop")
-SUCCESS = (5.0, 0.05)
 
 
 class Record(NamedTuple):
     """One registered pair the choice on partial overlaps applies to."""
 
-    right: bool  # the result lies within SUCCESS of the truth
+    right: bool  # the result lies within recorded.SUCCESS of the truth
     confidence: float  # the result's reported confidence, as registered
     strict: float  # its strict confidence
     spacing_ratio: float
     overlap: float
     agreeing: int  # attempts that reached its pose
-    attempts: int
 
 
 def record(data: str, protocol: str, count: int, config: RegisterConfig, seed: int = 0) -> List[Record]:
@@ -58,10 +55,9 @@ def record(data: str, protocol: str, count: int, config: RegisterConfig, seed: i
         if not verify.choice_applies(v.pair) or result.sparser_moved:
             continue
         chosen = v.most_trusted()  # the attempt the result was refined from
-        e = pair_errors(result.transformation, p.transform)
         s = chosen.scored
-        right = bool(e.rotation_deg < SUCCESS[0] and e.translation < SUCCESS[1])
-        rows.append(Record(right, result.confidence, conf.confidence(s, config.confidence), s.spacing_ratio, s.overlap, v.agreeing(chosen), len(v.attempts)))
+        ok = right(result.transformation, p.transform)
+        rows.append(Record(ok, result.confidence, conf.confidence(s, config.confidence), s.spacing_ratio, s.overlap, v.agreeing(chosen)))
     return rows
 
 

@@ -12,7 +12,11 @@ import numpy as np
 from o3dsoft import verify
 from o3dsoft.coarse import load_model
 from o3dsoft.data import Pair, get_protocol, load_pairs
+from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig, RegistrationResult, register
+
+# A pose is right within this rotation error (degrees) and translation error (shape units).
+SUCCESS = (5.0, 0.05)
 
 
 def registered(data: str, protocol: str, count: int, config: RegisterConfig, seed: int = 0) -> Iterator[Tuple[Pair, RegistrationResult, verify.Verifier]]:
@@ -36,6 +40,12 @@ def registered(data: str, protocol: str, count: int, config: RegisterConfig, see
             yield p, result, seen[-1]
     finally:
         verify.Verifier.__init__ = init
+
+
+def right(T: np.ndarray, truth: np.ndarray) -> bool:
+    """The pose T (4, 4) lies within :data:`SUCCESS` of `truth` (4, 4)."""
+    e = pair_errors(T, truth)
+    return bool(e.rotation_deg < SUCCESS[0] and e.translation < SUCCESS[1])
 
 
 def print_report(report: dict, paste: str, out: Optional[str]) -> None:
