@@ -135,6 +135,13 @@ def _pipeline_options(fn):
                 show_default=True,
                 help="A second network, for clouds that share no point, run when the first network's result is flagged (not on scans, where it was never right): a model file or a shipped model's name; 'none': off.",
             ),
+            click.option(
+                "--second-turns",
+                type=click.IntRange(0, 23),
+                default=0,
+                show_default=True,
+                help="For clouds that share no point and may be turned by any rotation: where the second network's pose is flagged on two complete-looking clouds, run it from this many of the other 23 rotations of a cube too (4: the measured setting; see docs/incongruent.md); 0: off.",
+            ),
             click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP),
         ],
         fn,
@@ -154,6 +161,7 @@ def _register_config(
     search_replace_odds,
     search_min_contact,
     second_weights,
+    second_turns,
     max_rotation,
     **more,
 ):
@@ -178,7 +186,7 @@ def _register_config(
         voxel=voxel,
         coarse_iterations=coarse_iterations,
         search=search_config,
-        second_network=SecondNetworkConfig(weights=second),
+        second_network=SecondNetworkConfig(weights=second, turns=second_turns),
         max_rotation=max_rotation,
         **more,
     )

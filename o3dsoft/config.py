@@ -230,12 +230,25 @@ class SecondNetworkConfig:
             are tried (where the feature match is on; default 10): noisy crops of one point set
             look like two independent samplings at a wrong pose, and their right pose is most
             often the first candidate, which the strict confidence trusts.
+        turns: where its pose from the pose as given neither is trusted nor ends the search and
+            both clouds look complete, it runs from the other 23 rotations of a cube too (one pass
+            each, as one batch), and this many of them, those whose pose brings the most source
+            points close to the target, get its remaining passes and are verified as the search's
+            estimates (one replaces the pose as given only at ``search.independent_odds`` times
+            its odds: a turn onto a symmetric copy scores as well as the right pose); the one
+            chosen ends the search as above. For clouds known to share no point that may be
+            turned by any rotation (4 is the measured setting; default 0: off): it is trained on
+            turns of up to 45 degrees per axis, and clouds turned further otherwise leave the
+            answer to the search. Noisy crops of one point set can look complete and pass for
+            independent samplings at a wrong turned pose, which then ends the search
+            (docs/incongruent.md).
     """
 
     weights: Optional[str] = "incongruent"
     iterations: int = 3
     ends_search: Optional[float] = 0.8
     shared_check: int = 10
+    turns: int = 0
 
 
 @dataclass(frozen=True)
@@ -351,6 +364,8 @@ class RegisterConfig:
             raise InputError(f"second_network.ends_search must be None or in [{threshold}, 1], got {ends}")
         if self.second_network.shared_check < 0:
             raise InputError(f"second_network.shared_check must not be negative, got {self.second_network.shared_check}")
+        if not 0 <= self.second_network.turns <= 23:
+            raise InputError(f"second_network.turns must be in [0, 23] (the other rotations of a cube), got {self.second_network.turns}")
         if search.starts.refine < 1:
             raise InputError(f"search.starts.refine must be at least 1, got {search.starts.refine}")
         if search.features.first_round < 1:

@@ -3,7 +3,8 @@
     (a target much sparser than the source: the roles swapped, the result inverted)
     prepare the pair (clean, voxel grid, samples for the network, normalisation, work clouds)
     -> propose estimates (the network; when flagged, a second network trained on clouds that share
-       no point, except on scans; when still flagged, the search's strategies in turn, unless the
+       no point, except on scans, from the pose as given and, on two complete-looking clouds, from
+       the other rotations of a cube; when still flagged, the search's strategies in turn, unless the
        second network's pose of two complete-looking clouds shows no shared point and the complete
        confidence trusts it, and the feature match's first candidates find no shared point either)
     -> verify each (ICP on the work clouds, confidence)
@@ -39,7 +40,7 @@ from .config import SEARCH_MODES, RegisterConfig
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
 from .preprocess import point_spacing, scene_size
-from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, kiss_available
+from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, TurnedPasses, kiss_available
 from .transforms import rotation_angle_deg
 from .verify import Attempt, Verifier, choice_applies
 
@@ -61,7 +62,8 @@ class RegistrationResult:
         inlier_rmse: RMS distance of those point pairs (cloud units, lower is better).
         coarse_transformation: (4, 4) the estimate the result was refined from, before any ICP:
             the network's, or one the search proposed.
-        estimate_from: what proposed that estimate: "network", "second network", "KISS-Matcher",
+        estimate_from: what proposed that estimate: "network", "second network", "second network,
+            turned" (from a rotation of a cube), "KISS-Matcher",
             "feature match", "network starts", "translation votes" or "pose as given".
         confidence: estimated probability that the alignment is right (0-1, higher is better); on
             two complete-looking clouds whose pose shows no shared point, the larger of the strict
@@ -395,16 +397,37 @@ def _search(pair: PreparedPair, verifier: Verifier, model, search_model, feature
 
 def _second_network(pair: PreparedPair, verifier: Verifier) -> bool:
     """The second network's passes from the pose as given (skipped on samples smaller than its
-    neighbourhood size K, which only a network with a larger K than the first one meets). Returns
-    whether its result ends the search: both clouds look complete, its pose shows no shared point
-    and the complete confidence reaches ``second_network.ends_search``."""
+    neighbourhood size K, which only a network with a larger K than the first one meets); where
+    that pose neither is trusted nor ends the search and both clouds look complete, its passes
+    from the other rotations of a cube (``second_network.turns``), counted as the search's
+    estimates. Returns whether its result ends the search: both clouds look complete, its pose
+    shows no shared point and the complete confidence reaches ``second_network.ends_search``; a
+    turned estimate ends it only where the choice takes it over the pose as given."""
     settings = pair.config.second_network
     model = coarse_stage.cached_model(settings.weights, pair.config.device)
     if min(len(pair.net[0]), len(pair.net[1])) < model.config.k:
         return False
+
+    def ends(attempt: Attempt) -> bool:
+        return (
+            settings.ends_search is not None
+            and pair.complete
+            and verifier.shares_no_point(attempt)
+            and verifier.reported(attempt).trust >= settings.ends_search
+        )
+
     NetworkPass(model, settings.iterations, stage="second_network", name="second network").propose(pair, verifier)
-    mine = verifier.attempts[-1]
-    return settings.ends_search is not None and pair.complete and verifier.shares_no_point(mine) and verifier.reported(mine).trust >= settings.ends_search
+    if ends(verifier.attempts[-1]):
+        return True
+    if settings.turns == 0 or not pair.complete or verifier.confident():
+        return False
+    # Counted as the search's: on a symmetric shape a turned copy scores as well as the right pose
+    # as given, so a turned estimate replaces it only at the search's odds.
+    verifier.begin_search()
+    turned = TurnedPasses(model, settings.iterations, settings.turns)
+    turned.propose(pair, verifier)
+    chosen = verifier.most_trusted()
+    return any(a is chosen for a in turned.attempts) and ends(chosen)
 
 
 def _check_shared_points(pair: PreparedPair, verifier: Verifier) -> None:

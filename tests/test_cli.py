@@ -142,6 +142,7 @@ def test_no_refine(pair_files, tiny_model_path):
         (lambda d: (d / "v.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"), ["v.obj", "tgt.pcd"], 1, "v.obj: mesh has 4 vertices but no faces"),
         (None, ["src.ply", "tgt.pcd", "--device", "tpu9"], 2, "invalid device 'tpu9'"),
         (None, ["src.ply", "tgt.pcd", "--max-rotation", "270"], 2, "Invalid value for '--max-rotation'"),
+        (None, ["src.ply", "tgt.pcd", "--second-turns", "24"], 2, "Invalid value for '--second-turns'"),
     ],
 )
 def test_bad_input_clear_error_no_traceback_no_output(pair_files, tiny_model_path, monkeypatch, make, args, code, message):

@@ -728,6 +728,27 @@ def test_the_second_networks_trusted_pose_of_two_independent_samplings_ends_the_
     assert searched.searched and searched.attempts > 20
 
 
+def test_the_second_network_from_turned_starts_ends_the_search_on_clouds_turned_far(modelnet_root):
+    from o3dsoft.config import SecondNetworkConfig
+    from o3dsoft.data import get_protocol, load_pairs
+
+    # Two independent samplings of a shape turned by any rotation: from the pose as given the
+    # second network, trained within 45 degrees per axis, is far off; from one of a cube's
+    # rotations it is right, and the complete confidence trusts that pose.
+    pairs = load_pairs(modelnet_root, "test", get_protocol("incongruent-so3"), 0)
+    turned = RegisterConfig(second_network=SecondNetworkConfig(turns=4))
+    for i in (153, 157):
+        result = o3dsoft.register(pairs[i].source, pairs[i].target, turned)
+        errors = pair_errors(result.transformation, pairs[i].transform)
+        assert errors.rotation_deg < 2 and errors.translation < 0.03 and not result.likely_failed, (i, errors, result.confidence)
+        assert result.estimate_from == "second network, turned" and not result.searched and result.attempts < 20
+        # Without the turned starts the search runs, and its answer is not within (5 deg, 0.05).
+        unturned = o3dsoft.register(pairs[i].source, pairs[i].target)  # the default: off
+        assert unturned.searched and unturned.estimate_from != "second network, turned"
+        off = pair_errors(unturned.transformation, pairs[i].transform)
+        assert off.rotation_deg > 5 or off.translation > 0.05, (i, off)
+
+
 def test_before_the_second_network_ends_the_search_the_feature_match_looks_for_shared_points(modelnet_root):
     from o3dsoft.config import SecondNetworkConfig
     from o3dsoft.data import get_protocol, load_pairs
@@ -752,6 +773,9 @@ def test_the_second_networks_search_settings_are_checked():
         register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(ends_search=0.3)))
     with pytest.raises(InputError, match="second_network.shared_check"):
         register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(shared_check=-1)))
+    for turns in (-1, 24):
+        with pytest.raises(InputError, match="second_network.turns"):
+            register(src, tgt, RegisterConfig(second_network=SecondNetworkConfig(turns=turns)))
 
 
 def test_on_partial_overlaps_the_choice_takes_the_pose_that_brings_most_points_into_contact(modelnet_root):

@@ -4,6 +4,7 @@ verifier's stop rule says so. :func:`o3dsoft.register` runs them in this order (
 overlap the feature match goes first, and the network only when it found nothing confident):
 
 - :class:`NetworkPass` (:mod:`.network`): the network from the pose the clouds are given in;
+- :class:`TurnedPasses` (:mod:`.network`): the second network from the other rotations of a cube;
 - :class:`KissMatcherProposal` (:mod:`.kiss`): KISS-Matcher's estimate, on scans, where installed;
 - :class:`FeatureMatchProposals` (:mod:`.features`): FPFH + RANSAC's distinct estimates;
 - :class:`NetworkStarts` (:mod:`.starts`): the networks from many starting rotations;
@@ -20,7 +21,7 @@ from ..pair import PreparedPair
 from ..verify import Verifier
 from .features import FeatureMatchProposals
 from .kiss import KissMatcherProposal, kiss_available
-from .network import NetworkPass
+from .network import NetworkPass, TurnedPasses
 from .restart import Restart
 from .starts import NetworkStarts
 from .votes import TranslationVotes
@@ -34,4 +35,14 @@ class Strategy(Protocol):
         :meth:`~o3dsoft.verify.Verifier.try_estimate`) until done or its stop rule holds."""
 
 
-__all__ = ["Strategy", "NetworkPass", "KissMatcherProposal", "kiss_available", "FeatureMatchProposals", "NetworkStarts", "TranslationVotes", "Restart"]
+__all__ = [
+    "Strategy",
+    "NetworkPass",
+    "TurnedPasses",
+    "KissMatcherProposal",
+    "kiss_available",
+    "FeatureMatchProposals",
+    "NetworkStarts",
+    "TranslationVotes",
+    "Restart",
+]

@@ -1,4 +1,6 @@
-"""The network's pass from the pose the clouds are given in: the pipeline's first estimate."""
+"""The network's passes from the pose the clouds are given in (the pipeline's first estimate),
+and from the other rotations of a cube (the second network's, for clouds turned further than it
+was trained on)."""
 
 from __future__ import annotations
 
@@ -7,6 +9,8 @@ from typing import Optional
 import numpy as np
 
 from .. import coarse as coarse_stage
+from .. import refine as refine_stage
+from .. import search as search_stage
 from ..pair import PreparedPair
 from ..preprocess import denormalise_transform
 from ..verify import Verifier
@@ -37,3 +41,43 @@ class NetworkPass:
             verifier.screen_first(self.transformation, self.name)
         else:
             verifier.add(self.transformation, self.transformation, self.name)
+
+
+class TurnedPasses:
+    """The network from the 23 rotations of a cube other than the identity (which, with it, cover
+    every rotation to within 63 degrees), for clouds turned further than the network was trained
+    on: one pass from each, as one batch; the `keep` whose pose brings the most source points
+    within half the correspondence distance of the target (on the network's samples) get the
+    remaining passes, and each within the rotation prior is verified as the pipeline's own.
+
+    After :meth:`propose`: ``attempts``, the kept attempts it verified (in ranking order).
+    """
+
+    def __init__(
+        self, model: coarse_stage.CoarseModel, iterations: int, keep: int, stage: str = "second_network", name: str = "second network, turned"
+    ) -> None:
+        self.model = model
+        self.iterations = iterations
+        self.keep = keep
+        self.stage = stage
+        self.name = name
+        self.attempts: list = []
+
+    def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
+        source, target = pair.net_normalised
+        turns = search_stage.cube_rotations()[1:]
+        first = search_stage.network_candidates(self.model, source, target, turns)  # (23, 4, 4)
+        poses = [denormalise_transform(T, pair.norm) for T in first]
+        fits = [refine_stage.evaluate(*pair.net, T, 0.5 * pair.distance).fitness if verifier.plausible(T) else -1.0 for T in poses]
+        kept = [h for h in sorted(range(len(turns)), key=lambda h: -fits[h])[: self.keep] if fits[h] >= 0]
+        if not kept:
+            verifier.clock.lap(self.stage)
+            return
+        estimates = first[kept]
+        for _ in range(self.iterations - 1):  # each pass from the rotation so far
+            estimates = search_stage.network_candidates(self.model, source, target, estimates[:, :3, :3])
+        verifier.clock.lap(self.stage)
+        for T in estimates:
+            pose = denormalise_transform(T, pair.norm)
+            if verifier.plausible(pose):
+                self.attempts.append(verifier.add(pose, pose, self.name))
