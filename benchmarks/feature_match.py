@@ -15,18 +15,16 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.eval_model import DEFAULT_DATA
 from o3dsoft import baselines, refine
 from o3dsoft import confidence as conf
 from o3dsoft.bench import modelnet_pairs
 from o3dsoft.metrics import pair_errors
 from o3dsoft.preprocess import normalisation_for
 from o3dsoft.search import FeatureMatch
-
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 
 
 def main() -> None:

@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.eval_model import DEFAULT_DATA
 from o3dsoft import confidence as conf
 from o3dsoft import refine
 from o3dsoft.bench import roc_auc
@@ -37,7 +37,6 @@ from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig, register
 from o3dsoft.transforms import quaternion_to_matrix, rigid
 
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 NAMES = conf.FEATURE_NAMES
 PROTOCOLS = ("dcp", "so3", "rpmnet-crop", "so3-crop", "incongruent", "incongruent-noise", "incongruent-crop")
 

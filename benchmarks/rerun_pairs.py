@@ -21,13 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.eval_model import DEFAULT_DATA
 from o3dsoft.coarse import load_model
 from o3dsoft.config import FeatureSearchConfig, RestartConfig, SearchConfig
 from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.metrics import pair_errors
 from o3dsoft.pipeline import RegisterConfig, register
-
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "modelnet40_ply_hdf5_1024"
 
 
 def outcome(rotation_deg: float, translation: float, confidence: float) -> np.ndarray:
