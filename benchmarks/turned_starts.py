@@ -34,7 +34,7 @@ from o3dsoft.data import get_protocol, load_pairs
 from o3dsoft.pair import PreparedPair
 from o3dsoft.pipeline import RegisterConfig, register
 from o3dsoft.preprocess import denormalise_transform
-from o3dsoft.verify import Verifier
+from o3dsoft.verify import Verifier, _log_odds  # the odds the choice compares
 
 
 def record(pair, config: RegisterConfig) -> dict:
@@ -49,19 +49,14 @@ def record(pair, config: RegisterConfig) -> dict:
     estimates = search_stage.network_candidates(second, source, target, search_stage.cube_rotations())
     poses = [denormalise_transform(T, prepared.norm) for T in estimates]
     fit1 = [refine_stage.evaluate(*prepared.net, T, 0.5 * prepared.distance).fitness for T in poses]
-    for _ in range(config.second_network.iterations - 1):
-        estimates = search_stage.network_candidates(second, source, target, estimates[:, :3, :3])
+    if config.second_network.iterations > 1:
+        estimates = search_stage.network_candidates(second, source, target, estimates[:, :3, :3], config.second_network.iterations - 1)
     starts = []
     for T in estimates:
         pose = denormalise_transform(T, prepared.norm)
         attempt = verifier.add(pose, pose, "cube start")
         starts.append({"right": right(attempt.fine.transformation, pair.transform), "trust": verifier.reported(attempt).trust})
     return {"right": right(result.transformation, pair.transform), "searched": result.searched, "fit1": fit1, "starts": starts}
-
-
-def _log_odds(p: float) -> float:
-    p = min(max(p, 1e-12), 1 - 1e-12)
-    return math.log(p / (1 - p))
 
 
 def replay(records: List[dict], keep: int, odds: float, ends: float) -> tuple:

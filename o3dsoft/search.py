@@ -59,7 +59,7 @@ def half_turns(points: np.ndarray) -> np.ndarray:
     return np.stack([2.0 * np.outer(a, a) - np.eye(3) for a in axes.T[::-1]])
 
 
-def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarray, rotations: np.ndarray, passes: int = 1) -> np.ndarray:
     """The network's estimate from each starting rotation, as one batch.
 
     Args:
@@ -67,19 +67,21 @@ def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarra
         source: (N, 3) normalised source points.
         target: (M, 3) normalised target points.
         rotations: (H, 3, 3) starting rotations applied to the source about its centroid c.
+        passes: the network's passes (at least 1), each from the rotation the one before gave
+            (the target's descriptors are computed once).
     Returns:
         (H, 4, 4) float64 T_target_source in the normalised frame, one per start.
     """
     source = np.asarray(source, dtype=np.float64)
     centre = source.mean(axis=0)
-    starts = np.einsum("hij,nj->hni", rotations, source - centre)  # the network expects a centred source
-    src = torch.as_tensor(starts, dtype=torch.float32)
     run = model.aligner(torch.as_tensor(np.ascontiguousarray(target), dtype=torch.float32).unsqueeze(0))
-    R, t, _ = run(src, model.neighbours(src[:1]))  # rotations keep the neighbourhoods
-    R, t = R.double().cpu().numpy(), t.double().cpu().numpy()
-    # p -> R (Rh (p - c)) + t
-    full = R @ rotations
-    return np.stack([rigid(full[h], t[h] - full[h] @ centre) for h in range(len(rotations))])
+    for _ in range(passes):
+        starts = np.einsum("hij,nj->hni", rotations, source - centre)  # the network expects a centred source
+        src = torch.as_tensor(starts, dtype=torch.float32)
+        R, t, _ = run(src, model.neighbours(src[:1]))  # rotations keep the neighbourhoods
+        R, t = R.double().cpu().numpy(), t.double().cpu().numpy()
+        rotations = R @ rotations  # p -> R (Rh (p - c)) + t
+    return np.stack([rigid(rotations[h], t[h] - rotations[h] @ centre) for h in range(len(rotations))])
 
 
 class Choice(NamedTuple):

@@ -4,7 +4,7 @@ was trained on)."""
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import List, Optional
 
 import numpy as np
 
@@ -13,7 +13,7 @@ from .. import refine as refine_stage
 from .. import search as search_stage
 from ..pair import PreparedPair
 from ..preprocess import denormalise_transform
-from ..verify import Verifier
+from ..verify import Attempt, Verifier
 
 
 class NetworkPass:
@@ -46,38 +46,31 @@ class NetworkPass:
 class TurnedPasses:
     """The network from the 23 rotations of a cube other than the identity (which, with it, cover
     every rotation to within 63 degrees), for clouds turned further than the network was trained
-    on: one pass from each, as one batch; the `keep` whose pose brings the most source points
-    within half the correspondence distance of the target (on the network's samples) get the
-    remaining passes, and each within the rotation prior is verified as the pipeline's own.
+    on: one pass from each within the rotation prior, as one batch; the `keep` whose pose brings
+    the most source points within half the correspondence distance of the target (on the
+    network's samples) get the remaining passes, and each still within the prior is verified.
+    Its time counts as the second network's, its estimates as "second network, turned".
 
-    After :meth:`propose`: ``attempts``, the kept attempts it verified (in ranking order).
+    After :meth:`propose`: ``attempts``, the attempts it verified (in ranking order).
     """
 
-    def __init__(
-        self, model: coarse_stage.CoarseModel, iterations: int, keep: int, stage: str = "second_network", name: str = "second network, turned"
-    ) -> None:
+    def __init__(self, model: coarse_stage.CoarseModel, iterations: int, keep: int) -> None:
         self.model = model
         self.iterations = iterations
         self.keep = keep
-        self.stage = stage
-        self.name = name
-        self.attempts: list = []
+        self.attempts: List[Attempt] = []
 
     def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
         source, target = pair.net_normalised
-        turns = search_stage.cube_rotations()[1:]
-        first = search_stage.network_candidates(self.model, source, target, turns)  # (23, 4, 4)
-        poses = [denormalise_transform(T, pair.norm) for T in first]
-        fits = [refine_stage.evaluate(*pair.net, T, 0.5 * pair.distance).fitness if verifier.plausible(T) else -1.0 for T in poses]
-        kept = [h for h in sorted(range(len(turns)), key=lambda h: -fits[h])[: self.keep] if fits[h] >= 0]
-        if not kept:
-            verifier.clock.lap(self.stage)
-            return
+        first = search_stage.network_candidates(self.model, source, target, search_stage.cube_rotations()[1:])  # (23, 4, 4)
+        plausible = [h for h in range(len(first)) if verifier.plausible(denormalise_transform(first[h], pair.norm))]
+        fits = {h: refine_stage.evaluate(*pair.net, denormalise_transform(first[h], pair.norm), 0.5 * pair.distance).fitness for h in plausible}
+        kept = sorted(plausible, key=lambda h: -fits[h])[: self.keep]
         estimates = first[kept]
-        for _ in range(self.iterations - 1):  # each pass from the rotation so far
-            estimates = search_stage.network_candidates(self.model, source, target, estimates[:, :3, :3])
-        verifier.clock.lap(self.stage)
+        if kept and self.iterations > 1:
+            estimates = search_stage.network_candidates(self.model, source, target, estimates[:, :3, :3], self.iterations - 1)
+        verifier.clock.lap("second_network")
         for T in estimates:
             pose = denormalise_transform(T, pair.norm)
             if verifier.plausible(pose):
-                self.attempts.append(verifier.add(pose, pose, self.name))
+                self.attempts.append(verifier.add(pose, pose, "second network, turned"))
