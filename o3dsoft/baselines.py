@@ -143,16 +143,22 @@ class KissConfig:
 # KISS-Matcher refuses voxels below a few centimetres (it is made for scans in metres): smaller
 # scenes are registered magnified so that the voxel is at least this, and the result scaled back.
 _KISS_MIN_VOXEL = 0.05
+# KISS-Matcher crashes the process (a segmentation fault) on clouds of a few hundred points or
+# fewer: it is called only where each cloud keeps at least this many points on its voxel grid.
+KISS_MIN_POINTS = 500
 
 
 def kiss_matcher(
     source: np.ndarray, target: np.ndarray, voxel: float, normal_radius: Optional[float] = None, feature_radius: Optional[float] = None
-) -> np.ndarray:
-    """(4, 4) T_target_source from KISS-Matcher at `voxel` (cloud units) on (N, 3) and (M, 3).
-    `normal_radius`, `feature_radius`: its normals' and FPFH features' radii in voxels (None:
-    KISS-Matcher's own, 3 and 5)."""
+) -> Optional[np.ndarray]:
+    """(4, 4) T_target_source from KISS-Matcher at `voxel` (cloud units) on (N, 3) and (M, 3);
+    None where either cloud keeps fewer than :data:`KISS_MIN_POINTS` points on a grid of `voxel`
+    (too few for it). `normal_radius`, `feature_radius`: its normals' and FPFH features' radii in
+    voxels (None: KISS-Matcher's own, 3 and 5)."""
     import kiss_matcher as km  # optional: o3dsoft[peers]
 
+    if min(grid_points(source, voxel), grid_points(target, voxel)) < KISS_MIN_POINTS:
+        return None
     magnify = max(1.0, _KISS_MIN_VOXEL / voxel)
     magnified_voxel = voxel * magnify
     with quiet_c_output("stdout"):  # it prints warnings about its noise bounds on every call
@@ -167,6 +173,11 @@ def kiss_matcher(
     T[:3, :3] = np.asarray(solution.rotation)
     T[:3, 3] = np.asarray(solution.translation).ravel() / magnify
     return T
+
+
+def grid_points(points: np.ndarray, voxel: float) -> int:
+    """How many occupied cells of a grid of `voxel` (cloud units) the (N, 3) points fill."""
+    return len(to_open3d(points).voxel_down_sample(voxel).points)
 
 
 def small_gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray, voxel: float, config: KissConfig = KissConfig()) -> np.ndarray:

@@ -407,6 +407,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         voxel = config.kiss.voxel * max(scene_size(src), scene_size(tgt))
         t0 = clock()
         T = baselines.kiss_matcher(src, tgt, voxel)
+        T = np.eye(4) if T is None else T  # too few points for it: no estimate, the pose as given
         kiss_ms = clock() - t0
         out["kiss-matcher"] = MethodResult("kiss-matcher", T, {"kiss": kiss_ms, "total": kiss_ms})
         if "kiss-matcher+gicp" in methods:

@@ -635,13 +635,37 @@ def test_kiss_matchers_radii_are_in_voxels_of_the_clouds_it_is_given(monkeypatch
             return types.SimpleNamespace(rotation=np.eye(3), translation=np.array([[1.0], [2.0], [3.0]]))
 
     monkeypatch.setitem(sys.modules, "kiss_matcher", types.SimpleNamespace(KISSMatcherConfig=Config, KISSMatcher=Matcher))
-    points = np.random.default_rng(0).normal(size=(50, 3))
+    points = np.random.default_rng(0).normal(size=(1000, 3))  # enough for it at both voxels
     T = baselines.kiss_matcher(points, points, 0.01, 2.5, 4.0)  # magnified 5 times
     assert made[-1].voxel_size == pytest.approx(0.05)
     assert (made[-1].normal_radius, made[-1].fpfh_radius) == (pytest.approx(0.125), pytest.approx(0.2))
     assert np.allclose(T[:3, 3], [0.2, 0.4, 0.6])  # back in the clouds' units
     baselines.kiss_matcher(points, points, 0.2)  # no radii given: KISS-Matcher's own
     assert (made[-1].voxel_size, made[-1].normal_radius, made[-1].fpfh_radius) == (0.2, pytest.approx(0.6), pytest.approx(1.0))
+
+
+def test_kiss_matcher_is_not_called_on_clouds_too_small_for_it(monkeypatch):
+    # It crashes the process on clouds of a hundred points or so: none is asked of it there.
+    import sys
+    import types
+
+    from o3dsoft import baselines
+
+    called = []
+
+    class Matcher:
+        def __init__(self, config):
+            called.append(config)
+
+        def estimate(self, source, target):
+            return types.SimpleNamespace(rotation=np.eye(3), translation=np.zeros((3, 1)))
+
+    monkeypatch.setitem(sys.modules, "kiss_matcher", types.SimpleNamespace(KISSMatcherConfig=lambda voxel: voxel, KISSMatcher=Matcher))
+    rng = np.random.default_rng(0)
+    many, few = rng.uniform(size=(20_000, 3)), rng.uniform(size=(300, 3))
+    assert baselines.grid_points(few, 0.01) == 300 and baselines.grid_points(many, 0.5) <= 27  # cells of the unit cube
+    assert baselines.kiss_matcher(many, few, 0.01) is None and baselines.kiss_matcher(few, many, 0.01) is None and not called
+    assert baselines.kiss_matcher(many, many, 0.05) is not None and len(called) == 1  # about 8,000 cells each
 
 
 def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):

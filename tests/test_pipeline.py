@@ -118,6 +118,27 @@ def test_clouds_of_very_different_sizes_say_how_many_points_each_stage_used(tiny
     assert pair_errors(res.transformation, T).rotation_deg < 5  # a sparse sample of the same surface
 
 
+def test_a_hundred_points_against_a_scan_with_the_search_on(tiny_model_path):
+    # The search runs KISS-Matcher on scans where it is installed; given a cloud of a hundred
+    # points it crashed the process. In a subprocess, so that a crash fails this test only.
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np, trimesh\n"
+        "from o3dsoft.config import SearchConfig\n"
+        "from o3dsoft.pipeline import RegisterConfig, register\n"
+        "shape = trimesh.util.concatenate([trimesh.creation.capsule(height=1.0, radius=0.3), trimesh.creation.box((1.2, 0.2, 0.2))])\n"
+        "dense = trimesh.sample.sample_surface(shape, 20_000, seed=1)[0]\n"
+        "sparse = trimesh.sample.sample_surface(shape, 100, seed=2)[0] + [0.1, 0.2, -0.1]\n"
+        f"res = register(dense, sparse, RegisterConfig(weights={str(tiny_model_path)!r}, search=SearchConfig(mode='always')))\n"
+        "print(res.searched, res.points_used['final'][1])\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=600)
+    assert run.returncode == 0, run.stderr.decode()[-2000:]
+    assert run.stdout.decode().split() == ["True", "100"]
+
+
 def test_large_clouds_are_downsampled_for_icp_and_still_exact(tiny_model_path):
     rng = np.random.default_rng(7)
     d = rng.normal(size=(300_000, 3))
