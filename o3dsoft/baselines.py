@@ -15,13 +15,15 @@ search's feature match orients them (:class:`o3dsoft.search.FeatureMatchConfig`)
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 
 from ._open3d import open3d as o3d
 from .io import quiet_c_output
+from .preprocess import local_origin
 from .refine import to_open3d
+from .transforms import rigid
 
 
 @dataclass(frozen=True)
@@ -146,6 +148,12 @@ _KISS_MIN_VOXEL = 0.05
 # KISS-Matcher crashes the process (a segmentation fault) on clouds of a few hundred points or
 # fewer: it is called only where each cloud keeps at least this many points on its voxel grid.
 KISS_MIN_POINTS = 500
+# It hashes integer voxel coordinates and takes float32 points: it crashes on coordinates more than
+# about 2e9 voxels from the origin (georeferenced scans: 4e6 m of UTM northing over a 2 mm voxel),
+# and float32 rounds them to metres. A cloud far from the origin is given to it about its own
+# median (:func:`o3dsoft.preprocess.local_origin`), without its points farther than this many
+# voxels from its median (strays: a scan at 1 % of its size spans about 100).
+_KISS_MAX_CELLS = 1e6
 
 
 def kiss_matcher(
@@ -161,6 +169,7 @@ def kiss_matcher(
         return None
     magnify = max(1.0, _KISS_MIN_VOXEL / voxel)
     magnified_voxel = voxel * magnify
+    (source, source_centre), (target, target_centre) = _local(source, voxel), _local(target, voxel)
     with quiet_c_output("stdout"):  # it prints warnings about its noise bounds on every call
         config = km.KISSMatcherConfig(magnified_voxel)
         if normal_radius is not None:
@@ -169,10 +178,18 @@ def kiss_matcher(
             config.fpfh_radius = feature_radius * magnified_voxel
         matcher = km.KISSMatcher(config)
         solution = matcher.estimate((magnify * source).astype(np.float32), (magnify * target).astype(np.float32))
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(solution.rotation)
-    T[:3, 3] = np.asarray(solution.translation).ravel() / magnify
-    return T
+    # target - ct = R (source - cs) + t, so T_target_source's translation is t + ct - R cs.
+    R = np.asarray(solution.rotation, dtype=np.float64)
+    return rigid(R, np.asarray(solution.translation, dtype=np.float64).ravel() / magnify + target_centre - R @ source_centre)
+
+
+def _local(points: np.ndarray, voxel: float) -> Tuple[np.ndarray, np.ndarray]:
+    """(N', 3) the points less their (3,) :func:`~o3dsoft.preprocess.local_origin`, without those
+    farther than :data:`_KISS_MAX_CELLS` voxels from their median along an axis; and that origin."""
+    points = np.asarray(points, dtype=np.float64)
+    origin = local_origin(points)
+    stray = np.any(np.abs(points - np.median(points, axis=0)) > _KISS_MAX_CELLS * voxel, axis=1)
+    return points[~stray] - origin, origin
 
 
 def grid_points(points: np.ndarray, voxel: float) -> int:
@@ -181,16 +198,19 @@ def grid_points(points: np.ndarray, voxel: float) -> int:
 
 
 def small_gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray, voxel: float, config: KissConfig = KissConfig()) -> np.ndarray:
-    """(4, 4) T_target_source refined from `init` by small_gicp's GICP."""
+    """(4, 4) T_target_source refined from `init` by small_gicp's GICP (both clouds moved by the
+    target's :func:`~o3dsoft.preprocess.local_origin` first: its voxel grid hashes integer
+    coordinates)."""
     import small_gicp as sg  # optional: o3dsoft[peers]
 
+    shift = rigid(np.eye(3), -local_origin(target))  # from the frame the clouds are given in
     result = sg.align(
-        np.ascontiguousarray(target, np.float64),
-        np.ascontiguousarray(source, np.float64),
-        np.asarray(init, np.float64),
+        np.ascontiguousarray(target + shift[:3, 3], np.float64),
+        np.ascontiguousarray(source + shift[:3, 3], np.float64),
+        shift @ np.asarray(init, np.float64) @ np.linalg.inv(shift),
         registration_type="GICP",
         downsampling_resolution=config.gicp_downsampling * voxel,
         max_correspondence_distance=config.gicp_distance * voxel,
         num_threads=config.threads,
     )
-    return np.asarray(result.T_target_source).copy()
+    return np.linalg.inv(shift) @ np.asarray(result.T_target_source) @ shift

@@ -39,7 +39,7 @@ from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
-from .preprocess import point_spacing, scene_size
+from .preprocess import local_origin, point_spacing, scene_size
 from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, TurnedPasses, kiss_available
 from .transforms import rotation_angle_deg
 from .verify import Attempt, Verifier, choice_applies
@@ -194,12 +194,40 @@ def register(
         InputError: a cloud is degenerate (too few points, identical or collinear points), the
             weights file is unusable, or a setting of `config` is invalid (see its ``validate``).
     """
-    source, target = as_points(source, source_name), as_points(target, target_name)
-    if _sparser(target, source, config.sparser_moves):
+    src, tgt = as_points(source, source_name), as_points(target, target_name)
+    # Far from the origin (georeferenced scans), both clouds are registered about the target's
+    # median: point-to-plane ICP linearises the rotation about the origin, and KISS-Matcher hashes
+    # integer voxel coordinates.
+    origin = local_origin(tgt)
+    src, tgt = src - origin, tgt - origin
+    if _sparser(tgt, src, config.sparser_moves):
         # The sparser cloud moves: register the target onto the source, and answer the question asked.
-        swapped, (moved, fixed) = _register(target, source, config, model, search_model, target_name, source_name)
-        return _inverted(swapped, fixed, moved)
-    return _register(source, target, config, model, search_model, source_name, target_name)[0]
+        swapped, (moved, fixed) = _register(tgt, src, config, model, search_model, target_name, source_name)
+        result = _inverted(swapped, fixed, moved)
+    else:
+        result = _register(src, tgt, config, model, search_model, source_name, target_name)[0]
+    return _moved_back(result, origin)
+
+
+def _moved_back(result: RegistrationResult, origin: np.ndarray) -> RegistrationResult:
+    """A result for the clouds less (3,) `origin` turned into the result for the clouds as given:
+    each transform T' becomes T = S^-1 T' S, S the shift by -origin (its rotation unchanged, its
+    translation t' + origin - R origin)."""
+    if not origin.any():
+        return result
+
+    def back(T: np.ndarray) -> np.ndarray:
+        T = np.array(T, dtype=np.float64)
+        T[:3, 3] += origin - T[:3, :3] @ origin
+        return T
+
+    return replace(
+        result,
+        transformation=back(result.transformation),
+        coarse_transformation=back(result.coarse_transformation),
+        network_transformation=None if result.network_transformation is None else back(result.network_transformation),
+        copy_transformation=None if result.copy_transformation is None else back(result.copy_transformation),
+    )
 
 
 def _register(

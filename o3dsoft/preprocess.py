@@ -111,6 +111,17 @@ def scene_size(points: np.ndarray) -> float:
     return float(np.linalg.norm(robust_extent(points)))
 
 
+def local_origin(points: np.ndarray) -> np.ndarray:
+    """(3,) the median of the (N, 3) points' finite rows where it lies farther from the origin than
+    the points' :func:`scene_size` (clouds in a frame far from them:
+    georeferenced scans); else zeros (the clouds as given, to the bit)."""
+    finite = points[np.isfinite(points).all(axis=1)]
+    if len(finite) < 2:
+        return np.zeros(3)  # cleaning reports it, by name
+    centre = np.median(finite, axis=0)
+    return centre if np.linalg.norm(centre) > scene_size(finite) else np.zeros(3)
+
+
 def point_spacing(points: np.ndarray, sample: int = 2000, seed: int = 0) -> float:
     """Median distance from a point to its nearest neighbour (cloud units), over at most `sample`
     of the (N, 3) points."""

@@ -668,6 +668,41 @@ def test_kiss_matcher_is_not_called_on_clouds_too_small_for_it(monkeypatch):
     assert baselines.kiss_matcher(many, many, 0.05) is not None and len(called) == 1  # about 8,000 cells each
 
 
+def test_kiss_matcher_answers_for_georeferenced_scans_as_at_the_origin():
+    # Millions of units from the origin it crashed the process (integer voxel coordinates of
+    # float32 points). In a subprocess, so that a crash fails this test only. Its answer moves
+    # with its voxel grid (0.75 deg off at the origin, 0.93 from there at these coordinates, 0.67
+    # moved by 5 cm): it is held to the truth; GICP's converged answer to the origin's.
+    import subprocess
+    import sys
+
+    from o3dsoft import baselines
+
+    if not baselines.installed("kiss_matcher"):
+        pytest.skip("the optional package kiss-matcher is not installed")
+    code = (
+        "import numpy as np, o3dsoft\n"
+        "from o3dsoft import baselines\n"
+        "from o3dsoft.metrics import pair_errors\n"
+        "from o3dsoft.preprocess import scene_size\n"
+        f"s = o3dsoft.read_points({str(EXAMPLES / 'bun045.ply')!r})\n"
+        f"t = o3dsoft.read_points({str(EXAMPLES / 'bun000.ply')!r})\n"
+        "voxel = 0.01 * max(scene_size(s), scene_size(t))\n"
+        "T0 = baselines.kiss_matcher(s, t, voxel)\n"
+        "utm = np.array([512345.0, 4123456.0, 231.0])\n"
+        "S = np.eye(4)\n"
+        "S[:3, 3] = utm\n"
+        "T = np.linalg.inv(S) @ baselines.kiss_matcher(s + utm, t + utm, voxel) @ S\n"
+        "G = np.linalg.inv(S) @ baselines.small_gicp(s + utm, t + utm, S @ T0 @ np.linalg.inv(S), voxel) @ S\n"
+        f"e = pair_errors(T, o3dsoft.read_transform({str(EXAMPLES / 'bun045_to_bun000.txt')!r}))\n"
+        "g = pair_errors(G, baselines.small_gicp(s, t, T0, voxel))\n"
+        "print(e.rotation_deg < 2 and e.translation < 0.005, g.rotation_deg < 0.05 and g.translation < 1e-4)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=600)
+    assert run.returncode == 0, run.stderr.decode()[-2000:]
+    assert run.stdout.decode().split() == ["True", "True"]
+
+
 def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):
     # Its constructor and its solver print warnings about their noise bounds to C's stdout (here:
     # a scan in millimetres against one in metres); o3dsoft's output is its own.

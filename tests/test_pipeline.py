@@ -218,6 +218,33 @@ def test_the_search_can_add_a_feature_based_estimate():
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
 
 
+def test_georeferenced_scans_register_as_they_do_at_the_origin():
+    # Scans in UTM coordinates lie millions of units from the origin: point-to-plane ICP, which
+    # linearises the rotation about the origin, lost them (9.6 deg off, flagged) and KISS-Matcher
+    # crashed the process. Registered about the target's median, they give the origin's answer.
+    from o3dsoft.preprocess import local_origin
+
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    at_origin = register(src, tgt)
+    assert not local_origin(tgt).any() and pair_errors(at_origin.transformation, T).rotation_deg < 1.0 and not at_origin.likely_failed
+    utm = np.array([512_345.0, 4_123_456.0, 231.0])
+    shift = np.eye(4)
+    shift[:3, 3] = utm
+    for source_offset in (utm, np.zeros(3)):  # both far, or only the target
+        res = register(src + source_offset, tgt + utm)
+        assert np.allclose(local_origin(tgt + utm), np.median(tgt, axis=0) + utm)
+        unshift = np.eye(4)
+        unshift[:3, 3] = -source_offset
+        back = np.linalg.inv(shift) @ res.transformation @ np.linalg.inv(unshift)  # in the origin's frames
+        e = pair_errors(back, at_origin.transformation)
+        assert e.rotation_deg < 1e-3 and e.translation < 1e-6, e
+        assert res.confidence == pytest.approx(at_origin.confidence, abs=0.01) and res.estimate_from == at_origin.estimate_from
+        for given, found in ((at_origin.coarse_transformation, res.coarse_transformation), (at_origin.network_transformation, res.network_transformation)):
+            assert pair_errors(np.linalg.inv(shift) @ found @ np.linalg.inv(unshift), given).rotation_deg < 1e-3
+
+
 def test_the_networks_estimate_of_scans_is_screened_first_and_kept_when_nothing_else_is():
     src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
     tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
