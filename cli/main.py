@@ -387,6 +387,12 @@ def _errors_dict(e) -> dict:
     return d
 
 
+def _strays_line(removed: dict) -> list:
+    """The line saying how many stray far points cleaning dropped, where it dropped any."""
+    n, m = removed.get("source_strays", 0), removed.get("target_strays", 0)
+    return [f"  strays: source {n}, target {m} points dropped (over 1,000 times farther from the median than 99 % of the cloud)"] if n or m else []
+
+
 def _format_result(source, target, result, errors, model_info, config) -> str:
     from ..coarse import weights_file
 
@@ -397,6 +403,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         f"o3dsoft register  {source} -> {target}",
         f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
+        *_strays_line(result.removed),
         f"  model:  {model_info['path']}"
         + (f"; second network: {weights_file(config.second_network.weights)}" if "second_network" in result.timings_ms else ""),
         "",

@@ -96,7 +96,9 @@ class RegistrationResult:
         screened: estimates refined and scored on the screen clouds first.
         searched: whether the global search ran (not counting the feature match's first candidates
             tried before the second network's pose ends it, ``second_network.shared_check``).
-        removed: rows dropped by cleaning, per cloud: {"source_non_finite": ..., ...}.
+        removed: rows dropped by cleaning, per cloud: {"source_non_finite", "source_duplicates",
+            "source_strays" (points over ``preprocess.STRAY_REACH`` times the cloud's reach from
+            its median), and the target's}.
         network_transformation: (4, 4) the network's own estimate from the pose as given, before
             ICP; None when the network did not run (a feature match tried first was confident).
         points_used: points per cloud (source, target) at each stage: "network", "attempts"
@@ -590,5 +592,7 @@ def _result(
             "source_duplicates": src_report.duplicates,
             "target_non_finite": tgt_report.non_finite,
             "target_duplicates": tgt_report.duplicates,
+            "source_strays": src_report.strays,
+            "target_strays": tgt_report.strays,
         },
     )

@@ -16,15 +16,23 @@ from .transforms import rigid
 
 
 class CleanReport(NamedTuple):
-    """What :func:`clean_points` removed: non-finite rows and exact duplicates."""
+    """What :func:`clean_points` removed: non-finite rows, exact duplicates and strays."""
 
     points: np.ndarray  # (N', 3) float64
     non_finite: int
     duplicates: int
+    strays: int = 0
+
+
+# A point farther from its cloud's median than this many times the cloud's reach (twice the distance
+# within which 99 % of its points lie) is a stray (a sensor's glitch at 1e12): dropped. Such points
+# overflow the voxel grids' integer cells (Open3D refuses the grid) and are no part of any scene.
+STRAY_REACH = 1000.0
 
 
 def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -> CleanReport:
-    """Drop rows with NaN/inf and exact duplicate points; reject degenerate clouds.
+    """Drop rows with NaN/inf, exact duplicate points and strays (:data:`STRAY_REACH`); reject
+    degenerate clouds.
 
     Args:
         points: (N, 3) array.
@@ -46,11 +54,26 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
     keep = first_of_each_row(pts)
     duplicates = len(pts) - len(keep)
     pts = pts[keep]
+    stray = _strays(pts)
+    strays = int(stray.sum())
+    if strays:
+        pts = pts[~stray]
     if len(pts) < min_points:
-        detail = f" ({non_finite} rows with NaN/inf and {duplicates} duplicates removed)" if non_finite or duplicates else ""
+        removed = f"{non_finite} rows with NaN/inf, {duplicates} duplicates" + (f" and {strays} strays" if strays else "")
+        detail = f" ({removed} removed)" if non_finite or duplicates or strays else ""
         raise InputError(f"{name}: {len(pts)} distinct finite points{detail}; at least {min_points} are needed")
     check_spread(pts, name)
-    return CleanReport(pts, non_finite, duplicates)
+    return CleanReport(pts, non_finite, duplicates, strays)
+
+
+def _strays(points: np.ndarray) -> np.ndarray:
+    """(N,) bool: the (N, 3) points farther from their median than :data:`STRAY_REACH` times the
+    cloud's reach (none where the reach is 0)."""
+    if len(points) < 2:
+        return np.zeros(len(points), dtype=bool)
+    distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    reach = 2.0 * np.percentile(distance, 99)
+    return distance > STRAY_REACH * reach if reach > 0 else np.zeros(len(points), dtype=bool)
 
 
 def first_of_each_row(points: np.ndarray) -> np.ndarray:
@@ -69,9 +92,14 @@ def first_of_each_row(points: np.ndarray) -> np.ndarray:
 
 
 def check_spread(points: np.ndarray, name: str = "cloud") -> None:
-    """Raise InputError if the points are all identical or all on one line (no rotation is defined)."""
+    """Raise InputError if the points are all identical or all on one line (no rotation is defined),
+    judged on those within twice the distance from their median that 99 % of them lie within (so
+    that a few stray far points neither hide a line nor make a surface look like one)."""
+    points = points[:: max(1, len(points) // 100_000)]
+    reach = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    points = points[reach <= 2.0 * np.percentile(reach, 99)]
     centred = points - points.mean(axis=0)
-    sv = np.linalg.svd(centred[:: max(1, len(centred) // 100_000)], compute_uv=False)
+    sv = np.linalg.svd(centred, compute_uv=False)
     if sv[0] <= 1e-12 * max(1.0, np.abs(points).max()):
         raise InputError(f"{name}: all points are identical; a rotation cannot be estimated")
     if sv[1] <= 1e-6 * sv[0]:

@@ -62,6 +62,16 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert (d / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"Picture: {d / 'fig.png'}" in r.output
 
 
+def test_register_says_how_many_stray_points_it_dropped(pair_files, tiny_model_path):
+    d, src, T = pair_files
+    write_points(d / "glitch.ply", np.vstack([src, [[1e12, -1e12, 5e11]]]))
+    r = run("register", d / "glitch.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--icp-distance", "0.5")
+    assert r.exit_code == 0, r.output
+    assert "strays: source 1, target 0 points dropped (over 1,000 times farther from the median" in r.output
+    r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--icp-distance", "0.5")
+    assert r.exit_code == 0 and "strays:" not in r.output
+
+
 def test_register_json(pair_files, tiny_model_path):
     d, _, T = pair_files
     r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--gt", d / "gt.txt", "--json", "--icp-distance", "0.5")

@@ -245,6 +245,19 @@ def test_georeferenced_scans_register_as_they_do_at_the_origin():
             assert pair_errors(np.linalg.inv(shift) @ found @ np.linalg.inv(unshift), given).rotation_deg < 1e-3
 
 
+def test_a_stray_point_at_1e12_is_dropped_and_the_pair_registers_as_without_it():
+    # It made the bunny "lie on one line" (refused), and past that check overflowed Open3D's
+    # voxel grid (a traceback from the command line).
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    clean = register(src, tgt)
+    res = register(np.vstack([src, [[1e12, -1e12, 5e11]]]), tgt)
+    assert res.removed["source_strays"] == 1 and res.removed["target_strays"] == 0 and clean.removed["source_strays"] == 0
+    assert np.allclose(res.transformation, clean.transformation, atol=1e-9) and res.confidence == pytest.approx(clean.confidence)
+    swapped = register(tgt, np.vstack([src, [[1e12, -1e12, 5e11]]]))  # counts follow the clouds' roles
+    assert swapped.removed["target_strays"] == 1 and swapped.removed["source_strays"] == 0
+
+
 def test_the_networks_estimate_of_scans_is_screened_first_and_kept_when_nothing_else_is():
     src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
     tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")

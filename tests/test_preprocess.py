@@ -42,6 +42,20 @@ def test_degenerate_clouds_rejected(pts, match):
         clean_points(pts, "cloud.ply", min_points=2)
 
 
+def test_stray_far_points_are_dropped_and_counted():
+    # A sensor's glitch at 1e12 made a surface look like a line (its spread is all along the
+    # glitch) and overflowed the voxel grids; points at a few times the cloud's reach stay.
+    rng = np.random.default_rng(2)
+    cloud = _surface(rng, 2_000)
+    rep = clean_points(cloud)
+    assert rep.strays == 0 and np.array_equal(rep.points, cloud)  # nothing stray: the cloud as given
+    far = np.vstack([cloud[:1000], [[1e12, -1e12, 5e11]], cloud[1000:], [[3.0, 3.0, 3.0]], [[-2e9, 0.0, 0.0]]])
+    rep = clean_points(far, "scan.ply")
+    assert rep.strays == 2 and np.array_equal(rep.points, np.vstack([cloud, [[3.0, 3.0, 3.0]]]))
+    with pytest.raises(InputError, match="scan.ply: all points lie on one line"):  # two strays hid it
+        clean_points(np.vstack([np.outer(np.arange(500.0), [1, 2, 3]), [[1e12, 0, 0], [0, 1e12, 0]]]), "scan.ply", min_points=2)
+
+
 def test_too_few_points_named():
     with pytest.raises(InputError, match="src.ply: 10 distinct finite points; at least 32 are needed"):
         clean_points(blob(np.random.default_rng(0), 10), "src.ply", min_points=32)
