@@ -117,8 +117,48 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         cloud = o3d.io.read_point_cloud(str(path), format="auto")
     points = np.asarray(cloud.points, dtype=np.float64)
     if len(points) == 0:
-        raise InputError(f"{path}: parsed to 0 points; is it a valid {ext[1:].upper()} point cloud?")
+        raise InputError(f"{path}: parsed to 0 points; is it a valid {ext[1:].upper()} point cloud?{_bad_text_line(path, ext, 0)}")
+    bad = _bad_text_line(path, ext, len(points))
+    if bad:  # a line Open3D skipped: the cloud would be read in part
+        raise InputError(f"{path}: {len(points)} points read, but not every line.{bad}")
     return points
+
+
+TEXT_EXTENSIONS = (".xyz", ".xyzn", ".xyzrgb", ".pts")
+# The fewest numbers a line of each text format holds (Open3D's readers read no more).
+_TEXT_COLUMNS = {".xyz": 3, ".xyzn": 6, ".xyzrgb": 6, ".pts": 3}
+
+
+def _bad_text_line(path: Path, ext: str, parsed: int) -> str:
+    """For a text format whose lines Open3D did not all read (it skips those it cannot parse):
+    where the first such line is, as " Line N: '...'; expected ..."; "" where every line after a
+    header (the lines before the first of numbers; for .pts, also the point count) became a point,
+    and for other formats."""
+    if ext not in TEXT_EXTENSIONS:
+        return ""
+    data = path.read_bytes()
+    columns = _TEXT_COLUMNS[ext]
+
+    def numbers(line: str) -> bool:
+        fields = line.split()
+        try:
+            [float(v) for v in fields]
+        except ValueError:
+            return False
+        return len(fields) >= columns
+
+    header = not numbers(data.split(b"\n", 1)[0].decode("utf-8", errors="replace"))
+    if data.count(b"\n") + (not data.endswith(b"\n")) <= parsed + header:  # every line a point, or the header
+        return ""
+    lines = [(n, line.strip()) for n, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), start=1) if line.strip()]
+    first = next((i for i, (_, line) in enumerate(lines) if numbers(line)), 0)
+    body = lines[first:]  # after a header (and .pts's count), where there are points at all
+    if len(body) <= parsed:
+        return ""
+    for number, line in body:
+        if not numbers(line):
+            return f" Line {number}: {line[:60]!r}; expected {columns} numbers separated by spaces ({len(body) - parsed} {'line' if len(body) - parsed == 1 else 'lines'} not read)"
+    return ""
 
 
 @contextmanager

@@ -71,9 +71,10 @@ def _strays(points: np.ndarray) -> np.ndarray:
     cloud's reach (none where the reach is 0)."""
     if len(points) < 2:
         return np.zeros(len(points), dtype=bool)
-    distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
-    reach = 2.0 * np.percentile(distance, 99)
-    return distance > STRAY_REACH * reach if reach > 0 else np.zeros(len(points), dtype=bool)
+    with np.errstate(all="ignore"):  # coordinates near the float limit: distances of inf
+        distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+        reach = 2.0 * np.percentile(distance, 99)
+        return distance > STRAY_REACH * reach if 0 < reach < np.inf else np.zeros(len(points), dtype=bool)
 
 
 def first_of_each_row(points: np.ndarray) -> np.ndarray:
@@ -96,8 +97,9 @@ def check_spread(points: np.ndarray, name: str = "cloud") -> None:
     judged on those within twice the distance from their median that 99 % of them lie within (so
     that a few stray far points neither hide a line nor make a surface look like one)."""
     points = points[:: max(1, len(points) // 100_000)]
-    reach = np.linalg.norm(points - np.median(points, axis=0), axis=1)
-    points = points[reach <= 2.0 * np.percentile(reach, 99)]
+    with np.errstate(all="ignore"):  # coordinates near the float limit: distances of inf
+        reach = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+        points = points[reach <= 2.0 * np.percentile(reach, 99)]
     centred = points - points.mean(axis=0)
     sv = np.linalg.svd(centred, compute_uv=False)
     if sv[0] <= 1e-12 * max(1.0, np.abs(points).max()):
@@ -146,8 +148,10 @@ def local_origin(points: np.ndarray) -> np.ndarray:
     finite = points[np.isfinite(points).all(axis=1)]
     if len(finite) < 2:
         return np.zeros(3)  # cleaning reports it, by name
-    centre = np.median(finite, axis=0)
-    return centre if np.linalg.norm(centre) > scene_size(finite) else np.zeros(3)
+    with np.errstate(all="ignore"):  # absurd coordinates too are cleaning's to report
+        centre, size = np.median(finite, axis=0), scene_size(finite)
+        far = bool(np.isfinite(size) and np.linalg.norm(centre) > size)
+    return centre if far else np.zeros(3)
 
 
 def point_spacing(points: np.ndarray, sample: int = 2000, seed: int = 0) -> float:

@@ -64,6 +64,25 @@ def test_empty_files(tmp_path):
         read_points(tmp_path / "garbage.ply")
 
 
+def test_text_clouds_name_the_first_line_they_cannot_read(tmp_path, pts):
+    rows = ["%.6f %.6f %.6f" % tuple(p) for p in pts]
+    (tmp_path / "commas.xyz").write_text("\n".join(r.replace(" ", ",") for r in rows) + "\n")
+    with pytest.raises(InputError, match=r"commas.xyz: parsed to 0 points; .* Line 1: .*; expected 3 numbers separated by spaces \(200 lines not read\)"):
+        read_points(tmp_path / "commas.xyz")
+    # Open3D skips a line it cannot parse: the cloud would be read in part.
+    (tmp_path / "one_bad.xyz").write_text("\n".join(rows[:50] + ["1.0, 2.0, 3.0"] + rows[50:]) + "\n")
+    with pytest.raises(InputError, match=r"one_bad.xyz: 200 points read, but not every line. Line 51: '1.0, 2.0, 3.0'; .* \(1 line not read\)"):
+        read_points(tmp_path / "one_bad.xyz")
+    (tmp_path / "short.xyzn").write_text("\n".join(r + " 0 0 1" for r in rows[:10]) + "\n1 2 3\n")
+    with pytest.raises(InputError, match=r"short.xyzn: 10 points read, .* Line 11: '1 2 3'; expected 6 numbers"):
+        read_points(tmp_path / "short.xyzn")
+    # A header before the numbers (CloudCompare's, or .pts's count) is no bad line; blank lines neither.
+    (tmp_path / "header.xyz").write_text("// exported\nX Y Z\n" + "\n\n".join(rows) + "\n")
+    assert np.allclose(read_points(tmp_path / "header.xyz"), pts, atol=1e-6)
+    (tmp_path / "count.pts").write_text("200\n" + "\n".join(rows) + "\n")
+    assert len(read_points(tmp_path / "count.pts")) == 200
+
+
 def test_mesh_without_faces(tmp_path):
     (tmp_path / "nofaces.off").write_text("OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n")
     with pytest.raises(InputError, match="nofaces.off: mesh has 3 vertices but no faces"):
