@@ -389,8 +389,11 @@ def _errors_dict(e) -> dict:
 
 def _strays_line(removed: dict) -> list:
     """The line saying how many stray far points cleaning dropped, where it dropped any."""
+    from ..preprocess import STRAY_REACH
+
     n, m = removed.get("source_strays", 0), removed.get("target_strays", 0)
-    return [f"  strays: source {n}, target {m} points dropped (over 1,000 times farther from the median than 99 % of the cloud)"] if n or m else []
+    reach = f"over {STRAY_REACH:,.0f} times farther from the median than 99 % of the cloud"
+    return [f"  strays: source {n}, target {m} points dropped ({reach})"] if n or m else []
 
 
 def _format_result(source, target, result, errors, model_info, config) -> str:

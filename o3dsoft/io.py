@@ -56,6 +56,29 @@ def _check_readable(path: Path) -> None:
         raise InputError(f"{path}: permission denied")
 
 
+def _check_ply_coordinates(path: Path) -> None:
+    """Raise InputError where a PLY header's vertex element lacks an x, y or z property: Open3D
+    reads such vertices with whatever memory held for the missing coordinates. A file whose
+    header cannot be read is left to Open3D's reader (which reports it)."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return
+    properties, in_vertex = set(), False
+    for line in head[:end].decode("ascii", errors="replace").splitlines():
+        words = line.split()
+        if words[:1] == ["element"]:
+            in_vertex = words[1:2] == ["vertex"]
+        elif in_vertex and words[:1] == ["property"] and len(words) >= 3 and words[1] != "list":
+            properties.add(words[-1])
+    missing = [axis for axis in "xyz" if axis not in properties]
+    if missing:
+        raise InputError(
+            f"{path}: its vertices have no {', '.join(missing)} property (the header names {', '.join(sorted(properties)) or 'none'}); expected x, y and z"
+        )
+
+
 def sample_mesh(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     """n points uniformly distributed over the area of a triangle mesh (deterministic for a seed).
 
@@ -98,6 +121,8 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
             raise InputError(f"{path}: holds {len(scans)} scans; register takes one cloud per file (o3dsoft multiway reads every scan of an E57)")
         return scans[0][1]
     o3d = _o3d()
+    if ext == ".ply":
+        _check_ply_coordinates(path)
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
         with quiet_c_output():
             mesh = o3d.io.read_triangle_mesh(str(path))

@@ -201,7 +201,8 @@ def register(
     # median: point-to-plane ICP linearises the rotation about the origin, and KISS-Matcher hashes
     # integer voxel coordinates.
     origin = local_origin(tgt)
-    src, tgt = src - origin, tgt - origin
+    if origin.any():
+        src, tgt = src - origin, tgt - origin
     if _sparser(tgt, src, config.sparser_moves):
         # The sparser cloud moves: register the target onto the source, and answer the question asked.
         swapped, (moved, fixed) = _register(tgt, src, config, model, search_model, target_name, source_name)

@@ -83,6 +83,18 @@ def test_text_clouds_name_the_first_line_they_cannot_read(tmp_path, pts):
     assert len(read_points(tmp_path / "count.pts")) == 200
 
 
+def test_a_ply_without_y_or_z_is_refused(tmp_path, pts):
+    # Open3D reads such vertices with whatever memory held for the missing coordinates.
+    (tmp_path / "x_only.ply").write_text("ply\nformat ascii 1.0\nelement vertex 40\nproperty float x\nend_header\n" + "1\n" * 40)
+    with pytest.raises(InputError, match=r"x_only.ply: its vertices have no y, z property \(the header names x\); expected x, y and z"):
+        read_points(tmp_path / "x_only.ply")
+    header = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\n"
+    (tmp_path / "mesh.ply").write_text(header + "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1\n1 0 0 2\n0 1 0 3\n3 0 1 2\n")
+    assert len(read_points(tmp_path / "mesh.ply", mesh_points=50)) == 50  # a face's list property is no coordinate
+    write_points(tmp_path / "written.ply", pts)
+    assert np.allclose(read_points(tmp_path / "written.ply"), pts)
+
+
 def test_mesh_without_faces(tmp_path):
     (tmp_path / "nofaces.off").write_text("OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n")
     with pytest.raises(InputError, match="nofaces.off: mesh has 3 vertices but no faces"):
