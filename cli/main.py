@@ -283,6 +283,7 @@ def register(
     from ..coarse import load_model
     from ..metrics import pair_errors
     from ..pipeline import register as run_register
+    from ..preprocess import local_origin
     from ..refine import ICPConfig
     from ..transforms import apply_transform
 
@@ -310,7 +311,8 @@ def register(
 
     errors = None
     if T_gt is not None:
-        errors = {"final": pair_errors(result.transformation, T_gt), "coarse": pair_errors(result.coarse_transformation, T_gt)}
+        origin = local_origin(tgt)  # georeferenced scans: their errors about the target, not the frame's origin
+        errors = {"final": pair_errors(result.transformation, T_gt, origin), "coarse": pair_errors(result.coarse_transformation, T_gt, origin)}
     model_info = {"path": str(model.path), "trained": model.meta.get("info", {})}
     if as_json:
         payload = {"source": str(source), "target": str(target), "model": model_info, **result.to_dict()}

@@ -31,7 +31,7 @@ from .errors import InputError, O3dsoftError, UsageError, terminate_as_interrupt
 from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, input_chamfer_distance, modified_chamfer_distance, pair_errors, summarise, within
 from .pipeline import RegisterConfig, register
-from .preprocess import normalisation_for
+from .preprocess import local_origin, normalisation_for
 from .transforms import apply_transform, rotation_angle_deg
 
 METHODS: Dict[str, str] = {
@@ -420,7 +420,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
 
 def score(pair: BenchPair, result: MethodResult) -> Tuple[dict, PairErrors]:
     """The CSV row of one method on one pair, and its errors."""
-    e = pair_errors(result.transform, pair.transform)
+    e = pair_errors(result.transform, pair.transform, local_origin(pair.target))
     chamfer = modified_chamfer_distance(pair.source, pair.target, result.transform, pair.transform, pair.clean_target)
     row = {
         "protocol": pair.protocol,

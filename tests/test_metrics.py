@@ -44,6 +44,25 @@ def test_pair_errors_values():
     assert s["euler_rmse_deg"] == pytest.approx(math.sqrt(4 / 6))
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(1.0, 1e7))
+def test_translation_errors_about_an_origin_do_not_depend_on_the_frame(seed, far):
+    # The same two alignments of clouds far from their frame's origin, seen in a frame at the
+    # clouds: errors about that origin equal the errors the clouds' own frame gives.
+    rng = np.random.default_rng(seed)
+    T_gt, T_est = np.eye(4), np.eye(4)
+    T_gt[:3, :3], T_est[:3, :3] = random_rotation(rng), random_rotation(rng)
+    T_gt[:3, 3], T_est[:3, 3] = rng.normal(size=3), rng.normal(size=3)
+    origin = far * rng.normal(size=3) / np.sqrt(3)
+    S = np.eye(4)
+    S[:3, 3] = origin  # clouds around `origin`: each transform seen from the frame it was given in
+    near = pair_errors(T_est, T_gt)
+    moved = pair_errors(S @ T_est @ np.linalg.inv(S), S @ T_gt @ np.linalg.inv(S), origin)
+    assert moved.rotation_deg == pytest.approx(near.rotation_deg, abs=1e-9)
+    assert np.allclose(moved.translation_abs, near.translation_abs, atol=1e-9 * far)
+    assert pair_errors(T_est, T_gt, np.zeros(3)).translation == near.translation  # no origin: the errors as before, to the bit
+
+
 def test_chamfer_zero_at_ground_truth_and_grows():
     rng = np.random.default_rng(0)
     src = blob(rng, 200)
