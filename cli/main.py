@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
+import re
 import shlex
 import statistics
 import sys
@@ -34,7 +36,9 @@ MAX_ROTATION_HELP = (
 
 def _friendly_errors(fn):
     """Print o3dsoft's own errors as one line on stderr and exit 1 (failure) or 2 (usage); Ctrl-C
-    and SIGTERM stop the command the same way (outputs not yet complete are not left behind)."""
+    and SIGTERM stop the command the same way (outputs not yet complete are not left behind). Any
+    other error (a bug, or a library failing on an input o3dsoft does not check for) is one line
+    too, exit 1, unless O3DSOFT_TRACEBACK is set (then its traceback)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -47,8 +51,21 @@ def _friendly_errors(fn):
         except KeyboardInterrupt:
             click.echo("Interrupted.", err=True)
             sys.exit(130)
+        except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort):
+            raise
+        except Exception as e:
+            if os.environ.get("O3DSOFT_TRACEBACK"):
+                raise
+            click.echo(f"Error: {_unexpected(e)} (please report it with the command; O3DSOFT_TRACEBACK=1 shows where it happened)", err=True)
+            sys.exit(1)
 
     return wrapper
+
+
+def _unexpected(e: Exception) -> str:
+    """`e` as 'Type: first line of its message', without terminal colour codes (Open3D's)."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(e)).strip()
+    return f"{type(e).__name__}: {text.splitlines()[0]}" if text else type(e).__name__
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})

@@ -87,6 +87,24 @@ def test_register_measures_the_errors_of_georeferenced_clouds_about_the_target(t
     assert 0.01 < final["rotation_deg"] < 1.0 and final["translation"] < 0.002  # the bunny is 0.2 units across
 
 
+def test_an_error_o3dsoft_does_not_check_for_is_one_line_unless_a_traceback_is_asked(pair_files, tiny_model_path, monkeypatch):
+    import o3dsoft.pipeline
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("\x1b[1;31m[Open3D Error] (VoxelDownSample) voxel_size is too small.\x1b[0;m\nmore detail")
+
+    monkeypatch.setattr(o3dsoft.pipeline, "register", fails)
+    d, _, _ = pair_files
+    args = ["register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path]
+    r = run(*args)
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    assert r.output.startswith("Error: RuntimeError: [Open3D Error] (VoxelDownSample) voxel_size is too small. (please report it")
+    assert len(r.output.strip().splitlines()) == 1
+    monkeypatch.setenv("O3DSOFT_TRACEBACK", "1")
+    with pytest.raises(RuntimeError, match="voxel_size is too small"):
+        run(*args)
+
+
 def test_register_json(pair_files, tiny_model_path):
     d, _, T = pair_files
     r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--gt", d / "gt.txt", "--json", "--icp-distance", "0.5")
