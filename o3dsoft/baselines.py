@@ -21,9 +21,9 @@ import numpy as np
 
 from ._open3d import open3d as o3d
 from .io import quiet_c_output
-from .preprocess import local_origin
+from .preprocess import local_origin, stray_points, voxel_downsample
 from .refine import to_open3d
-from .transforms import rigid
+from .transforms import in_frame_at, rigid
 
 
 @dataclass(frozen=True)
@@ -151,9 +151,8 @@ KISS_MIN_POINTS = 500
 # It hashes integer voxel coordinates and takes float32 points: it crashes on coordinates more than
 # about 2e9 voxels from the origin (georeferenced scans: 4e6 m of UTM northing over a 2 mm voxel),
 # and float32 rounds them to metres. A cloud far from the origin is given to it about its own
-# median (:func:`o3dsoft.preprocess.local_origin`), without its points farther than this many
-# voxels from its median (strays: a scan at 1 % of its size spans about 100).
-_KISS_MAX_CELLS = 1e6
+# median (:func:`o3dsoft.preprocess.local_origin`), without its strays
+# (:func:`o3dsoft.preprocess.stray_points`: without them a cloud spans at most about 10^5 voxels).
 
 
 def kiss_matcher(
@@ -165,11 +164,11 @@ def kiss_matcher(
     voxels (None: KISS-Matcher's own, 3 and 5)."""
     import kiss_matcher as km  # optional: o3dsoft[peers]
 
-    if min(grid_points(source, voxel), grid_points(target, voxel)) < KISS_MIN_POINTS:
+    if min(len(voxel_downsample(source, voxel)), len(voxel_downsample(target, voxel))) < KISS_MIN_POINTS:
         return None
     magnify = max(1.0, _KISS_MIN_VOXEL / voxel)
     magnified_voxel = voxel * magnify
-    (source, source_centre), (target, target_centre) = _local(source, voxel), _local(target, voxel)
+    (source, source_centre), (target, target_centre) = _local(source), _local(target)
     with quiet_c_output("stdout"):  # it prints warnings about its noise bounds on every call
         config = km.KISSMatcherConfig(magnified_voxel)
         if normal_radius is not None:
@@ -183,18 +182,12 @@ def kiss_matcher(
     return rigid(R, np.asarray(solution.translation, dtype=np.float64).ravel() / magnify + target_centre - R @ source_centre)
 
 
-def _local(points: np.ndarray, voxel: float) -> Tuple[np.ndarray, np.ndarray]:
-    """(N', 3) the points less their (3,) :func:`~o3dsoft.preprocess.local_origin`, without those
-    farther than :data:`_KISS_MAX_CELLS` voxels from their median along an axis; and that origin."""
+def _local(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """(N', 3) the points less their (3,) :func:`~o3dsoft.preprocess.local_origin`, without their
+    :func:`~o3dsoft.preprocess.stray_points`; and that origin."""
     points = np.asarray(points, dtype=np.float64)
     origin = local_origin(points)
-    stray = np.any(np.abs(points - np.median(points, axis=0)) > _KISS_MAX_CELLS * voxel, axis=1)
-    return points[~stray] - origin, origin
-
-
-def grid_points(points: np.ndarray, voxel: float) -> int:
-    """How many occupied cells of a grid of `voxel` (cloud units) the (N, 3) points fill."""
-    return len(to_open3d(points).voxel_down_sample(voxel).points)
+    return points[~stray_points(points)] - origin, origin
 
 
 def small_gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray, voxel: float, config: KissConfig = KissConfig()) -> np.ndarray:
@@ -203,14 +196,14 @@ def small_gicp(source: np.ndarray, target: np.ndarray, init: np.ndarray, voxel: 
     coordinates)."""
     import small_gicp as sg  # optional: o3dsoft[peers]
 
-    shift = rigid(np.eye(3), -local_origin(target))  # from the frame the clouds are given in
+    origin = local_origin(target)
     result = sg.align(
-        np.ascontiguousarray(target + shift[:3, 3], np.float64),
-        np.ascontiguousarray(source + shift[:3, 3], np.float64),
-        shift @ np.asarray(init, np.float64) @ np.linalg.inv(shift),
+        np.ascontiguousarray(target - origin, np.float64),
+        np.ascontiguousarray(source - origin, np.float64),
+        in_frame_at(init, origin),
         registration_type="GICP",
         downsampling_resolution=config.gicp_downsampling * voxel,
         max_correspondence_distance=config.gicp_distance * voxel,
         num_threads=config.threads,
     )
-    return np.linalg.inv(shift) @ np.asarray(result.T_target_source) @ shift
+    return in_frame_at(result.T_target_source, -origin)

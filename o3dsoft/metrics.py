@@ -11,7 +11,7 @@ from typing import Dict, NamedTuple, Optional
 
 import numpy as np
 
-from .transforms import apply_transform, matrix_to_euler_deg, rotation_angle_deg
+from .transforms import apply_transform, in_frame_at, matrix_to_euler_deg, rotation_angle_deg
 
 
 def _as_transform(T: np.ndarray) -> np.ndarray:
@@ -57,10 +57,10 @@ def pair_errors(T_est: np.ndarray, T_gt: np.ndarray, origin: Optional[np.ndarray
     (4, 4). `origin` (3,): the translation errors of both moved to a frame there (t + R o - o), for
     clouds far from their own frame's origin (georeferenced scans: a turn of 0.1 degrees about the
     origin moves a cloud 4e6 m away by 7 km; :func:`o3dsoft.preprocess.local_origin`)."""
+    if origin is not None and np.any(origin):
+        T_est, T_gt = in_frame_at(T_est, origin), in_frame_at(T_gt, origin)
     R_e, t_e = _split(T_est)
     R_g, t_g = _split(T_gt)
-    if origin is not None and np.any(origin):
-        t_e, t_g = t_e + R_e @ origin - origin, t_g + R_g @ origin - origin
     dR = R_e - R_g
     dt = t_e - t_g
     de = matrix_to_euler_deg(R_e) - matrix_to_euler_deg(R_g)

@@ -41,7 +41,7 @@ from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
 from .preprocess import local_origin, point_spacing, scene_size
 from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, TurnedPasses, kiss_available
-from .transforms import rotation_angle_deg
+from .transforms import in_frame_at, rotation_angle_deg
 from .verify import Attempt, Verifier, choice_applies
 
 # Scenes whose sizes differ more than this are named in the failure reason: most often one is in
@@ -213,16 +213,14 @@ def register(
 
 
 def _moved_back(result: RegistrationResult, origin: np.ndarray) -> RegistrationResult:
-    """A result for the clouds less (3,) `origin` turned into the result for the clouds as given:
-    each transform T' becomes T = S^-1 T' S, S the shift by -origin (its rotation unchanged, its
-    translation t' + origin - R origin)."""
+    """A result for the clouds less (3,) `origin` turned into the result for the clouds as given,
+    whose frame's origin lies at -origin of the frame registered in: each transform's rotation
+    unchanged, its translation t' + origin - R origin."""
     if not origin.any():
         return result
 
     def back(T: np.ndarray) -> np.ndarray:
-        T = np.array(T, dtype=np.float64)
-        T[:3, 3] += origin - T[:3, :3] @ origin
-        return T
+        return in_frame_at(T, -origin)
 
     return replace(
         result,

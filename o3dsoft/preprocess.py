@@ -54,7 +54,7 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
     keep = first_of_each_row(pts)
     duplicates = len(pts) - len(keep)
     pts = pts[keep]
-    stray = _strays(pts)
+    stray = stray_points(pts)
     strays = int(stray.sum())
     if strays:
         pts = pts[~stray]
@@ -66,7 +66,7 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
     return CleanReport(pts, non_finite, duplicates, strays)
 
 
-def _strays(points: np.ndarray) -> np.ndarray:
+def stray_points(points: np.ndarray) -> np.ndarray:
     """(N,) bool: the (N, 3) points farther from their median than :data:`STRAY_REACH` times the
     cloud's reach (none where the reach is 0)."""
     if len(points) < 2:

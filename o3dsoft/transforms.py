@@ -19,6 +19,14 @@ def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def in_frame_at(T: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """(4, 4) T seen in a frame whose origin lies at (3,) `origin` of T's frame (axes unchanged):
+    the same rotation, the translation t + R o - o."""
+    T = np.array(T, dtype=np.float64)
+    T[:3, 3] += T[:3, :3] @ origin - origin
+    return T
+
+
 def axis_angle_to_matrix(omega: np.ndarray) -> np.ndarray:
     """(3, 3) rotation by |omega| radians about omega (3,) (Rodrigues); the identity for 0."""
     omega = np.asarray(omega, dtype=np.float64)

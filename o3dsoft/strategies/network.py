@@ -63,8 +63,9 @@ class TurnedPasses:
     def propose(self, pair: PreparedPair, verifier: Verifier) -> None:
         source, target = pair.net_normalised
         first = search_stage.network_candidates(self.model, source, target, search_stage.cube_rotations()[1:])  # (23, 4, 4)
-        plausible = [h for h in range(len(first)) if verifier.plausible(denormalise_transform(first[h], pair.norm))]
-        fits = {h: refine_stage.evaluate(*pair.net, denormalise_transform(first[h], pair.norm), 0.5 * pair.distance).fitness for h in plausible}
+        poses = [denormalise_transform(T, pair.norm) for T in first]
+        plausible = [h for h, pose in enumerate(poses) if verifier.plausible(pose)]
+        fits = {h: refine_stage.evaluate(*pair.net, poses[h], 0.5 * pair.distance).fitness for h in plausible}
         kept = sorted(plausible, key=lambda h: -fits[h])[: self.keep]
         estimates = first[kept]
         if kept and self.iterations > 1:
