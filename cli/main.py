@@ -411,7 +411,7 @@ def _strays_line(removed: dict) -> list:
     from ..preprocess import STRAY_REACH
 
     n, m = removed.get("source_strays", 0), removed.get("target_strays", 0)
-    reach = f"over {STRAY_REACH:,.0f} times farther from the median than 99 % of the cloud"
+    reach = f"over {STRAY_REACH * 2:,.0f} times farther from the median than 90 % of the cloud"
     return [f"  strays: source {n}, target {m} points dropped ({reach})"] if n or m else []
 
 

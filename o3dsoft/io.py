@@ -56,26 +56,89 @@ def _check_readable(path: Path) -> None:
         raise InputError(f"{path}: permission denied")
 
 
-def _check_ply_coordinates(path: Path) -> None:
-    """Raise InputError where a PLY header's vertex element lacks an x, y or z property: Open3D
-    reads such vertices with whatever memory held for the missing coordinates. A file whose
-    header cannot be read is left to Open3D's reader (which reports it)."""
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2}
+_PLY_SIZES.update({"int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8})
+
+
+def _check_ply(path: Path) -> None:
+    """Raise InputError where a PLY's vertices lack an x, y or z property, or where the file ends
+    before its last vertex: Open3D reads the missing values as whatever memory held, or zeros. A
+    file whose header cannot be read is left to Open3D's reader (which reports it)."""
     with open(path, "rb") as f:
         head = f.read(65536)
     end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
+    data_start = head.find(b"\n", end) + 1
+    if not head.startswith(b"ply") or end < 0 or data_start == 0:
         return
-    properties, in_vertex = set(), False
+    form, elements = "", []  # elements: [name, count, [(type, name), ...]]
     for line in head[:end].decode("ascii", errors="replace").splitlines():
         words = line.split()
-        if words[:1] == ["element"]:
-            in_vertex = words[1:2] == ["vertex"]
-        elif in_vertex and words[:1] == ["property"] and len(words) >= 3 and words[1] != "list":
-            properties.add(words[-1])
+        if words[:1] == ["format"] and len(words) >= 2:
+            form = words[1]
+        elif words[:1] == ["element"] and len(words) >= 3 and words[2].isdigit():
+            elements.append((words[1], int(words[2]), []))
+        elif words[:1] == ["property"] and len(words) >= 3 and elements:
+            elements[-1][2].append((words[1], words[-1]))
+    names = [i for i, element in enumerate(elements) if element[0] == "vertex"]
+    if not names:
+        return
+    vertex = names[0]
+    properties = {name for kind, name in elements[vertex][2] if kind != "list"}
     missing = [axis for axis in "xyz" if axis not in properties]
     if missing:
         raise InputError(
             f"{path}: its vertices have no {', '.join(missing)} property (the header names {', '.join(sorted(properties)) or 'none'}); expected x, y and z"
+        )
+    before = elements[: vertex + 1]  # the elements the vertices' end depends on
+    count = elements[vertex][1]
+    if form == "ascii":  # one line per element
+        lines = sum(1 for line in path.read_bytes()[data_start:].splitlines() if line.strip())
+        have = lines - sum(element[1] for element in before[:-1])
+    elif form.startswith("binary") and all(kind in _PLY_SIZES for element in before for kind, _ in element[2]):
+        rows = [sum(_PLY_SIZES[kind] for kind, _ in element[2]) for element in before]
+        size = path.stat().st_size - data_start - sum(n * row for (_, n, _), row in zip(before[:-1], rows[:-1]))
+        have = size // rows[-1] if rows[-1] else count
+    else:  # list properties before the vertices: their size is not known without reading them
+        return
+    _check_whole(path, count, have, "vertices")
+
+
+def _check_pcd(path: Path) -> None:
+    """Raise InputError where a PCD file of ascii or binary data ends before its last point:
+    Open3D reads the missing points of an ascii file as zeros."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    fields, data_start = {}, -1
+    for line in head.split(b"\n"):
+        words = line.decode("ascii", errors="replace").split()
+        data_start += len(line) + 1
+        if words and not words[0].startswith("#"):
+            fields[words[0].upper()] = words[1:]
+        if words[:1] == ["DATA"]:
+            break
+    else:
+        return
+    form, count = fields["DATA"][:1], fields.get("POINTS", [""])[0]
+    if not count.isdigit():
+        return
+    count = int(count)
+    if form == ["ascii"]:
+        have = sum(1 for line in path.read_bytes()[data_start + 1 :].splitlines() if line.strip())
+    elif form == ["binary"]:
+        try:
+            row = sum(int(size) * int(n) for size, n in zip(fields["SIZE"], fields.get("COUNT", ["1"] * len(fields["SIZE"]))))
+        except (KeyError, ValueError):
+            return
+        have = (path.stat().st_size - data_start - 1) // row if row > 0 else count
+    else:  # compressed: Open3D's reader refuses a cut one
+        return
+    _check_whole(path, count, have, "points")
+
+
+def _check_whole(path: Path, declared: int, have: int, noun: str) -> None:
+    if have < declared:
+        raise InputError(
+            f"{path}: the header declares {declared} {noun}, but the file ends after {max(have, 0)}; is it complete (a copy or a download cut short)?"
         )
 
 
@@ -122,7 +185,9 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         return scans[0][1]
     o3d = _o3d()
     if ext == ".ply":
-        _check_ply_coordinates(path)
+        _check_ply(path)
+    if ext == ".pcd":
+        _check_pcd(path)
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
         with quiet_c_output():
             mesh = o3d.io.read_triangle_mesh(str(path))

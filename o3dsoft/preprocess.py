@@ -25,14 +25,19 @@ class CleanReport(NamedTuple):
 
 
 # A point farther from its cloud's median than this many times the cloud's reach (twice the distance
-# within which 99 % of its points lie) is a stray (a sensor's glitch at 1e12): dropped. Such points
-# overflow the voxel grids' integer cells (Open3D refuses the grid) and are no part of any scene.
+# within which 90 % of its points lie, so that up to a tenth of them may be glitches) is a stray (a
+# sensor's glitch at 1e12): dropped. Such points overflow the voxel grids' integer cells (Open3D
+# refuses the grid) and are no part of any scene.
 STRAY_REACH = 1000.0
+# The largest coordinate accepted once strays are dropped (cloud units): no scan measures farther in
+# any unit (float64 steps are 1e-4 there), and squares of larger ones overflow. Beyond it, the file
+# holds garbage (a damaged file, or values of another type).
+MAX_COORDINATE = 1e12
 
 
 def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -> CleanReport:
     """Drop rows with NaN/inf, exact duplicate points and strays (:data:`STRAY_REACH`); reject
-    degenerate clouds.
+    degenerate clouds and coordinates beyond :data:`MAX_COORDINATE`.
 
     Args:
         points: (N, 3) array.
@@ -41,8 +46,8 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
     Returns:
         CleanReport with the kept (N', 3) float64 points, in their original order.
     Raises:
-        InputError: wrong shape, fewer than ``min_points`` points left, all points identical,
-            or all points on one line.
+        InputError: wrong shape, fewer than ``min_points`` points left, a coordinate beyond
+            :data:`MAX_COORDINATE`, all points identical, or all points on one line.
     """
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -62,6 +67,11 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
         removed = f"{non_finite} rows with NaN/inf, {duplicates} duplicates" + (f" and {strays} strays" if strays else "")
         detail = f" ({removed} removed)" if non_finite or duplicates or strays else ""
         raise InputError(f"{name}: {len(pts)} distinct finite points{detail}; at least {min_points} are needed")
+    largest = float(np.abs(pts).max())
+    if largest > MAX_COORDINATE:
+        raise InputError(
+            f"{name}: a coordinate of {largest:.3g} remains after dropping {strays} strays; no scan measures that far (at most {MAX_COORDINATE:g} units): is the file damaged?"
+        )
     check_spread(pts, name)
     return CleanReport(pts, non_finite, duplicates, strays)
 
@@ -74,7 +84,7 @@ def stray_points(points: np.ndarray) -> np.ndarray:
     with np.errstate(all="ignore"):  # coordinates near the float limit: distances of inf
         sample = points[:: max(1, len(points) // 100_000)]  # the median and the reach, of up to 2 x 10^5
         centre = np.median(sample, axis=0)
-        reach = 2.0 * np.percentile(np.linalg.norm(sample - centre, axis=1), 99)
+        reach = 2.0 * np.percentile(np.linalg.norm(sample - centre, axis=1), 90)
         if not 0 < reach < np.inf:
             return np.zeros(len(points), dtype=bool)
         return np.linalg.norm(points - centre, axis=1) > STRAY_REACH * reach

@@ -95,6 +95,31 @@ def test_a_ply_without_y_or_z_is_refused(tmp_path, pts):
     assert np.allclose(read_points(tmp_path / "written.ply"), pts)
 
 
+@pytest.mark.parametrize("ext, ascii", [(".ply", False), (".ply", True), (".pcd", False), (".pcd", True)])
+def test_a_file_cut_short_is_refused(tmp_path, pts, ext, ascii):
+    # Open3D reads the missing points of a cut PLY, and of a cut ascii PCD, as zeros.
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    o3d.io.write_point_cloud(str(tmp_path / f"whole{ext}"), cloud, write_ascii=ascii)
+    assert np.allclose(read_points(tmp_path / f"whole{ext}"), pts, atol=1e-5)
+    data = (tmp_path / f"whole{ext}").read_bytes()
+    header = data.index(b"end_header\n" if ext == ".ply" else b"DATA") + 16
+    (tmp_path / f"cut{ext}").write_bytes(data[: header + (len(data) - header) // 2])
+    noun = "vertices" if ext == ".ply" else "points"
+    with pytest.raises(InputError, match=rf"cut{ext}: the header declares 200 {noun}, but the file ends after (9[0-9]|10[0-9]); is it complete"):
+        read_points(tmp_path / f"cut{ext}")
+
+
+def test_a_mesh_cut_within_its_vertices_is_refused(tmp_path):
+    box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    data = trimesh.exchange.ply.export_ply(box, encoding="binary")
+    header = data.index(b"end_header\n") + 11
+    (tmp_path / "cut.ply").write_bytes(data[: header + 5 * 12])  # 5 of its 8 vertices (three float32 each)
+    with pytest.raises(InputError, match="cut.ply: the header declares 8 vertices, but the file ends after 5"):
+        read_points(tmp_path / "cut.ply")
+
+
 def test_mesh_without_faces(tmp_path):
     (tmp_path / "nofaces.off").write_text("OFF\n3 0 0\n0 0 0\n1 0 0\n0 1 0\n")
     with pytest.raises(InputError, match="nofaces.off: mesh has 3 vertices but no faces"):

@@ -56,6 +56,35 @@ def test_stray_far_points_are_dropped_and_counted():
         clean_points(np.vstack([np.outer(np.arange(500.0), [1, 2, 3]), [[1e12, 0, 0], [0, 1e12, 0]]]), "scan.ply", min_points=2)
 
 
+def test_glitches_up_to_a_tenth_of_the_cloud_are_strays_and_garbage_is_refused():
+    rng = np.random.default_rng(3)
+    cloud = _surface(rng, 2_000)
+    glitches = rng.normal(size=(100, 3)) * 1e12  # 5 % of the cloud
+    rep = clean_points(np.vstack([cloud, glitches]), "scan.ply")
+    assert rep.strays == 100 and np.array_equal(rep.points, cloud)
+    garbage = rng.normal(size=(600, 3)) * 1e200  # 30 %: the cloud itself cannot be told apart
+    with pytest.raises(InputError, match=r"scan.ply: a coordinate of .*e\+200 remains after dropping 0 strays; .* is the file damaged\?"):
+        clean_points(np.vstack([cloud, garbage]), "scan.ply")
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 0.6), st.sampled_from([1e3, 1e12, 1e100, 1e200, 1e308]))
+def test_a_cloud_with_glitches_of_any_size_is_cleaned_or_refused_in_words(seed, share, size):
+    # A cut or damaged file leaves values of any size in a cloud; cleaning must not fail otherwise.
+    from o3dsoft.preprocess import MAX_COORDINATE
+
+    rng = np.random.default_rng(seed)
+    cloud = _surface(rng, 300)
+    bad = rng.random(len(cloud)) < share
+    with np.errstate(over="ignore"):  # 1e308 times a normal draw: some become inf, as garbage may
+        cloud[bad] = rng.normal(size=(int(bad.sum()), 3)) * size
+    try:
+        rep = clean_points(cloud, "scan.ply")
+    except InputError:
+        return
+    assert np.abs(rep.points).max() <= MAX_COORDINATE and len(rep.points) >= 1
+
+
 def test_too_few_points_named():
     with pytest.raises(InputError, match="src.ply: 10 distinct finite points; at least 32 are needed"):
         clean_points(blob(np.random.default_rng(0), 10), "src.ply", min_points=32)
