@@ -309,6 +309,9 @@ def register(
             raise click.UsageError(f"{opt} {p}: give a file name with an extension")
     if out_path is not None:
         io.check_extension(out_path, io.WRITE_EXTENSIONS, "--out")
+    io.check_outputs_apart(
+        {"--out": out_path, "--save-transform": save_transform, "--render": render_path}, {"SOURCE": source, "TARGET": target, "--gt": gt_path}
+    )
     for p in (out_path, save_transform, render_path):  # before the work, which can take minutes
         if p is not None:
             io.check_writable(p)
@@ -525,6 +528,9 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, render_path,
             clouds.append(points)
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
+    io.check_outputs_apart(
+        {"--out's poses": out_dir / "poses.json", "--out's merged cloud": out_dir / "merged.ply", "--render": render_path}, {f"the scan {p}": p for p in scans}
+    )
     io.make_folder(out_dir)  # after the scans are read: a bad file leaves no folder behind
     for p in (out_dir / "poses.json", out_dir / "merged.ply", render_path):
         if p is not None:

@@ -16,7 +16,7 @@ import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, List, Tuple, Union
+from typing import Dict, Iterator, List, Optional, Tuple, Union
 
 import numpy as np
 
@@ -397,6 +397,27 @@ def check_writable(path: PathLike) -> None:
         raise InputError(f"{path}: cannot write, it is a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise InputError(f"{path}: cannot write in folder {folder} (permission denied)")
+
+
+def check_outputs_apart(outputs: Dict[str, Optional[PathLike]], inputs: Dict[str, Optional[PathLike]]) -> None:
+    """Raise UsageError where an output file (by option name, e.g. ``{"--out": path}``; None: not
+    asked for) is one of the input files or another output: writing it would destroy the data
+    read, or one output would replace another. Links and other spellings of a path count."""
+    seen: Dict[str, Path] = {}
+    for name, path in list(inputs.items()) + list(outputs.items()):
+        if path is None:
+            continue
+        path = Path(path)
+        for other, taken in seen.items():
+            if name in outputs and _same_file(path, taken):
+                raise UsageError(f"{path} ({name}): the same file as {other}; o3dsoft writes over neither what it reads nor another of its outputs")
+        seen[name] = path
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    if a.exists() and b.exists():
+        return os.path.samefile(a, b)
+    return a.resolve() == b.resolve()
 
 
 def remove_stale_temporaries(folder: PathLike, names) -> List[Path]:

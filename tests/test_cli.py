@@ -338,6 +338,38 @@ def test_a_broken_ply_file_is_one_line_on_stderr(tmp_path, content):
         assert "declares 500 vertices, but the file ends after 250" in r.stderr
 
 
+@pytest.mark.parametrize(
+    "outputs, message",
+    [
+        (["--out", "tgt.pcd"], "tgt.pcd (--out): the same file as TARGET"),
+        (["--out", "./sub/../src.ply"], "src.ply (--out): the same file as SOURCE"),
+        (["--save-transform", "gt.txt"], "gt.txt (--save-transform): the same file as --gt"),
+        (["--out", "a.npy", "--save-transform", "a.npy"], "a.npy (--save-transform): the same file as --out"),
+        (["--out", "link.ply"], "link.ply (--out): the same file as SOURCE"),
+    ],
+)
+def test_an_output_over_an_input_is_refused_before_the_work(pair_files, tiny_model_path, outputs, message):
+    d, _, _ = pair_files
+    (d / "sub").mkdir()
+    (d / "link.ply").symlink_to(d / "src.ply")
+    before = {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()}
+    r = CliRunner().invoke(
+        main,
+        [
+            "register",
+            str(d / "src.ply"),
+            str(d / "tgt.pcd"),
+            "--gt",
+            str(d / "gt.txt"),
+            "--weights",
+            str(tiny_model_path),
+            *[str(d / o) if "." in o else o for o in outputs],
+        ],
+    )
+    assert r.exit_code == 2 and message in r.output, r.output
+    assert {p.name: p.read_bytes() for p in d.iterdir() if p.is_file()} == before
+
+
 def test_outputs_are_checked_before_the_work_and_a_failed_write_keeps_the_result(pair_files, tiny_model_path, monkeypatch):
     import o3dsoft.pipeline as pipeline_module
 

@@ -150,6 +150,11 @@ def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
     twice = runner.invoke(main, ["multiway", str(a), str(b), str(a), "--out", str(tmp_path / "o1")])
     assert twice.exit_code == 2 and "given twice" in twice.output
     assert not (tmp_path / "o1").exists()
+    (tmp_path / "o4").mkdir()
+    merged = write_points(tmp_path / "o4" / "merged.ply", clouds[1])
+    over = runner.invoke(main, ["multiway", str(a), str(merged), "--out", str(tmp_path / "o4")])
+    assert over.exit_code == 2 and "merged.ply (--out's merged cloud): the same file as the scan" in over.output
+    assert np.array_equal(read_points(merged), clouds[1])
     import laspy
 
     laspy.LasData(laspy.LasHeader(point_format=0, version="1.4")).write(tmp_path / "empty.las")
