@@ -20,8 +20,9 @@ from .search import FeatureMatch
 
 if TYPE_CHECKING:
     import open3d
+    import torch
 
-CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud"]
+CloudLike = Union[np.ndarray, "open3d.geometry.PointCloud", "open3d.t.geometry.PointCloud", "torch.Tensor"]
 Clouds = Tuple[np.ndarray, np.ndarray]  # (N, 3) source, (M, 3) target
 
 # Clouds with more points than this are scans even off a grid: above any ModelNet40 release (2,048 per shape).
@@ -29,15 +30,22 @@ SCAN_POINTS = 4096
 
 
 def as_points(cloud: CloudLike, name: str) -> np.ndarray:
-    """An Open3D PointCloud or an (N, 3) array-like -> (N, 3) float64 array."""
+    """An Open3D PointCloud (legacy or tensor), a torch tensor or an (N, 3) array-like -> (N, 3)
+    float64 array."""
     if hasattr(cloud, "points") and not isinstance(cloud, np.ndarray):
         return np.asarray(cloud.points, dtype=np.float64)
+    if hasattr(cloud, "point") and hasattr(cloud, "to_legacy"):  # open3d.t.geometry.PointCloud
+        if "positions" not in cloud.point:
+            raise InputError(f"{name}: an Open3D tensor PointCloud without positions")
+        return cloud.point.positions.cpu().numpy().astype(np.float64)
     if hasattr(cloud, "detach") and hasattr(cloud, "cpu"):  # a torch tensor, perhaps on a GPU or with a gradient
         cloud = cloud.detach().cpu().numpy()
     try:
         arr = np.asarray(cloud)
     except ValueError as e:  # ragged nested lists
         raise InputError(f"{name}: expected points of shape (N, 3), got rows of different lengths ({e})") from None
+    if arr.ndim == 0:  # not an array at all (e.g. a mesh)
+        raise InputError(f"{name}: expected an Open3D PointCloud, a tensor or (N, 3) points, got a {type(cloud).__module__}.{type(cloud).__qualname__}")
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise InputError(f"{name}: expected points of shape (N, 3), got {arr.shape}")
     if np.iscomplexobj(arr) or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):

@@ -180,8 +180,8 @@ def register(
     """Find T_target_source, the rigid transform that maps `source` onto `target`.
 
     Args:
-        source: (N, 3) array or Open3D PointCloud, any units and position.
-        target: (M, 3) array or Open3D PointCloud, same units as source.
+        source: (N, 3) array, torch tensor or Open3D PointCloud (legacy or tensor), any units and position.
+        target: (M, 3), the same kinds, in the same units as source.
         config: pipeline settings.
         model: an already loaded model (else loaded from ``config.weights``).
         search_model: an already loaded search network (else loaded from

@@ -15,6 +15,7 @@ field uses (:data:`KINDS`).
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Tuple, Union
 
@@ -71,7 +72,8 @@ class PairEntry(NamedTuple):
 
 def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,)) -> List[Tuple[int, List[Path]]]:
     """(line number, files) of each pair a pairs file lists: lines of `counts` file names
-    (``source target transform``; ``#`` starts a comment), resolved against the file's folder.
+    (``source target transform``; ``#`` starts a comment; a name with spaces in quotes), resolved
+    against the file's folder.
 
     Raises:
         UsageError: no such file.
@@ -83,15 +85,26 @@ def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,)) -> List[T
     expected = "source target transform" if counts == (3,) else "source target [transform]"
     lines = []
     for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        fields = line.split("#", 1)[0].split()
+        fields = _fields(line, f"{path}, line {lineno}")
         if not fields:
             continue
         if len(fields) not in counts:
-            raise InputError(f"{path}, line {lineno}: expected '{expected}', got {len(fields)} field(s)")
+            raise InputError(f"{path}, line {lineno}: expected '{expected}', got {len(fields)} field(s) (a file name with spaces goes in quotes)")
         lines.append((lineno, [path.parent / f for f in fields]))
     if not lines:
         raise InputError(f"{path}: no pairs (expected lines '{expected}')")
     return lines
+
+
+def _fields(line: str, where: str) -> List[str]:
+    """The names on a line of a pairs file: split at spaces, but a name may be quoted (shell
+    rules; only lines with a quote are read so, so that Windows paths keep their backslashes)."""
+    if '"' not in line and "'" not in line:
+        return line.split("#", 1)[0].split()
+    try:
+        return shlex.split(line, comments=True)
+    except ValueError as e:  # an unclosed quote
+        raise InputError(f"{where}: {e}") from None
 
 
 def read_pairs_file(path: Union[str, Path]) -> List[PairEntry]:

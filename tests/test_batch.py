@@ -76,6 +76,17 @@ def test_pairs_file_lines(tmp_path, pairs_file):
         read_pair_jobs(bad)
     with pytest.raises(UsageError, match="no such pairs file"):
         read_pair_jobs(tmp_path / "none.txt")
+    spaced = tmp_path / "spaced.txt"
+    spaced.write_text("\"scan 1.ply\" 'scan 2.ply'  # quoted: names with spaces\nC:\\scans\\a.ply b.ply\nscan 1.ply scan 2.ply\n")
+    with pytest.raises(InputError, match="spaced.txt, line 3: expected .*, got 4 field\\(s\\) \\(a file name with spaces goes in quotes\\)"):
+        read_pair_jobs(spaced)
+    spaced.write_text(spaced.read_text().splitlines()[0] + "\n" + spaced.read_text().splitlines()[1] + "\n")
+    first, second = read_pair_jobs(spaced)
+    assert (first.source, first.target) == (str(tmp_path / "scan 1.ply"), str(tmp_path / "scan 2.ply"))
+    assert second.source == str(tmp_path / "C:\\scans\\a.ply")  # an unquoted line keeps its backslashes
+    spaced.write_text('"scan 1.ply scan 2.ply\n')
+    with pytest.raises(InputError, match="spaced.txt, line 1: No closing quotation"):
+        read_pair_jobs(spaced)
 
 
 def test_sequential_rows_report_the_missing_file_and_run_the_rest(tmp_path, pairs_file):

@@ -427,6 +427,13 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         as_points([[1.0, 2.0, 3.0], [1.0, 2.0]], "source")
     with pytest.raises(InputError, match="target: expected real numeric points, got dtype complex128"):
         as_points(np.ones((50, 3), dtype=complex), "target")  # the imaginary part is not silently dropped
+    import open3d as o3d
+
+    pts = np.random.default_rng(0).random((50, 3))
+    assert np.array_equal(as_points(o3d.t.geometry.PointCloud(o3d.core.Tensor(pts)), "source"), pts)  # Open3D's tensor API
+    assert np.array_equal(as_points(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)), "source"), pts)
+    with pytest.raises(InputError, match="source: expected an Open3D PointCloud, a tensor or \\(N, 3\\) points, got a .*TriangleMesh"):
+        as_points(o3d.geometry.TriangleMesh.create_sphere(), "source")
 
 
 def test_a_result_the_full_clouds_reject_sends_the_pair_to_the_search(monkeypatch):
