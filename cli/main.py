@@ -222,7 +222,7 @@ def _register_config(
 @click.option("--ray", "ray_address", help="--pairs: run on a Ray cluster: local (start one here), auto (the one `ray start` set up) or its address.")
 @click.option("--no-progress", is_flag=True, help="--pairs: no progress bar.")
 @click.option("--gt", "gt_path", type=click.Path(path_type=Path), help="Ground-truth T_target_source (4x4 text or .npy): print the errors against it.")
-@click.option("--out", "out_path", type=click.Path(path_type=Path), help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .npy).")
+@click.option("--out", "out_path", type=click.Path(path_type=Path), help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las).")
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
 @click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")

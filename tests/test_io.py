@@ -13,7 +13,7 @@ def pts():
     return blob(np.random.default_rng(0), 200)
 
 
-@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy", ".las"])
+@pytest.mark.parametrize("ext", [".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".csv", ".npy", ".las"])
 def test_point_formats_round_trip(tmp_path, pts, ext):
     path = write_points(tmp_path / f"cloud{ext}", pts)
     back = read_points(path)
@@ -81,6 +81,23 @@ def test_text_clouds_name_the_first_line_they_cannot_read(tmp_path, pts):
     assert np.allclose(read_points(tmp_path / "header.xyz"), pts, atol=1e-6)
     (tmp_path / "count.pts").write_text("200\n" + "\n".join(rows) + "\n")
     assert len(read_points(tmp_path / "count.pts")) == 200
+
+
+def test_delimited_text_exports_are_read_by_their_named_columns(tmp_path, pts):
+    rows = [f"{x},{y},{z},200,10,10" for x, y, z in pts]  # CloudCompare's .txt export
+    (tmp_path / "cc.txt").write_text("//X,Y,Z,R,G,B\n" + "\n".join(rows) + "\n")
+    assert np.allclose(read_points(tmp_path / "cc.txt"), pts)
+    rows = [f'{i};"{z}";{y};{x}' for i, (x, y, z) in enumerate(pts)]  # columns in another order
+    (tmp_path / "named.csv").write_text('id;"Z";"Y";"X"\n' + "\n\n".join(rows) + "\n")
+    assert np.allclose(read_points(tmp_path / "named.csv"), pts)
+    (tmp_path / "tabs.txt").write_text("\n".join("\t".join(map(str, p)) for p in pts) + "\n")
+    assert np.allclose(read_points(tmp_path / "tabs.txt"), pts)
+    (tmp_path / "short.csv").write_text("X,Y,Z\n1,2,3\n4,5\n")
+    with pytest.raises(InputError, match="short.csv: line 3: '4,5'; expected its columns x, y, z separated by commas, as on line 2"):
+        read_points(tmp_path / "short.csv")
+    (tmp_path / "decimal_commas.csv").write_text("1,5;2,5;3,5\n")
+    with pytest.raises(InputError, match="decimal_commas.csv: no line of at least 3 numbers separated by commas, semicolons, tabs or spaces"):
+        read_points(tmp_path / "decimal_commas.csv")
 
 
 def test_a_ply_without_y_or_z_is_refused(tmp_path, pts):
