@@ -85,6 +85,20 @@ def test_a_cloud_with_glitches_of_any_size_is_cleaned_or_refused_in_words(seed, 
     assert np.abs(rep.points).max() <= MAX_COORDINATE and len(rep.points) >= 1
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2_100, 6_000), st.floats(0.3, 3.0))
+def test_the_grid_test_on_a_subset_decides_as_the_whole_cloud(seed, n, factor):
+    # A point's nearest neighbour in a subset is never nearer: the shortcut may only say yes
+    # where the whole cloud would.
+    from o3dsoft.preprocess import point_spacing, spaced_closer_than
+
+    cloud = _surface(np.random.default_rng(seed), n)
+    spacing = point_spacing(cloud)
+    for threshold in (spacing * factor, spacing, np.nextafter(spacing, np.inf)):
+        assert spaced_closer_than(cloud, threshold, subset=50) == (spacing < threshold)
+        assert spaced_closer_than(cloud, threshold, subset=n // 2) == (spacing < threshold)
+
+
 def test_too_few_points_named():
     with pytest.raises(InputError, match="src.ply: 10 distinct finite points; at least 32 are needed"):
         clean_points(blob(np.random.default_rng(0), 10), "src.ply", min_points=32)
