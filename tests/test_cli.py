@@ -1,4 +1,5 @@
 import json
+import re
 
 import numpy as np
 import pytest
@@ -57,6 +58,7 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert "T_target_source" in r.output and "higher is better" in r.output and "lower is better" in r.output
     assert "network + ICP" in r.output and "deg" in r.output
     assert "constraint   not measured: the clouds share their points" in r.output  # the target is the source moved
+    assert re.search(r"estimate     from the [a-zA-Z -]+(, refined by ICP)?\n", r.output)  # "from the network starts", not "the network starts's"
     assert np.allclose(read_transform(d / "T.txt"), T, atol=1e-5)
     assert np.allclose(read_points(d / "aligned.xyz"), apply(T, src), atol=1e-4)
     assert (d / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"Picture: {d / 'fig.png'}" in r.output
