@@ -95,14 +95,27 @@ def first_of_each_row(points: np.ndarray) -> np.ndarray:
     (N',). Rows are compared by their bytes (so -0.0 and 0.0 differ, as they do in a file).
 
     Each row is hashed to one 64-bit integer, and those are sorted (1.6 times as fast as sorting
-    the rows' bytes on 40,000 points, 2.5 times on 10^6); rows that share a hash are checked for
-    equality, and if any differ the rows' bytes are sorted after all."""
+    the rows' bytes on 40,000 points, 2.5 times on 10^6); where no two hashes are alike every row
+    is kept, else rows that share a hash are checked for equality, and if any differ the rows'
+    bytes are sorted after all."""
     rows = np.ascontiguousarray(points, dtype=np.float64).view(np.uint64).reshape(-1, 3)
-    hashed = rows[:, 0] * np.uint64(0x9E3779B97F4A7C15) ^ rows[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F) ^ rows[:, 2] * np.uint64(0x165667B19E3779F9)
-    _, first, inverse = np.unique(hashed, return_index=True, return_inverse=True)
-    if not np.array_equal(rows, rows[first[inverse.ravel()]]):  # two different rows share a hash
+    hashed = _row_hashes(rows)
+    ordered = np.sort(hashed)
+    if not (ordered[1:] == ordered[:-1]).any():  # no two hashes alike, so no two rows alike (most scans)
+        return np.arange(len(rows))
+    order = np.argsort(hashed, kind="stable")  # rows of one hash in their order: each group's first comes first
+    ordered = hashed[order]
+    starts = np.concatenate([[True], ordered[1:] != ordered[:-1]])
+    first = order[starts]
+    later = np.flatnonzero(~starts)  # sorted positions of rows whose hash an earlier row has
+    if not np.array_equal(rows[order[later]], rows[first[np.cumsum(starts)[later] - 1]]):  # two different rows share a hash
         _, first = np.unique(rows.view(np.dtype((np.void, 24))).ravel(), return_index=True)
     return np.sort(first)
+
+
+def _row_hashes(rows: np.ndarray) -> np.ndarray:
+    """(N,) uint64 hashes of the (N, 3) uint64 rows (a float64 cloud's bytes)."""
+    return rows[:, 0] * np.uint64(0x9E3779B97F4A7C15) ^ rows[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F) ^ rows[:, 2] * np.uint64(0x165667B19E3779F9)
 
 
 def check_spread(points: np.ndarray, name: str = "cloud") -> None:
