@@ -56,12 +56,15 @@ def test_missing_file_and_unknown_extension(tmp_path):
 
 
 def test_empty_files(tmp_path):
-    (tmp_path / "empty.xyz").write_text("")
-    with pytest.raises(InputError, match="empty.xyz: parsed to 0 points"):
-        read_points(tmp_path / "empty.xyz")
-    (tmp_path / "garbage.ply").write_text("this is not a ply file\n")
-    with pytest.raises(InputError, match="garbage.ply: parsed to 0 points"):
-        read_points(tmp_path / "garbage.ply")
+    _refused(tmp_path / "empty.xyz", "", "empty.xyz: parsed to 0 points")
+    _refused(tmp_path / "garbage.ply", "this is not a ply file\n", "garbage.ply: parsed to 0 points")
+
+
+def _refused(path, text, match):
+    """Write `text` to `path` and check that reading it raises an InputError matching `match`."""
+    path.write_text(text)
+    with pytest.raises(InputError, match=match):
+        read_points(path)
 
 
 def test_text_clouds_name_the_first_line_they_cannot_read(tmp_path, pts):
@@ -92,12 +95,10 @@ def test_delimited_text_exports_are_read_by_their_named_columns(tmp_path, pts):
     assert np.allclose(read_points(tmp_path / "named.csv"), pts)
     (tmp_path / "tabs.txt").write_text("\n".join("\t".join(map(str, p)) for p in pts) + "\n")
     assert np.allclose(read_points(tmp_path / "tabs.txt"), pts)
-    (tmp_path / "short.csv").write_text("X,Y,Z\n1,2,3\n4,5\n")
-    with pytest.raises(InputError, match="short.csv: line 3: '4,5'; expected its columns x, y, z separated by commas, as on line 2"):
-        read_points(tmp_path / "short.csv")
-    (tmp_path / "decimal_commas.csv").write_text("1,5;2,5;3,5\n")
-    with pytest.raises(InputError, match="decimal_commas.csv: no line of at least 3 numbers separated by commas, semicolons, tabs or spaces"):
-        read_points(tmp_path / "decimal_commas.csv")
+    _refused(tmp_path / "short.csv", "X,Y,Z\n1,2,3\n4,5\n", "short.csv: line 3: '4,5'; expected its columns x, y, z separated by commas, as on line 2")
+    _refused(
+        tmp_path / "decimal_commas.csv", "1,5;2,5;3,5\n", "decimal_commas.csv: no line of at least 3 numbers separated by commas, semicolons, tabs or spaces"
+    )
 
 
 def test_a_ply_without_y_or_z_is_refused(tmp_path, pts):
