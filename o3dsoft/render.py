@@ -73,7 +73,7 @@ def render_registration(
         shown = ax.scatter(*flat.T, s=0.7, c=np.minimum(near, distance), cmap="plasma", vmin=0.0, vmax=distance, linewidths=0, label="source")
         ax.set_aspect("equal")
         share = 100.0 * float(np.mean(near < distance / 3))
-        ax.set_title(f"({chr(96 + i)}) {title}: {share:.0f} % of the source within {distance / 3:.3g}", fontsize=8)
+        ax.set_title(f"({chr(96 + i)}) {title}: {share:.0f} % of the source within {distance / 3:.3g} units", fontsize=8)
         ax.tick_params(labelsize=6)
         if i == 1:
             ax.legend(loc="upper left", fontsize=7, markerscale=8)
@@ -81,7 +81,7 @@ def render_registration(
     cbar = fig.colorbar(shown, ax=fig.axes, shrink=0.8, pad=0.01)
     cbar.set_label("source point's distance to the target (cloud units, lower is better)", fontsize=7)
     cbar.ax.tick_params(labelsize=6)
-    fig.text(0.01, 0.01, "View: the target's principal plane. " + caption, fontsize=7)
+    fig.text(0.01, 0.01, "View: the target's principal plane. Shares of the source near the target: higher is better. " + caption, fontsize=7)
     with atomic_output(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
     return Path(path)
