@@ -12,6 +12,7 @@ leaves a half-written output.
 from __future__ import annotations
 
 import os
+import re
 import sys
 import tempfile
 from contextlib import contextmanager
@@ -92,10 +93,13 @@ def _check_ply(path: Path) -> None:
         )
     before = elements[: vertex + 1]  # the elements the vertices' end depends on
     count = elements[vertex][1]
-    if form == "ascii":  # one line per element
+    if form == "ascii":  # one line per element, so faces too are counted
         lines = sum(1 for line in path.read_bytes()[data_start:].splitlines() if line.strip())
-        have = lines - sum(element[1] for element in before[:-1])
-    elif form.startswith("binary") and all(kind in _PLY_SIZES for element in before for kind, _ in element[2]):
+        for name, declared, _ in elements:
+            _check_whole(path, declared, lines, {"vertex": "vertices", "face": "faces"}.get(name, f"'{name}' elements"))
+            lines -= declared
+        return
+    if form.startswith("binary") and all(kind in _PLY_SIZES for element in before for kind, _ in element[2]):
         rows = [sum(_PLY_SIZES[kind] for kind, _ in element[2]) for element in before]
         size = path.stat().st_size - data_start - sum(n * row for (_, n, _), row in zip(before[:-1], rows[:-1]))
         have = size // rows[-1] if rows[-1] else count
@@ -134,6 +138,34 @@ def _check_pcd(path: Path) -> None:
     else:  # compressed: Open3D's reader refuses a cut one
         return
     _check_whole(path, count, have, "points")
+
+
+def _check_off(path: Path) -> None:
+    """Raise InputError where a text OFF mesh ends before the vertices and faces its counts line
+    declares: Open3D samples the faces it read, a part of the surface."""
+    lines = [line.split("#", 1)[0].split() for line in path.read_bytes().decode("ascii", errors="replace").splitlines()]
+    lines = [words for words in lines if words]
+    keyword = re.fullmatch(r"([A-Z4]*OFF)(\d*)", lines[0][0]) if lines else None
+    if keyword is None or "BINARY" in lines[0]:
+        return
+    inline = ([keyword.group(2)] if keyword.group(2) else []) + lines[0][1:]  # ModelNet40's "OFF490 518 0" too
+    rest = inline or (lines[1] if len(lines) > 1 else [])  # the counts: on the keyword's line or the next
+    body = len(lines) - (1 if inline else 2)
+    if len(rest) < 2 or not (rest[0].isdigit() and rest[1].isdigit()):
+        return
+    vertices, faces = int(rest[0]), int(rest[1])
+    _check_whole(path, vertices, body, "vertices")
+    _check_whole(path, faces, body - vertices, "faces")
+
+
+def _check_stl(path: Path) -> None:
+    """Raise InputError where a binary STL ends before the triangles its header counts."""
+    with open(path, "rb") as f:
+        head = f.read(84)
+    if len(head) < 84 or head.lstrip().startswith(b"solid"):  # ascii STL: no count to check
+        return
+    declared = int(np.frombuffer(head[80:84], dtype="<u4")[0])
+    _check_whole(path, declared, (path.stat().st_size - 84) // 50, "triangles")
 
 
 def _check_whole(path: Path, declared: int, have: int, noun: str) -> None:
@@ -191,6 +223,10 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         _check_ply(path)
     if ext == ".pcd":
         _check_pcd(path)
+    if ext == ".off":
+        _check_off(path)
+    if ext == ".stl":
+        _check_stl(path)
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
         with quiet_c_output():
             mesh = o3d.io.read_triangle_mesh(str(path))
@@ -201,8 +237,9 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
                 raise InputError(f"{path}: mesh has faces but no vertices")
             return sample_mesh(vertices, faces, mesh_points, seed)
         if ext in MESH_ONLY_EXTENSIONS:
-            if len(vertices) == 0:
-                vertices = _vertices_without_faces(path)
+            vertices, faces = _trimesh_mesh(path)  # what Open3D refuses: no faces, or ModelNet40's "OFF490 518 0" header
+            if len(faces) > 0:
+                return sample_mesh(vertices, faces, mesh_points, seed)
             if len(vertices) == 0:
                 raise InputError(f"{path}: could not read any vertex or face; is it a valid {ext[1:].upper()} file?")
             raise InputError(f"{path}: mesh has {len(vertices)} vertices but no faces; points are sampled on faces, so a mesh needs at least one")
@@ -322,18 +359,25 @@ def quiet_c_output(name: str = "stderr") -> Iterator[None]:
         os.close(saved)
 
 
-def _vertices_without_faces(path: Path) -> np.ndarray:
-    """Vertices of a mesh file that Open3D refused (it rejects meshes with no faces), via trimesh."""
+def _trimesh_mesh(path: Path) -> Tuple[np.ndarray, np.ndarray]:
+    """(V, 3) vertices and (F, 3) faces of a mesh file that Open3D refused (it rejects meshes with no
+    faces, and OFF headers with the counts on the keyword's line), via trimesh; empty where it
+    cannot read them either."""
     import trimesh
 
+    nothing = (np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
     try:
         loaded = trimesh.load(str(path), process=False)  # vertices without faces load as a PointCloud
-    except Exception:  # any parse failure means: no usable vertices
-        return np.zeros((0, 3))
+    except Exception:  # any parse failure means: no usable mesh
+        return nothing
     if isinstance(loaded, trimesh.Scene):
         loaded = loaded.dump(concatenate=True) if loaded.geometry else None
     vertices = getattr(loaded, "vertices", None)
-    return np.zeros((0, 3)) if vertices is None else np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    if vertices is None:
+        return nothing
+    faces = getattr(loaded, "faces", None)
+    faces = np.zeros((0, 3), dtype=np.int64) if faces is None else np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    return np.asarray(vertices, dtype=np.float64).reshape(-1, 3), faces
 
 
 def read_scans(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS) -> List[Tuple[str, np.ndarray]]:

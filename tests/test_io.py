@@ -129,13 +129,35 @@ def test_a_file_cut_short_is_refused(tmp_path, pts, ext, ascii):
         read_points(tmp_path / f"cut{ext}")
 
 
-def test_a_mesh_cut_within_its_vertices_is_refused(tmp_path):
+@pytest.mark.parametrize(
+    "ext, share, match",
+    [
+        (".off", 0.3, "8 vertices, but the file ends after [0-7]"),
+        (".off", 0.8, "12 faces, but the file ends after"),
+        (".stl", 0.7, "12 triangles, but the file ends after 7"),
+        (".ply", 0.8, "12 faces, but the file ends after"),
+    ],
+)
+def test_a_mesh_cut_short_is_refused(tmp_path, ext, share, match):
+    # Open3D samples the faces it read: a part of the surface, without a word.
     box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
-    data = trimesh.exchange.ply.export_ply(box, encoding="binary")
-    header = data.index(b"end_header\n") + 11
-    (tmp_path / "cut.ply").write_bytes(data[: header + 5 * 12])  # 5 of its 8 vertices (three float32 each)
+    data = trimesh.exchange.ply.export_ply(box, encoding="ascii") if ext == ".ply" else box.export(file_type=ext[1:])
+    data = data.encode() if isinstance(data, str) else data
+    (tmp_path / f"cut{ext}").write_bytes(data[: int(len(data) * share)])
+    with pytest.raises(InputError, match=f"cut{ext}: the header declares {match}"):
+        read_points(tmp_path / f"cut{ext}")
+    binary = trimesh.exchange.ply.export_ply(box, encoding="binary")
+    header = binary.index(b"end_header\n") + 11
+    (tmp_path / "cut.ply").write_bytes(binary[: header + 5 * 12])  # 5 of its 8 vertices (three float32 each)
     with pytest.raises(InputError, match="cut.ply: the header declares 8 vertices, but the file ends after 5"):
         read_points(tmp_path / "cut.ply")
+
+
+def test_an_off_with_its_counts_on_the_keywords_line_is_read(tmp_path):
+    # ModelNet40's known malformed header, which Open3D reads as a mesh without faces.
+    (tmp_path / "modelnet.off").write_text("OFF4 1 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n")
+    points = read_points(tmp_path / "modelnet.off", mesh_points=100)
+    assert points.shape == (100, 3) and np.all(points[:, 2] == 0) and np.all(points[:, :2].sum(axis=1) <= 1 + 1e-9)
 
 
 def test_mesh_without_faces(tmp_path):
