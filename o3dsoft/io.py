@@ -296,11 +296,15 @@ _DELIMITERS = (",", ";", "\t", None)  # None: runs of spaces
 
 def _read_table(path: Path) -> np.ndarray:
     """x, y, z of a delimited text file: numbers separated by commas, semicolons, tabs or spaces
-    (the first line of numbers decides which), after any header lines. Where the last header
-    line names columns x, y and z (any case, quoted or not, CloudCompare's "//X"), those are
-    read; otherwise the first three. Every later non-blank line must hold them."""
+    (the first line of numbers decides which; decimal commas where no line reads otherwise), after
+    any header lines. Where the last header line names columns x, y and z (any case, quoted or
+    not, CloudCompare's "//X"), those are read; otherwise the first three. Every later non-blank
+    line must hold them."""
     lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    found = next(((i, d) for i, line in enumerate(lines) for d in _DELIMITERS if _numbers(line.split(d), 3)), None)
+    found = _first_numbers(lines, _DELIMITERS)
+    if found is None:  # decimal commas (a spreadsheet's export in many locales: "1,5;2,5;3,5"): read as points
+        lines = [line.replace(",", ".") for line in lines]
+        found = _first_numbers(lines, _DELIMITERS[1:])
     if found is None:
         raise InputError(f"{path}: no line of at least 3 numbers separated by commas, semicolons, tabs or spaces")
     first, delimiter = found
@@ -324,6 +328,12 @@ def _read_table(path: Path) -> np.ndarray:
             raise InputError(f"{path}: line {number}: {line.strip()[:60]!r}; expected {where} separated by {sep}, as on line {first + 1}")
         points.append(point)
     return np.array(points, dtype=np.float64)
+
+
+def _first_numbers(lines: List[str], delimiters) -> Optional[Tuple[int, Optional[str]]]:
+    """(index, delimiter) of the first line that splits into at least 3 numbers by one of
+    `delimiters` (tried in order); None where no line does."""
+    return next(((i, d) for i, line in enumerate(lines) for d in delimiters if _numbers(line.split(d), 3)), None)
 
 
 def _numbers(fields: List[str], count: int) -> Optional[List[float]]:
