@@ -411,10 +411,10 @@ def _errors_dict(e) -> dict:
 
 def _strays_line(removed: dict) -> list:
     """The line saying how many stray far points cleaning dropped, where it dropped any."""
-    from ..preprocess import STRAY_REACH
+    from ..preprocess import STRAY_PERCENTILE, STRAY_REACH
 
     n, m = removed.get("source_strays", 0), removed.get("target_strays", 0)
-    reach = f"over {STRAY_REACH * 2:,.0f} times farther from the median than 90 % of the cloud"
+    reach = f"over {STRAY_REACH * 2:,.0f} times farther from the median than {STRAY_PERCENTILE:.0f} % of the cloud"
     return [f"  strays: source {n}, target {m} points dropped ({reach})"] if n or m else []
 
 

@@ -91,14 +91,14 @@ def _check_ply(path: Path) -> None:
         raise InputError(
             f"{path}: its vertices have no {', '.join(missing)} property (the header names {', '.join(sorted(properties)) or 'none'}); expected x, y and z"
         )
-    before = elements[: vertex + 1]  # the elements the vertices' end depends on
-    count = elements[vertex][1]
     if form == "ascii":  # one line per element, so faces too are counted
-        lines = sum(1 for line in path.read_bytes()[data_start:].splitlines() if line.strip())
+        lines = _lines_from(path, data_start)
         for name, declared, _ in elements:
             _check_whole(path, declared, lines, {"vertex": "vertices", "face": "faces"}.get(name, f"'{name}' elements"))
             lines -= declared
         return
+    before = elements[: vertex + 1]  # the elements the vertices' end depends on
+    count = elements[vertex][1]
     if form.startswith("binary") and all(kind in _PLY_SIZES for element in before for kind, _ in element[2]):
         rows = [sum(_PLY_SIZES[kind] for kind, _ in element[2]) for element in before]
         size = path.stat().st_size - data_start - sum(n * row for (_, n, _), row in zip(before[:-1], rows[:-1]))
@@ -128,7 +128,7 @@ def _check_pcd(path: Path) -> None:
         return
     count = int(count)
     if form == ["ascii"]:
-        have = sum(1 for line in path.read_bytes()[data_start + 1 :].splitlines() if line.strip())
+        have = _lines_from(path, data_start + 1)
     elif form == ["binary"]:
         try:
             row = sum(int(size) * int(n) for size, n in zip(fields["SIZE"], fields.get("COUNT", ["1"] * len(fields["SIZE"]))))
@@ -168,11 +168,20 @@ def _check_stl(path: Path) -> None:
     _check_whole(path, declared, (path.stat().st_size - 84) // 50, "triangles")
 
 
+def _lines_from(path: Path, start: int) -> int:
+    """How many non-blank lines the file holds from byte `start` on (a text body: one element a line)."""
+    return sum(1 for line in path.read_bytes()[start:].splitlines() if line.strip())
+
+
 def _check_whole(path: Path, declared: int, have: int, noun: str) -> None:
     if have < declared:
         raise InputError(
             f"{path}: the header declares {declared} {noun}, but the file ends after {max(have, 0)}; is it complete (a copy or a download cut short)?"
         )
+
+
+# What each format's header declares, checked against what the file holds before Open3D reads it.
+_WHOLE_CHECKS = {".ply": _check_ply, ".pcd": _check_pcd, ".off": _check_off, ".stl": _check_stl}
 
 
 def sample_mesh(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
@@ -219,14 +228,8 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
             raise InputError(f"{path}: holds {len(scans)} scans; register takes one cloud per file (o3dsoft multiway reads every scan of an E57)")
         return scans[0][1]
     o3d = _o3d()
-    if ext == ".ply":
-        _check_ply(path)
-    if ext == ".pcd":
-        _check_pcd(path)
-    if ext == ".off":
-        _check_off(path)
-    if ext == ".stl":
-        _check_stl(path)
+    if ext in _WHOLE_CHECKS:
+        _WHOLE_CHECKS[ext](path)
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
         with quiet_c_output():
             mesh = o3d.io.read_triangle_mesh(str(path))

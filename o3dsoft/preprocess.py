@@ -29,6 +29,7 @@ class CleanReport(NamedTuple):
 # sensor's glitch at 1e12): dropped. Such points overflow the voxel grids' integer cells (Open3D
 # refuses the grid) and are no part of any scene.
 STRAY_REACH = 1000.0
+STRAY_PERCENTILE = 90.0  # the reach is twice the distance from the median within which this % of points lie
 # The largest coordinate accepted once strays are dropped (cloud units): no scan measures farther in
 # any unit (float64 steps are 1e-4 there), and squares of larger ones overflow. Beyond it, the file
 # holds garbage (a damaged file, or values of another type).
@@ -82,9 +83,8 @@ def stray_points(points: np.ndarray) -> np.ndarray:
     if len(points) < 2:
         return np.zeros(len(points), dtype=bool)
     with np.errstate(all="ignore"):  # coordinates near the float limit: distances of inf
-        sample = points[:: max(1, len(points) // 100_000)]  # the median and the reach, of up to 2 x 10^5
-        centre = np.median(sample, axis=0)
-        reach = 2.0 * np.percentile(np.linalg.norm(sample - centre, axis=1), 90)
+        _, centre, distances = _about_median(points)
+        reach = 2.0 * np.percentile(distances, STRAY_PERCENTILE)
         if not 0 < reach < np.inf:
             return np.zeros(len(points), dtype=bool)
         return np.linalg.norm(points - centre, axis=1) > STRAY_REACH * reach
@@ -118,13 +118,24 @@ def _row_hashes(rows: np.ndarray) -> np.ndarray:
     return rows[:, 0] * np.uint64(0x9E3779B97F4A7C15) ^ rows[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F) ^ rows[:, 2] * np.uint64(0x165667B19E3779F9)
 
 
+def _every_kth(points: np.ndarray) -> np.ndarray:
+    """Every k-th of the (N, 3) points, up to 2 x 10^5 of them: enough for a median or a percentile."""
+    return points[:: max(1, len(points) // 100_000)]
+
+
+def _about_median(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_every_kth` of the (N, 3) points, their (3,) median, and each one's distance to it."""
+    sample = _every_kth(points)
+    centre = np.median(sample, axis=0)
+    return sample, centre, np.linalg.norm(sample - centre, axis=1)
+
+
 def check_spread(points: np.ndarray, name: str = "cloud") -> None:
     """Raise InputError if the points are all identical or all on one line (no rotation is defined),
     judged on those within twice the distance from their median that 99 % of them lie within (so
     that a few stray far points neither hide a line nor make a surface look like one)."""
-    points = points[:: max(1, len(points) // 100_000)]
     with np.errstate(all="ignore"):  # coordinates near the float limit: distances of inf
-        reach = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+        points, _, reach = _about_median(points)
         points = points[reach <= 2.0 * np.percentile(reach, 99)]
     centred = points - points.mean(axis=0)
     sv = np.linalg.svd(centred, compute_uv=False)
@@ -171,7 +182,7 @@ def local_origin(points: np.ndarray) -> np.ndarray:
     """(3,) the median of the (N, 3) points' finite rows (every k-th of them on clouds of over 10^5,
     up to 2 x 10^5) where it lies farther from the origin than their :func:`scene_size` (clouds in
     a frame far from them: georeferenced scans); else zeros (the clouds as given, to the bit)."""
-    finite = points[:: max(1, len(points) // 100_000)]  # a point near the middle is all it takes
+    finite = _every_kth(points)  # a point near the middle is all it takes
     finite = finite[np.isfinite(finite).all(axis=1)]
     if len(finite) < 2:
         return np.zeros(3)  # cleaning reports it, by name
@@ -181,7 +192,10 @@ def local_origin(points: np.ndarray) -> np.ndarray:
     return centre if far else np.zeros(3)
 
 
-def point_spacing(points: np.ndarray, sample: int = 2000, seed: int = 0) -> float:
+SPACING_SAMPLE = 2000  # points whose nearest neighbours give a cloud's spacing
+
+
+def point_spacing(points: np.ndarray, sample: int = SPACING_SAMPLE, seed: int = 0) -> float:
     """Median distance from a point to its nearest neighbour (cloud units), over at most `sample`
     of the (N, 3) points."""
     return _median_spacing(points, sample_points(points, sample, seed))
@@ -210,17 +224,16 @@ def spaced_closer_than(points: np.ndarray, spacing: float, subset: int = 50_000)
     holds point_spacing's sampled points: no point's nearest neighbour in a subset is nearer than
     in the whole cloud, so a subset spaced closer decides (a dense scan: 17 against 237 ms on 10^6
     points, where the whole cloud's tree is built only when the subset does not decide)."""
-    sample = 2000  # point_spacing's
-    if len(points) <= subset + sample:
-        return point_spacing(points, sample) < spacing
-    queries = sample_indices(len(points), sample, seed=0)
+    if len(points) <= subset + SPACING_SAMPLE:
+        return point_spacing(points) < spacing
+    queries = sample_indices(len(points), SPACING_SAMPLE)  # point_spacing's own
     others = np.random.default_rng(1).integers(0, len(points), size=subset)
     taken = np.zeros(len(points), dtype=bool)
     taken[queries] = True
     others = others[~taken[others]]  # a query's own copy would be its nearest neighbour
     if _median_spacing(np.vstack([points[queries], points[others]]), points[queries]) < spacing:
         return True
-    return point_spacing(points, sample) < spacing
+    return point_spacing(points) < spacing
 
 
 def _median_spacing(cloud: np.ndarray, queries: np.ndarray) -> float:
