@@ -870,6 +870,14 @@ _MIN_OVERLAP = click.option(
     show_default=True,
     help="Folders with a .conf: keep ordered scan pairs with at least this ground-truth overlap (a pairs.txt's pairs are all kept).",
 )
+_TURNS = click.option(
+    "--turns",
+    type=click.IntRange(min=0),
+    default=0,
+    show_default=True,
+    help="Also run each pair N times with the source turned about its centroid by a random rotation (seeded by --seed), "
+    "as 'FOLDER turned': results that do not hang on the frames the scans were saved in.",
+)
 
 
 @bench.command("scans")
@@ -883,15 +891,16 @@ _MIN_OVERLAP = click.option(
     "object 1 deg / 1 % and 5 deg / 5 % of the size. auto: per folder from the size of its first scan (in metres: under 1 m an object, under 30 m RGB-D).",
 )
 @_MIN_OVERLAP
+@_TURNS
 @_bench_options
 @_friendly_errors
-def bench_scans(folders, kind, min_overlap, **common):
+def bench_scans(folders, kind, min_overlap, turns, **common):
     """Every method on the pairs of each folder of real scans: those its pairs.txt lists, or every
     overlapping pair of a Stanford .conf. Table, CSV, JSON, plots; the peers KISS-Matcher +
     small_gicp too when installed (pip install 'o3dsoft[peers]')."""
     from ..bench import scan_folder
 
-    _run_scan_bench([scan_folder(folder, min_overlap, kind) for folder in folders], min_overlap, common)
+    _run_scan_bench([scan_folder(folder, min_overlap, kind) for folder in folders], min_overlap, turns, common)
 
 
 @bench.command("bunny")
@@ -906,9 +915,10 @@ def bench_scans(folders, kind, min_overlap, **common):
     show_default=True,
     help="Translation threshold of the 1-degree recall, in the scans' units (metres for the bunny); x5 for the 5-degree one.",
 )
+@_TURNS
 @_bench_options
 @_friendly_errors
-def bench_bunny(data, min_overlap, recall_translation, **common):
+def bench_bunny(data, min_overlap, recall_translation, turns, **common):
     """Every method on every overlapping pair of the Stanford bunny scans (bench scans on one folder,
     thresholds 1 deg / 2 mm and 5 deg / 1 cm)."""
     import os
@@ -920,12 +930,13 @@ def bench_bunny(data, min_overlap, recall_translation, **common):
     if not folder.is_dir():
         raise UsageError(f"{folder}: no such folder of scans; pass --data FOLDER (scans + a Stanford .conf)")
     scans = scan_folder(folder, min_overlap, "object")._replace(recall=((1.0, recall_translation), (5.0, 5 * recall_translation)))
-    _run_scan_bench([scans], min_overlap, common)
+    _run_scan_bench([scans], min_overlap, turns, common)
 
 
-def _run_scan_bench(folders, min_overlap, common):
-    """Run the bench on the pairs of every folder (each folder a protocol with its own thresholds)."""
-    from ..bench import check_methods, peers_installed
+def _run_scan_bench(folders, min_overlap, turns, common):
+    """Run the bench on the pairs of every folder (each folder a protocol with its own thresholds),
+    then on their turned copies (each folder's a protocol "FOLDER turned")."""
+    from ..bench import check_methods, peers_installed, turned_pairs
     from ..errors import UsageError
 
     if common["methods"]:
@@ -945,9 +956,17 @@ def _run_scan_bench(folders, min_overlap, common):
         titles[name] = f"{name} ({scans.kind}: success within {thresholds})"
         recall[name] = scans.recall
         description.append({"folder": name, "kind": scans.kind, "recall": [list(r) for r in scans.recall], "pairs": scans.table})
-    pairs = [p for scans in folders for p in scans.pairs]
     if len(recall) < len(folders):
         raise UsageError("two folders have the same name; give folders of different names")
+    pairs = [p for scans in folders for p in scans.pairs]
+    if turns:
+        for scans, entry in zip(folders, list(description)):
+            name = f"{scans.name} turned"
+            titles[name] = f"{titles[scans.name]}, the source turned {turns} times"
+            recall[name] = scans.recall
+            description.append({**{k: v for k, v in entry.items() if k != "pairs"}, "folder": name, "turns": turns})
+        click.echo(f"and every pair again with the source turned {turns} times ({turns * len(pairs)} pairs)", err=True)
+        pairs += turned_pairs(pairs, turns, common["seed"])
     _run_bench("scans", iter(pairs), len(pairs), {"benchmark": "scans", "min_overlap": min_overlap, "folders": description}, recall, titles, **common)
 
 

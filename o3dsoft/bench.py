@@ -32,7 +32,7 @@ from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, input_chamfer_distance, modified_chamfer_distance, pair_errors, summarise, within
 from .pipeline import RegisterConfig, register
 from .preprocess import local_origin, normalisation_for
-from .transforms import apply_transform, rotation_angle_deg
+from .transforms import apply_transform, random_rotation, rigid, rotation_angle_deg
 
 METHODS: Dict[str, str] = {
     "oracle": "Open3D ICP started at the ground truth (the floor the sampling sets)",
@@ -236,6 +236,23 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> S
     size = scene_size(next(iter(clouds.values())))  # of the first scan
     kind = guess_kind(size) if kind == "auto" else kind
     return ScanFolder(name, pairs, kind, recall_thresholds(kind, size), table)
+
+
+def turned_pairs(pairs: Sequence[BenchPair], turns: int, seed: int = 0) -> List[BenchPair]:
+    """`turns` copies of each pair, the source turned about its centroid by a uniform random
+    rotation (seeded by `seed`, the pair's index and the turn) and the ground truth turned with it,
+    under the protocol ``"<protocol> turned"``: scans come in the frames their scanner saved them
+    in, and what a method does on a few pairs can hang on those frames (voxel grids and normal
+    signs follow them). Indices count the turned pairs of each protocol from 0."""
+    turned = []
+    for p in pairs:
+        centre = p.source.mean(axis=0)
+        for k in range(turns):
+            R = random_rotation(np.random.default_rng([seed, p.index, k]))
+            M = rigid(R, centre - R @ centre)  # source' = M source
+            source = apply_transform(M, p.source.astype(np.float64)).astype(p.source.dtype)
+            turned.append(p._replace(protocol=f"{p.protocol} turned", index=p.index * turns + k, source=source, transform=p.transform @ np.linalg.inv(M)))
+    return turned
 
 
 def export_pairs(path: Path, pairs: Sequence[BenchPair]) -> None:

@@ -12,6 +12,7 @@ from o3dsoft import bench
 from o3dsoft.cli.main import main
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.metrics import pair_errors
+from o3dsoft.transforms import apply_transform, rotation_angle_deg
 
 from .conftest import EXAMPLES
 
@@ -283,6 +284,25 @@ def listed_scans(tmp_path):
     return folder
 
 
+def test_turned_pairs_keep_their_truth(two_scans):
+    pairs = bench.scan_folder(two_scans, 0.3).pairs
+    turned = bench.turned_pairs(pairs, 3, seed=5)
+    assert [(p.protocol, p.index, p.category) for p in turned[:4]] == [("scans turned", k, "bun000->bun045") for k in range(3)] + [
+        ("scans turned", 3, "bun045->bun000")
+    ]
+    for k, p in enumerate(turned):
+        original = pairs[k // 3]
+        assert p.target is original.target and p.source.dtype == original.source.dtype
+        # The turned truth puts the turned source where the truth put the source.
+        assert np.allclose(apply_transform(p.transform, p.source), apply_transform(original.transform, original.source), atol=1e-9)
+        assert np.allclose(p.source.mean(axis=0), original.source.mean(axis=0))  # turned about its centroid
+        assert rotation_angle_deg(p.transform[:3, :3] @ original.transform[:3, :3].T) > 1.0
+    again = bench.turned_pairs(pairs, 3, seed=5)
+    assert all(np.array_equal(a.source, b.source) for a, b in zip(turned, again))
+    assert not np.array_equal(bench.turned_pairs(pairs, 1, seed=6)[0].source, turned[0].source)
+    assert bench.turned_pairs(pairs, 0) == []
+
+
 def test_scan_pairs_from_a_pairs_file(listed_scans):
     scans = bench.scan_folder(listed_scans)
     assert scans.name == "room" and [p.category for p in scans.pairs] == ["bun045->bun000"]
@@ -324,6 +344,14 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
 
     table = scans_markdown(tmp_path / "s")  # the README's real-scans table
     assert "| room (rgbd, 1 pairs) | 2 deg / 0.05, 15 deg / 0.3 | Open3D ICP from the identity |" in table
+    r = _bench(["scans", str(listed_scans), "--turns", "2", "--method", "fpfh-ransac+icp", "--out", str(tmp_path / "t"), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert "room (rgbd: success within 2 deg / 0.05 and 15 deg / 0.3), the source turned 2 times" in r.output
+    summary = json.loads((tmp_path / "t" / "summary.json").read_text())
+    rows = {s["protocol"]: s for s in summary["summaries"]}
+    assert rows["room"]["pairs"] == 1 and rows["room turned"]["pairs"] == 2
+    assert summary["recall_thresholds"]["room turned"] == summary["recall_thresholds"]["room"]
+    assert "| room turned (rgbd, 2 pairs) |" in scans_markdown(tmp_path / "t")
     r = _bench(["scans", str(tmp_path / "nowhere")])
     assert r.exit_code == 2 and "no such folder of scans" in r.output
 
