@@ -222,6 +222,13 @@ def _register_config(
 @click.option("--ray", "ray_address", help="--pairs: run on a Ray cluster: local (start one here), auto (the one `ray start` set up) or its address.")
 @click.option("--no-progress", is_flag=True, help="--pairs: no progress bar.")
 @click.option("--gt", "gt_path", type=click.Path(path_type=Path), help="Ground-truth T_target_source (4x4 text or .npy): print the errors against it.")
+@click.option(
+    "--init",
+    "init_path",
+    type=click.Path(path_type=Path),
+    help="Initial guess of T_target_source (4x4 text or .npy; odometry, a previous pose): the source starts there, ICP from it is tried first, "
+    "and where it is trusted neither the feature match nor the network runs; --max-rotation then bounds the turn away from it.",
+)
 @click.option("--out", "out_path", type=click.Path(path_type=Path), help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las).")
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
@@ -260,6 +267,7 @@ def register(
     ray_address,
     no_progress,
     gt_path,
+    init_path,
     out_path,
     save_transform,
     as_json,
@@ -283,7 +291,14 @@ def register(
     if pairs_path is not None:
         given = [
             name
-            for name, v in (("SOURCE", source), ("--gt", gt_path), ("--save-transform", save_transform), ("--render", render_path), ("--json", as_json))
+            for name, v in (
+                ("SOURCE", source),
+                ("--gt", gt_path),
+                ("--init", init_path),
+                ("--save-transform", save_transform),
+                ("--render", render_path),
+                ("--json", as_json),
+            )
             if v
         ]
         if given:
@@ -310,7 +325,8 @@ def register(
     if out_path is not None:
         io.check_extension(out_path, io.WRITE_EXTENSIONS, "--out")
     io.check_outputs_apart(
-        {"--out": out_path, "--save-transform": save_transform, "--render": render_path}, {"SOURCE": source, "TARGET": target, "--gt": gt_path}
+        {"--out": out_path, "--save-transform": save_transform, "--render": render_path},
+        {"SOURCE": source, "TARGET": target, "--gt": gt_path, "--init": init_path},
     )
     for p in (out_path, save_transform, render_path):  # before the work, which can take minutes
         if p is not None:
@@ -319,12 +335,13 @@ def register(
     src = io.read_points(source, mesh_points=mesh_points)
     tgt = io.read_points(target, mesh_points=mesh_points)
     T_gt = io.read_transform(gt_path) if gt_path is not None else None
+    T_init = io.read_transform(init_path) if init_path is not None else None
     read_ms = (time.perf_counter() - t0) * 1000.0
     config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
     t0 = time.perf_counter()
     model = load_model(config.weights, config.device)
     load_ms = (time.perf_counter() - t0) * 1000.0
-    result = run_register(src, tgt, config, model=model, source_name=str(source), target_name=str(target))
+    result = run_register(src, tgt, config, model=model, source_name=str(source), target_name=str(target), init=T_init)
     timings_ms = {"read": read_ms, "load_model": load_ms, **result.timings_ms}
     timings_ms["total"] += read_ms + load_ms
     result = dataclasses.replace(result, timings_ms=timings_ms)
@@ -336,6 +353,8 @@ def register(
     model_info = {"path": str(model.path), "trained": model.meta.get("info", {})}
     if as_json:
         payload = {"source": str(source), "target": str(target), "model": model_info, **result.to_dict()}
+        if T_init is not None:
+            payload["init"] = T_init.tolist()
         if errors is not None:
             payload["errors"] = {k: _errors_dict(e) for k, e in errors.items()}
         click.echo(json.dumps(payload, indent=2))

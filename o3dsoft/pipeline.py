@@ -1,8 +1,10 @@
 """``register``: the whole pipeline, one commented call per stage.
 
-    (a target much sparser than the source: the roles swapped, the result inverted)
+    (a target much sparser than the source: the roles swapped, the result inverted; an initial
+    guess: the source moved by it first, the result composed with it)
     prepare the pair (clean, voxel grid, samples for the network, normalisation, work clouds)
-    -> propose estimates (the network; when flagged, a second network trained on clouds that share
+    -> propose estimates (ICP from the initial guess, where one is given, which ends the proposals
+       where it is trusted; the network; when flagged, a second network trained on clouds that share
        no point, except on scans, from the pose as given and, on two complete-looking clouds, from
        the other rotations of a cube; when still flagged, the search's strategies in turn, unless the
        second network's pose of two complete-looking clouds shows no shared point and the complete
@@ -37,11 +39,23 @@ from . import refine as refine_stage
 from . import symmetry as symmetry_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
+from .errors import InputError
+from .io import check_rigid
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
 from .preprocess import local_origin, point_spacing, scene_size
-from .strategies import FeatureMatchProposals, KissMatcherProposal, NetworkPass, NetworkStarts, Restart, TranslationVotes, TurnedPasses, kiss_available
-from .transforms import in_frame_at, rotation_angle_deg
+from .strategies import (
+    FeatureMatchProposals,
+    InitialGuess,
+    KissMatcherProposal,
+    NetworkPass,
+    NetworkStarts,
+    Restart,
+    TranslationVotes,
+    TurnedPasses,
+    kiss_available,
+)
+from .transforms import apply_transform, in_frame_at, rotation_angle_deg
 from .verify import Attempt, Verifier, choice_applies
 
 # Scenes whose sizes differ more than this are named in the failure reason: most often one is in
@@ -62,9 +76,10 @@ class RegistrationResult:
         inlier_rmse: RMS distance of those point pairs (cloud units, lower is better).
         coarse_transformation: (4, 4) the estimate the result was refined from, before any ICP:
             the network's, or one the search proposed.
-        estimate_from: what proposed that estimate: "network", "second network", "second network,
-            turned" (from a rotation of a cube), "KISS-Matcher",
-            "feature match", "network starts", "translation votes" or "pose as given".
+        estimate_from: what proposed that estimate: "initial guess" (``register(init=...)``),
+            "network", "second network", "second network, turned" (from a rotation of a cube),
+            "KISS-Matcher", "feature match", "network starts", "translation votes" or "pose as
+            given".
         confidence: estimated probability that the alignment is right (0-1, higher is better); on
             two complete-looking clouds whose pose shows no shared point, the larger of the strict
             function and :func:`~o3dsoft.confidence.complete_confidence`, on scans the larger of
@@ -176,6 +191,7 @@ def register(
     search_model: Optional[coarse_stage.CoarseModel] = None,
     source_name: str = "source",
     target_name: str = "target",
+    init: Optional[np.ndarray] = None,
 ) -> RegistrationResult:
     """Find T_target_source, the rigid transform that maps `source` onto `target`.
 
@@ -190,26 +206,53 @@ def register(
         ``config.second_network``'s) are loaded once per process
         (:func:`o3dsoft.coarse.cached_model`).
         source_name, target_name: how to call the clouds in error messages (e.g. file names).
+        init: (4, 4) an initial guess of T_target_source (odometry, a previous frame's pose): the
+            source starts there, ICP from it is the first estimate tried, and where it is trusted
+            neither the feature match nor the network runs; ``config.max_rotation`` then bounds
+            the turn away from it. The result is still T_target_source of the clouds as given.
     Returns:
         RegistrationResult.
     Raises:
         InputError: a cloud is degenerate (too few points, identical or collinear points), the
-            weights file is unusable, or a setting of `config` is invalid (see its ``validate``).
+            weights file is unusable, `init` is not a rigid 4x4 transform, or a setting of
+            `config` is invalid (see its ``validate``).
     """
     src, tgt = as_points(source, source_name), as_points(target, target_name)
+    if init is not None:
+        init = np.asarray(init, dtype=np.float64)
+        if init.shape != (4, 4):
+            raise InputError(f"init: expected a 4x4 transform, got shape {init.shape}")
+        check_rigid(init, "init")
+        src = apply_transform(init, src)
     # Far from the origin (georeferenced scans), both clouds are registered about the target's
     # median: point-to-plane ICP linearises the rotation about the origin, and KISS-Matcher hashes
     # integer voxel coordinates.
     origin = local_origin(tgt)
     if origin.any():
         src, tgt = src - origin, tgt - origin
+    guess = init is not None
     if _sparser(tgt, src, config.sparser_moves):
         # The sparser cloud moves: register the target onto the source, and answer the question asked.
-        swapped, (moved, fixed) = _register(tgt, src, config, model, search_model, target_name, source_name)
+        swapped, (moved, fixed) = _register(tgt, src, config, model, search_model, target_name, source_name, guess)
         result = _inverted(swapped, fixed, moved)
     else:
-        result = _register(src, tgt, config, model, search_model, source_name, target_name)[0]
-    return _moved_back(result, origin)
+        result = _register(src, tgt, config, model, search_model, source_name, target_name, guess)[0]
+    return _started_at(_moved_back(result, origin), init)
+
+
+def _started_at(result: RegistrationResult, init: Optional[np.ndarray]) -> RegistrationResult:
+    """A result for the source moved by (4, 4) `init` turned into the result for the source as
+    given: each transform T becomes T @ init."""
+    if init is None:
+        return result
+    network, copy = result.network_transformation, result.copy_transformation
+    return replace(
+        result,
+        transformation=result.transformation @ init,
+        coarse_transformation=result.coarse_transformation @ init,
+        network_transformation=None if network is None else network @ init,
+        copy_transformation=None if copy is None else copy @ init,
+    )
 
 
 def _moved_back(result: RegistrationResult, origin: np.ndarray) -> RegistrationResult:
@@ -239,9 +282,11 @@ def _register(
     search_model: Optional[coarse_stage.CoarseModel],
     source_name: str,
     target_name: str,
+    guess: bool = False,
 ) -> Tuple[RegistrationResult, Clouds]:
     """:func:`register` with the roles as given; also the (source, target) clouds the result was
-    registered on (cleaned, on the grid)."""
+    registered on (cleaned, on the grid). `guess`: the pose as given is the caller's initial
+    guess, tried first."""
     clock = StageClock()
     if model is None:  # loaded once per process; callers may pass it in
         model = coarse_stage.cached_model(config.weights, config.device)
@@ -260,13 +305,16 @@ def _register(
     # points; two samplings of a surface share none). Not on scans (``pair.scans``): the search's
     # feature match solves those the first network leaves, and the second was never right there
     # (docs/scans.md).
-    features_first = search.features_on and pair.looks_partial
     clock.lap("sample_normalise")
+    if guess:  # the caller's initial guess first; trusted, it ends the proposals
+        InitialGuess().propose(pair, verifier)
+    guessed = guess and verifier.confident()
+    features_first = search.features_on and pair.looks_partial and not guessed
     if features_first:
         _match_features(pair, verifier)
-    if not (features_first and verifier.confident()):
+    if not ((features_first or guessed) and verifier.confident()):
         network.propose(pair, verifier)
-    second_pending = config.second_network.weights is not None and not features_first and not pair.scans
+    second_pending = config.second_network.weights is not None and not features_first and not guessed and not pair.scans
     second_ends = False
     if second_pending and not verifier.confident():
         second_ends = _second_network(pair, verifier)

@@ -176,6 +176,12 @@ def test_no_refine(pair_files, tiny_model_path):
             1,
             "skew.txt: not a rigid transform",
         ),
+        (
+            lambda d: (d / "skew.txt").write_text("1 1 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n"),
+            ["src.ply", "tgt.pcd", "--init", "skew.txt"],
+            1,
+            "skew.txt: not a rigid transform",
+        ),
         (lambda d: (d / "w.pt").write_bytes(b"junk"), ["src.ply", "tgt.pcd", "--weights", "w.pt"], 1, "w.pt: not a readable TorchScript model file"),
         (None, ["src.ply", "tgt.pcd", "--out", "no_dir/out.ply"], 1, "folder no_dir does not exist"),
         (None, ["src.ply", "tgt.pcd", "--out", "out.off"], 2, "unknown extension '.off'"),
@@ -402,3 +408,23 @@ def test_register_help_lists_only_the_formats_it_writes():
     text = CliRunner().invoke(main, ["register", "--help"]).output
     listed = set(re.findall(r"\.(ply|pcd|xyzrgb|xyzn|xyz|pts|npy)\b", text.split("--out", 1)[1].split("--save-transform", 1)[0]))
     assert listed == {"ply", "pcd", "xyz", "xyzn", "pts", "npy"}
+
+
+def test_register_from_an_initial_guess(tmp_path):
+    import shutil
+
+    from o3dsoft.transforms import euler_to_matrix, rigid
+
+    for name in ("bun045.ply", "bun000.ply", "bun045_to_bun000.txt"):
+        shutil.copy(EXAMPLES / name, tmp_path / name)
+    T = read_transform(tmp_path / "bun045_to_bun000.txt")
+    write_transform(tmp_path / "guess.txt", rigid(euler_to_matrix([5.0, 5.0, -5.0]) @ T[:3, :3], T[:3, 3] + 0.003))
+    args = ["register", tmp_path / "bun045.ply", tmp_path / "bun000.ply", "--init", tmp_path / "guess.txt", "--gt", tmp_path / "bun045_to_bun000.txt"]
+    r = run(*args)
+    assert r.exit_code == 0, r.output
+    assert "estimate     from the initial guess, refined by ICP" in r.output
+    out = json.loads(run(*args, "--json").output)
+    assert out["estimate_from"] == "initial guess" and out["errors"]["final"]["rotation_deg"] < 1.0
+    assert np.allclose(out["init"], read_transform(tmp_path / "guess.txt"))
+    r = run("register", "--pairs", tmp_path / "p.txt", "--init", tmp_path / "guess.txt", "--out", tmp_path / "r.csv")
+    assert r.exit_code == 2 and "--init belong(s) to a single pair" in r.output

@@ -883,3 +883,46 @@ def test_on_a_partial_overlap_the_confidence_counts_the_estimates_that_reached_t
     assert result.confidence > 2 * off.confidence
     assert f"only {result.agreeing} of the {result.attempts} estimates reached this pose" in result.failure_reason
     assert off.agreeing == result.agreeing and "estimates reached" not in off.failure_reason
+
+
+def test_an_initial_guess_near_the_truth_is_refined_and_ends_the_proposals():
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    guess = rigid(euler_to_matrix([6.0, -4.0, 5.0]) @ T[:3, :3], T[:3, 3] + [0.004, -0.003, 0.002])  # 8 degrees, 5 mm off
+    model = AlwaysWrongModel(T[:3, :3] @ euler_to_matrix([180.0, 0.0, 0.0]))  # would turn the source over
+    res = register(src, tgt, model=model, init=guess)
+    # The result is T_target_source of the clouds as given, from ICP started at the guess; the
+    # network and the feature match never ran.
+    e = pair_errors(res.transformation, T)
+    assert e.rotation_deg < 1.0 and e.translation < 0.002 and not res.likely_failed
+    assert res.estimate_from == "initial guess" and res.network_transformation is None and not res.searched
+    assert np.allclose(res.coarse_transformation, guess)
+    # A target ten times sparser is registered the other way round: the guess still holds.
+    sparse = register(src, tgt[::10], model=model, init=guess)
+    assert sparse.sparser_moved and sparse.estimate_from == "initial guess" and pair_errors(sparse.transformation, T).rotation_deg < 1.0
+
+
+def test_a_wrong_initial_guess_does_not_stop_the_pipeline():
+    src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
+    tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = o3dsoft.read_transform(EXAMPLES / "bun045_to_bun000.txt")
+    wrong = rigid(euler_to_matrix([0.0, 150.0, 0.0]) @ T[:3, :3], T[:3, 3])
+    res = register(src, tgt, init=wrong)
+    assert res.estimate_from != "initial guess" and pair_errors(res.transformation, T).rotation_deg < 1.0 and not res.likely_failed
+    # Under a rotation prior the bound holds about the guess: nothing within 10 degrees of it fits.
+    bounded = register(src, tgt, RegisterConfig(max_rotation=10.0), init=wrong)
+    assert bounded.likely_failed and rotation_error_deg(bounded.transformation[:3, :3], wrong[:3, :3]) <= 10.0 + 1e-6
+
+
+@pytest.mark.parametrize(
+    "init, match",
+    [
+        (np.eye(3), r"init: expected a 4x4 transform, got shape \(3, 3\)"),
+        (np.diag([2.0, 1.0, 1.0, 1.0]), "init: not a rigid transform"),
+        (np.full((4, 4), np.nan), "init: contains NaN"),
+    ],
+)
+def test_an_initial_guess_must_be_a_rigid_transform(init, match):
+    with pytest.raises(InputError, match=match):
+        register(blob(np.random.default_rng(0)), blob(np.random.default_rng(1)), init=init)

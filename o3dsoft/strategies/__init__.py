@@ -3,6 +3,8 @@
 verifier's stop rule says so. :func:`o3dsoft.register` runs them in this order (on a partial
 overlap the feature match goes first, and the network only when it found nothing confident):
 
+- :class:`InitialGuess` (:mod:`.guess`): the caller's initial guess, where one is given (then the
+  feature match and the network run only when it is not trusted);
 - :class:`NetworkPass` (:mod:`.network`): the network from the pose the clouds are given in;
 - :class:`TurnedPasses` (:mod:`.network`): the second network from the other rotations of a cube;
 - :class:`KissMatcherProposal` (:mod:`.kiss`): KISS-Matcher's estimate, on scans, where installed;
@@ -20,6 +22,7 @@ from typing import Protocol
 from ..pair import PreparedPair
 from ..verify import Verifier
 from .features import FeatureMatchProposals
+from .guess import InitialGuess
 from .kiss import KissMatcherProposal, kiss_available
 from .network import NetworkPass, TurnedPasses
 from .restart import Restart
@@ -37,6 +40,7 @@ class Strategy(Protocol):
 
 __all__ = [
     "Strategy",
+    "InitialGuess",
     "NetworkPass",
     "TurnedPasses",
     "KissMatcherProposal",
