@@ -159,35 +159,46 @@ def markdown(runs: Union[Path, Sequence[Path]], short: bool = False) -> str:
 def scans_markdown(run: Path) -> str:
     """The README's real-scans table from one ``bench scans`` run: per folder (its kind and
     thresholds), each method's recall at both thresholds and median time, and o3dsoft's
-    confidence ROC AUC and false alarms."""
+    confidence ROC AUC and false alarms; a run with ``--turns`` gives each folder's turned pairs
+    (protocol "FOLDER turned") in the same row."""
     doc = summary_of(run)
     desc, names = doc["description"], doc["methods"]
     lines = run_lines(doc)[1:]
     lines[0:0] = [f"Command: `{desc.get('command', 'o3dsoft bench scans')}`; {doc['pairs_completed']} pairs in {doc['seconds'] / 60:.1f} min."]
+    folders = {f["folder"]: f for f in desc.get("folders", [])}
+    rows = {(s["protocol"], s["method"]): s for s in doc["summaries"] if s["subset"] == "all"}
+    turns = max((f.get("turns", 0) for f in folders.values()), default=0)
+    columns = ["recall"] + (["time (ms)", f"turned {turns} times: recall", "time (ms)"] if turns else ["time (ms)"])
     lines += [
         "",
         "Recall: share of pairs within each kind's tight / loose test (higher is better); time: median per pair, "
-        "measured in the same run (lower is better); false alarms: right results flagged (lower is better).",
+        "measured in the same run (lower is better); false alarms: right results flagged (lower is better)"
+        + ("; turned: each pair again with the source turned about its centroid by random rotations (`--turns`)." if turns else "."),
         "",
-        "| scans | test (tight / loose) | method | recall | time (ms) | confidence ROC AUC, false alarms |",
-        "|---|---|---|---|---|---|",
+        f"| scans | test (tight / loose) | method | {' | '.join(columns)} | confidence ROC AUC, false alarms{' (turned)' if turns else ''} |",
+        "|---|---|---|" + "---|" * len(columns) + "---|",
     ]
-    kinds = {f["folder"]: f["kind"] for f in desc.get("folders", [])}
-    for s in doc["summaries"]:
-        if s["subset"] != "all":
-            continue
-        tight, loose = thresholds(doc, s["protocol"])[0], thresholds(doc, s["protocol"])[-1]
-        test = f"{tight['rotation_deg']:g} deg / {tight['translation']:.3g}, {loose['rotation_deg']:g} deg / {loose['translation']:.3g}"
+
+    def cells(s: dict) -> List[str]:
         keys = recall_keys(s)
-        trust = ""
-        if "confidence_auc" in s:
-            auc = "-" if s["confidence_auc"] is None else f"{s['confidence_auc']:.2f}"
-            alarms = "-" if s.get("false_alarm_share") is None else f"{100 * s['false_alarm_share']:.0f} %"
-            trust = f"{auc}, {alarms}"
-        lines.append(
-            f"| {s['protocol']} ({kinds.get(s['protocol'], '')}, {int(s['pairs'])} pairs) | {test} | {names[s['method']]} | "
-            f"{100 * s[keys[0]]:.0f} / {100 * s[keys[-1]]:.0f} % | {s['time_ms_median']:.0f} | {trust} |"
-        )
+        return [f"{100 * s[keys[0]]:.0f} / {100 * s[keys[-1]]:.0f} %", f"{s['time_ms_median']:.0f}"]
+
+    def trust(s: dict) -> str:
+        if "confidence_auc" not in s:
+            return ""
+        auc = "-" if s["confidence_auc"] is None else f"{s['confidence_auc']:.2f}"
+        alarms = "-" if s.get("false_alarm_share") is None else f"{100 * s['false_alarm_share']:.0f} %"
+        return f"{auc}, {alarms}"
+
+    for (protocol, method), s in rows.items():
+        if protocol.endswith(" turned") and protocol[: -len(" turned")] in folders:
+            continue  # in its folder's row
+        tight, loose = thresholds(doc, protocol)[0], thresholds(doc, protocol)[-1]
+        test = f"{tight['rotation_deg']:g} deg / {tight['translation']:.3g}, {loose['rotation_deg']:g} deg / {loose['translation']:.3g}"
+        turned = rows.get((f"{protocol} turned", method))
+        values = cells(s) + (cells(turned) if turned else ["", ""] if turns else [])
+        kind = folders.get(protocol, {}).get("kind", "")
+        lines.append(f"| {protocol} ({kind}, {int(s['pairs'])} pairs) | {test} | {names[method]} | {' | '.join(values)} | {trust(turned or s)} |")
     return "\n".join(lines)
 
 
