@@ -45,28 +45,32 @@ RETRIES = 1  # a pair whose worker process dies is run this many more times
 @dataclass(frozen=True)
 class PairJob:
     """One line of a pairs file: source and target files, the ground truth's file if given
-    (T_target_source), and the line number (the pair's key in the results)."""
+    (T_target_source), the initial guess's file if given (``register(init=...)``), and the line
+    number (the pair's key in the results)."""
 
     line: int
     source: str
     target: str
     transform: Optional[str] = None
+    init: Optional[str] = None
 
 
 def read_pair_jobs(path) -> List[PairJob]:
-    """The pairs of a file of lines ``source target [transform]`` (paths relative to the file's
-    folder; ``#`` starts a comment). Files are not checked here: a pair naming a missing file fails
-    on its own row, and the others run.
+    """The pairs of a file of lines ``source target [transform] [init=transform]`` (paths relative
+    to the file's folder; ``#`` starts a comment; ``init=``: an initial guess). Files are not
+    checked here: a pair naming a missing file fails on its own row, and the others run.
 
     Raises:
         UsageError: no such pairs file.
-        InputError: a line with other than 2 or 3 fields (names the line), or no pair at all.
+        InputError: a line with other than 2 or 3 names besides ``init=`` (names the line), or
+            no pair at all.
     """
     from .scans import pair_lines
 
     jobs = []
-    for lineno, files in pair_lines(path, (2, 3)):
-        jobs.append(PairJob(lineno, str(files[0]), str(files[1]), str(files[2]) if len(files) == 3 else None))
+    for lineno, files, named in pair_lines(path, (2, 3), ("init",)):
+        truth, init = files[2] if len(files) == 3 else None, named.get("init")
+        jobs.append(PairJob(lineno, str(files[0]), str(files[1]), None if truth is None else str(truth), None if init is None else str(init)))
     return jobs
 
 
@@ -93,7 +97,8 @@ def run_job(job: PairJob, config) -> dict:
         model = model_for(config)
         source, target = io.read_points(job.source), io.read_points(job.target)
         truth = io.read_transform(job.transform) if job.transform else None
-        result = register(source, target, config, model=model, source_name=job.source, target_name=job.target)
+        guess = io.read_transform(job.init) if job.init else None
+        result = register(source, target, config, model=model, source_name=job.source, target_name=job.target, init=guess)
     except O3dsoftError as e:
         return {**row, "status": "failed", "error": str(e), "seconds": time.perf_counter() - t0}
     row.update(

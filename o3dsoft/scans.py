@@ -70,10 +70,11 @@ class PairEntry(NamedTuple):
     line: int
 
 
-def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,)) -> List[Tuple[int, List[Path]]]:
-    """(line number, files) of each pair a pairs file lists: lines of `counts` file names
-    (``source target transform``; ``#`` starts a comment; a name with spaces in quotes), resolved
-    against the file's folder.
+def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,), options: Tuple[str, ...] = ()) -> List[Tuple[int, List[Path], Dict[str, Path]]]:
+    """(line number, files, named files) of each pair a pairs file lists: lines of `counts` file
+    names (``source target transform``; ``#`` starts a comment; a name with spaces in quotes),
+    and of any of `options` as ``name=file`` (e.g. ``init=guess.txt``), resolved against the
+    file's folder.
 
     Raises:
         UsageError: no such file.
@@ -83,14 +84,17 @@ def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,)) -> List[T
     if not path.is_file():
         raise UsageError(f"{path}: no such pairs file")
     expected = "source target transform" if counts == (3,) else "source target [transform]"
+    expected += "".join(f" [{name}=transform]" for name in options)
     lines = []
     for lineno, line in enumerate(path.read_text().splitlines(), start=1):
         fields = _fields(line, f"{path}, line {lineno}")
-        if not fields:
+        named = {key: path.parent / value for key, sep, value in (f.partition("=") for f in fields) if sep and key in options}
+        fields = [f for f in fields if f.partition("=")[0] not in named]
+        if not fields and not named:
             continue
         if len(fields) not in counts:
             raise InputError(f"{path}, line {lineno}: expected '{expected}', got {len(fields)} field(s) (a file name with spaces goes in quotes)")
-        lines.append((lineno, [path.parent / f for f in fields]))
+        lines.append((lineno, [path.parent / f for f in fields], named))
     if not lines:
         raise InputError(f"{path}: no pairs (expected lines '{expected}')")
     return lines
@@ -117,7 +121,7 @@ def read_pairs_file(path: Union[str, Path]) -> List[PairEntry]:
     """
     path = Path(path)
     entries = []
-    for lineno, files in pair_lines(path):
+    for lineno, files, _ in pair_lines(path):
         for f in files:
             if not f.is_file():
                 raise InputError(f"{path}, line {lineno}: no file {f.name} in {path.parent}")

@@ -72,7 +72,7 @@ def test_pairs_file_lines(tmp_path, pairs_file):
     assert jobs[2].transform is None
     bad = tmp_path / "bad.txt"
     bad.write_text("a.ply b.ply\na.ply\n")
-    with pytest.raises(InputError, match="bad.txt, line 2: expected 'source target \\[transform\\]'"):
+    with pytest.raises(InputError, match="bad.txt, line 2: expected 'source target \\[transform\\] \\[init=transform\\]'"):
         read_pair_jobs(bad)
     with pytest.raises(UsageError, match="no such pairs file"):
         read_pair_jobs(tmp_path / "none.txt")
@@ -87,6 +87,14 @@ def test_pairs_file_lines(tmp_path, pairs_file):
     spaced.write_text('"scan 1.ply scan 2.ply\n')
     with pytest.raises(InputError, match="spaced.txt, line 1: No closing quotation"):
         read_pair_jobs(spaced)
+    guessed = tmp_path / "guessed.txt"
+    guessed.write_text("a.ply b.ply gt.txt init=guess.txt\na.ply b.ply init=guess.txt  # a guess, no ground truth\nc.ply d.ply\n")
+    with_truth, without, plain = read_pair_jobs(guessed)
+    assert (with_truth.transform, with_truth.init) == (str(tmp_path / "gt.txt"), str(tmp_path / "guess.txt"))
+    assert (without.transform, without.init) == (None, str(tmp_path / "guess.txt")) and plain.init is None
+    guessed.write_text("a.ply init=guess.txt\n")
+    with pytest.raises(InputError, match=r"line 1: expected 'source target \[transform\] \[init=transform\]', got 1 field"):
+        read_pair_jobs(guessed)
 
 
 def test_sequential_rows_report_the_missing_file_and_run_the_rest(tmp_path, pairs_file):
@@ -200,3 +208,22 @@ def test_an_unreachable_ray_cluster_is_one_line_and_writes_nothing(tmp_path, pai
     assert result.exit_code == 1
     assert result.output.strip().splitlines()[-1].startswith("Error: --ray 127.0.0.1:1: cannot connect to a Ray cluster")
     assert not out.exists()
+
+
+def test_a_pair_registers_from_its_initial_guess(tmp_path, pairs_file, monkeypatch):
+    from o3dsoft import pipeline
+    from o3dsoft.io import read_transform
+    from o3dsoft.transforms import euler_to_matrix, rigid
+
+    job = read_pair_jobs(pairs_file)[0]
+    T = read_transform(job.transform)
+    guess = rigid(euler_to_matrix([4.0, -3.0, 2.0]) @ T[:3, :3], T[:3, 3] + 0.02)
+    write_transform(tmp_path / "guess.txt", guess)
+    register, given = pipeline.register, []
+    monkeypatch.setattr(pipeline, "register", lambda *a, **k: given.append(k["init"]) or register(*a, **k))
+    row = run_job(PairJob(job.line, job.source, job.target, job.transform, str(tmp_path / "guess.txt")), CONFIG)
+    assert row["status"] == "ok" and row["rotation_error_deg"] < 1.0 and not row["likely_failed"]
+    assert np.allclose(given[0], guess)
+    (tmp_path / "skew.txt").write_text("1 1 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    row = run_job(PairJob(job.line, job.source, job.target, job.transform, str(tmp_path / "skew.txt")), CONFIG)
+    assert row["status"] == "failed" and "skew.txt: not a rigid transform" in row["error"]
