@@ -216,8 +216,7 @@ def _register_config(
     "--pairs",
     "pairs_path",
     type=click.Path(path_type=Path),
-    help="Register every pair of this file instead (lines 'source target [ground-truth transform] [init=initial-guess transform]', paths relative to it); "
-    "--out names the results CSV.",
+    help="Register every pair of this file instead (lines 'source target [ground truth] [init=initial guess]', paths relative to it); --out: the CSV.",
 )
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="--pairs: pairs registered at once, each in its own process.")
 @click.option("--ray", "ray_address", help="--pairs: run on a Ray cluster: local (start one here), auto (the one `ray start` set up) or its address.")
