@@ -28,7 +28,7 @@ are :class:`o3dsoft.config.RegisterConfig`, one nested config per stage.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
-from typing import Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import numpy as np
 
@@ -177,10 +177,20 @@ class RegistrationResult:
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
         d = asdict(self)
-        for name in ("transformation", "coarse_transformation", "network_transformation", "copy_transformation"):
+        for name in TRANSFORM_FIELDS:
             if d[name] is not None:
                 d[name] = np.asarray(d[name]).tolist()
         return d
+
+
+# The result's (4, 4) T_target_source fields (the last two may be None).
+TRANSFORM_FIELDS = ("transformation", "coarse_transformation", "network_transformation", "copy_transformation")
+
+
+def _each_transform(result: RegistrationResult, change: Callable[[np.ndarray], np.ndarray]) -> RegistrationResult:
+    """`result` with `change` applied to each of its :data:`TRANSFORM_FIELDS` that is set."""
+    changed: Dict[str, Any] = {name: change(getattr(result, name)) for name in TRANSFORM_FIELDS if getattr(result, name) is not None}
+    return replace(result, **changed)
 
 
 def register(
@@ -245,14 +255,7 @@ def _started_at(result: RegistrationResult, init: Optional[np.ndarray]) -> Regis
     given: each transform T becomes T @ init."""
     if init is None:
         return result
-    network, copy = result.network_transformation, result.copy_transformation
-    return replace(
-        result,
-        transformation=result.transformation @ init,
-        coarse_transformation=result.coarse_transformation @ init,
-        network_transformation=None if network is None else network @ init,
-        copy_transformation=None if copy is None else copy @ init,
-    )
+    return _each_transform(result, lambda T: T @ init)
 
 
 def _moved_back(result: RegistrationResult, origin: np.ndarray) -> RegistrationResult:
@@ -261,17 +264,7 @@ def _moved_back(result: RegistrationResult, origin: np.ndarray) -> RegistrationR
     unchanged, its translation t' + origin - R origin."""
     if not origin.any():
         return result
-
-    def back(T: np.ndarray) -> np.ndarray:
-        return in_frame_at(T, -origin)
-
-    return replace(
-        result,
-        transformation=back(result.transformation),
-        coarse_transformation=back(result.coarse_transformation),
-        network_transformation=None if result.network_transformation is None else back(result.network_transformation),
-        copy_transformation=None if result.copy_transformation is None else back(result.copy_transformation),
-    )
+    return _each_transform(result, lambda T: in_frame_at(T, -origin))
 
 
 def _register(
@@ -437,15 +430,11 @@ def _inverted(result: RegistrationResult, source: np.ndarray, target: np.ndarray
     """A result of registering `target` onto `source` turned into the result for `source` onto
     `target`: transforms inverted, per-cloud counts swapped, fitness and RMSE measured again from
     the source's side, on the (N, 3) and (M, 3) clouds the registration used."""
-    T = np.linalg.inv(result.transformation)
-    scored = refine_stage.evaluate(source, target, T, result.correspondence_distance)
+    result = _each_transform(result, np.linalg.inv)
+    scored = refine_stage.evaluate(source, target, result.transformation, result.correspondence_distance)
     removed = {f"{'target' if key.startswith('source') else 'source'}{key[key.index('_') :]}": n for key, n in result.removed.items()}
     return replace(
         result,
-        transformation=T,
-        coarse_transformation=np.linalg.inv(result.coarse_transformation),
-        network_transformation=None if result.network_transformation is None else np.linalg.inv(result.network_transformation),
-        copy_transformation=None if result.copy_transformation is None else np.linalg.inv(result.copy_transformation),
         fitness=scored.fitness,
         inlier_rmse=scored.inlier_rmse,
         num_source=result.num_target,

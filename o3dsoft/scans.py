@@ -87,14 +87,18 @@ def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,), options: 
     expected += "".join(f" [{name}=transform]" for name in options)
     lines = []
     for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        fields = _fields(line, f"{path}, line {lineno}")
-        named = {key: path.parent / value for key, sep, value in (f.partition("=") for f in fields) if sep and key in options}
-        fields = [f for f in fields if f.partition("=")[0] not in named]
-        if not fields and not named:
+        files, named = [], {}
+        for field in _fields(line, f"{path}, line {lineno}"):
+            key, sep, value = field.partition("=")
+            if sep and key in options:
+                named[key] = path.parent / value
+            else:
+                files.append(path.parent / field)
+        if not files and not named:
             continue
-        if len(fields) not in counts:
-            raise InputError(f"{path}, line {lineno}: expected '{expected}', got {len(fields)} field(s) (a file name with spaces goes in quotes)")
-        lines.append((lineno, [path.parent / f for f in fields], named))
+        if len(files) not in counts:
+            raise InputError(f"{path}, line {lineno}: expected '{expected}', got {len(files)} field(s) (a file name with spaces goes in quotes)")
+        lines.append((lineno, files, named))
     if not lines:
         raise InputError(f"{path}: no pairs (expected lines '{expected}')")
     return lines

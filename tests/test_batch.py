@@ -92,6 +92,9 @@ def test_pairs_file_lines(tmp_path, pairs_file):
     with_truth, without, plain = read_pair_jobs(guessed)
     assert (with_truth.transform, with_truth.init) == (str(tmp_path / "gt.txt"), str(tmp_path / "guess.txt"))
     assert (without.transform, without.init) == (None, str(tmp_path / "guess.txt")) and plain.init is None
+    guessed.write_text("a.ply init init=guess.txt\n")  # a file named "init" is a file
+    (named,) = read_pair_jobs(guessed)
+    assert (named.target, named.init) == (str(tmp_path / "init"), str(tmp_path / "guess.txt"))
     guessed.write_text("a.ply init=guess.txt\n")
     with pytest.raises(InputError, match=r"line 1: expected 'source target \[transform\] \[init=transform\]', got 1 field"):
         read_pair_jobs(guessed)
