@@ -514,16 +514,23 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
 @click.option(
     "--merge-voxel", type=click.FloatRange(min=0, min_open=True), default=None, help="Grid of merged.ply (scan units); default: the pairs' registration grid."
 )
+@click.option(
+    "--init",
+    "init_path",
+    type=click.Path(path_type=Path),
+    help="Initial poses world_T_scan (odometry, an earlier run): a poses.json as multiway writes, or text with one pose per scan, in order, 12 numbers (KITTI's 3x4) or 16.",
+)
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the merged cloud, one colour per scan.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result (poses, edges) as JSON instead of a table.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @_pipeline_options
 @_friendly_errors
-def multiway(scans, out_dir, neighbours, window, near, merge_voxel, render_path, as_json, no_progress, **pipeline):
+def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, render_path, as_json, no_progress, **pipeline):
     """Register SCANS (two or more files; every scan of an E57) into the frame of the first.
 
     Writes OUT/poses.json (world_T_scan per scan, each edge's transform, confidence and whether it
-    was pruned) and OUT/merged.ply. Exit status 3 when a scan joined no other.
+    was pruned) and OUT/merged.ply. With --init, pairs start from their initial poses and the
+    result stays in their frame. Exit status 3 when a scan joined no other.
     """
     from tqdm import tqdm
 
@@ -547,8 +554,10 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, render_path,
             clouds.append(points)
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
+    init_poses = io.read_poses(init_path, names) if init_path is not None else None
     io.check_outputs_apart(
-        {"--out's poses": out_dir / "poses.json", "--out's merged cloud": out_dir / "merged.ply", "--render": render_path}, {f"the scan {p}": p for p in scans}
+        {"--out's poses": out_dir / "poses.json", "--out's merged cloud": out_dir / "merged.ply", "--render": render_path},
+        {**{f"the scan {p}": p for p in scans}, "--init": init_path},
     )
     io.make_folder(out_dir)  # after the scans are read: a bad file leaves no folder behind
     for p in (out_dir / "poses.json", out_dir / "merged.ply", render_path):
@@ -563,7 +572,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, render_path,
         bar.update(done - bar.n)
 
     try:
-        result = run_multiway(clouds, config, names=names, model=model, progress=progress)
+        result = run_multiway(clouds, config, names=names, model=model, progress=progress, init_poses=init_poses)
     finally:
         bar.close()
     payload = result.to_dict()

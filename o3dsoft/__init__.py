@@ -24,6 +24,7 @@ _LAZY = {
     "load_model": "coarse",
     "read_points": "io",
     "read_transform": "io",
+    "read_poses": "io",
     "write_points": "io",
     "write_transform": "io",
     "pair_errors": "metrics",
@@ -51,7 +52,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
     from .coarse import CoarseModel, load_model
     from .confidence import ConfidenceConfig
     from .config import FeatureSearchConfig, RegisterConfig, RestartConfig, ScreenConfig, SearchConfig, StartsConfig, VotesConfig
-    from .io import read_points, read_scans, read_transform, write_points, write_transform
+    from .io import read_points, read_poses, read_scans, read_transform, write_points, write_transform
     from .metrics import pair_errors, rotation_error_deg
     from .multiway import MultiwayConfig, MultiwayResult, multiway
     from .pipeline import RegistrationResult, register
@@ -100,6 +101,7 @@ __all__ = [
     "read_scans",
     "pair_errors",
     "read_points",
+    "read_poses",
     "read_transform",
     "register",
     "rotation_error_deg",

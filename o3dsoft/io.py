@@ -11,13 +11,14 @@ leaves a half-written output.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional, Tuple, Union
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -661,25 +662,104 @@ def read_transform(path: PathLike) -> np.ndarray:
 
 
 def _parse_matrix_text(path: Path) -> np.ndarray:
+    rows = [row for _, row in _number_lines(path, (4,), "4 lines of 4 numbers")]
+    if not rows:
+        raise InputError(f"{path}: empty; expected 4 lines of 4 numbers")
+    return np.array(rows, dtype=np.float64)
+
+
+def _number_lines(path: Path, counts: Tuple[int, ...], expected: str) -> List[Tuple[int, List[float]]]:
+    """The (line number, numbers) of a text file's lines that hold any, each holding one of
+    `counts` numbers (whitespace or comma separated; '#' starts a comment)."""
     try:
         text = path.read_text()
     except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file; expected 4 lines of 4 numbers") from None
+        raise InputError(f"{path}: not a text file; expected {expected}") from None
+    per_line = " or ".join(map(str, counts))
     rows = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         content = line.split("#", 1)[0].replace(",", " ").split()
         if not content:
             continue
         try:
-            rows.append([float(v) for v in content])
+            rows.append((lineno, [float(v) for v in content]))
         except ValueError:
             bad = next(v for v in content if not _is_float(v))
-            raise InputError(f"{path}, line {lineno}: {bad!r} is not a number; expected 4 numbers per line") from None
-        if len(rows[-1]) != 4:
-            raise InputError(f"{path}, line {lineno}: {len(rows[-1])} values; expected 4 per line")
-    if not rows:
-        raise InputError(f"{path}: empty; expected 4 lines of 4 numbers")
-    return np.array(rows, dtype=np.float64)
+            raise InputError(f"{path}, line {lineno}: {bad!r} is not a number; expected {per_line} numbers per line") from None
+        if len(rows[-1][1]) not in counts:
+            raise InputError(f"{path}, line {lineno}: {len(rows[-1][1])} values; expected {per_line} per line")
+    return rows
+
+
+def read_poses(path: PathLike, names: Sequence[str]) -> List[Optional[np.ndarray]]:
+    """Initial poses (4, 4) world_T_scan of the scans `names`, None where the file has none.
+
+    Two layouts:
+        ``.json``: ``{"scans": [{"name": ..., "world_T_scan": 4x4 or null}, ...]}``, the
+            poses.json that ``o3dsoft multiway`` writes; a scan is found by its name, else by its
+            file name.
+        text (any other extension): one pose per line in the scans' order, 12 numbers (a 3x4
+            [R | t] row by row, as KITTI's pose files) or 16 (4x4 row by row).
+    Rotations within 1e-3 of orthonormal are replaced by the nearest rotation, as
+    :func:`read_transform` does.
+
+    Raises:
+        UsageError: missing file.
+        InputError: names the line or scan and what was wrong.
+    """
+    path = Path(path)
+    _check_readable(path)
+    if path.suffix.lower() == ".json":
+        found = _poses_by_name(path, names)
+    else:
+        lines = _number_lines(path, (12, 16), "one pose per line, 12 or 16 numbers")
+        if len(lines) != len(names):
+            raise InputError(f"{path}: {len(lines)} poses for {len(names)} scans; expected one line per scan, in the order the scans are given")
+        found = {names[k]: (f"{path}, line {lineno}", np.array(row, dtype=np.float64).reshape(-1, 4)) for k, (lineno, row) in enumerate(lines)}
+    poses: List[Optional[np.ndarray]] = []
+    for name in names:
+        if name not in found:
+            poses.append(None)
+            continue
+        where, T = found[name]
+        if T.shape == (3, 4):
+            T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+        check_rigid(T, where, tol=READ_TOLERANCE)
+        U, _, Vt = np.linalg.svd(T[:3, :3])
+        T[:3, :3] = U @ Vt  # the nearest rotation (det +1, as checked)
+        poses.append(T)
+    return poses
+
+
+def _poses_by_name(path: Path, names: Sequence[str]) -> Dict[str, Tuple[str, np.ndarray]]:
+    """{scan name: (where, (4, 4) pose)} from a poses.json; its scans without a pose are left out."""
+    try:
+        record = json.loads(path.read_text())
+    except (UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"{path}: not a JSON file ({first_line(e)}); expected o3dsoft multiway's poses.json") from None
+    entries = record.get("scans") if isinstance(record, dict) else None
+    if not isinstance(entries, list) or not all(isinstance(e, dict) and isinstance(e.get("name"), str) for e in entries):
+        raise InputError(f'{path}: expected {{"scans": [{{"name": ..., "world_T_scan": ...}}, ...]}}, as o3dsoft multiway writes')
+    by_file = {}
+    for name in names:
+        by_file.setdefault(Path(name).name, []).append(name)
+    found: Dict[str, Tuple[str, np.ndarray]] = {}
+    for entry in entries:
+        matches = [entry["name"]] if entry["name"] in names else by_file.get(Path(entry["name"]).name, [])
+        pose = entry.get("world_T_scan")
+        if len(matches) != 1 or pose is None:
+            continue
+        where = f"{path}, scan {entry['name']!r}"
+        try:
+            T = np.array(pose, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"{where}: world_T_scan is not a 4x4 array of numbers") from None
+        if T.shape != (4, 4):
+            raise InputError(f"{where}: world_T_scan has shape {T.shape}; expected 4x4")
+        found[matches[0]] = (where, T)
+    if not found:
+        raise InputError(f"{path}: none of its scans with a pose is among the scans given (matched by name, then by file name)")
+    return found
 
 
 def _is_float(v: str) -> bool:

@@ -2,11 +2,13 @@
 
     choose the pairs that may overlap (all of them for a few scans; neighbours in sequence or by
     position for many)
-    -> register each pair (:func:`o3dsoft.register`), keeping its transform and confidence
+    -> register each pair (:func:`o3dsoft.register`, from the two scans' initial poses where
+       the caller has them), keeping its transform and confidence
     -> connect the scans through their most confident edges (a maximum spanning tree)
     -> optimise the pose graph (Open3D's Levenberg-Marquardt with a line process, which prunes
        wrong loop closures)
-    -> one pose per scan, world_T_scan, the first joined scan being the world frame.
+    -> one pose per scan, world_T_scan, the first joined scan being the world frame (placed at
+       its initial pose, where it has one: the result stays in the initial poses' frame).
 
 Edges flagged likely failed are left out of the graph; scans that no trusted edge reaches are
 reported and left out of the result.
@@ -22,6 +24,7 @@ import numpy as np
 
 from .config import RegisterConfig
 from .errors import InputError
+from .io import check_rigid
 from .pair import CloudLike, as_points
 from .pipeline import RegistrationResult, register
 from .preprocess import clean_points, voxel_downsample
@@ -38,7 +41,8 @@ class MultiwayConfig:
         neighbours: which pairs are registered: "all" (every pair), "sequence" (each scan with the
             next `window` scans, for scans taken in order), "near" (each scan with its `near`
             nearest by centroid, for scans already roughly placed, e.g. georeferenced), or "auto"
-            (default: "all" up to `all_up_to` scans, "sequence" beyond).
+            (default: "all" up to `all_up_to` scans; beyond, "near" where every scan has an
+            initial pose, else "sequence").
         all_up_to: "auto" registers every pair of at most this many scans (default 12: 66 pairs).
         window: "sequence": how many following scans each scan is paired with (default 3).
         near: "near": how many nearest scans each scan is paired with (default 4).
@@ -126,8 +130,9 @@ class MultiwayResult:
     Attributes:
         names: the scans' names, in input order.
         poses: (4, 4) world_T_scan per scan (maps the scan's points into the world frame); None
-            for a scan that joined no other (the world scan has the identity).
-        world: index of the scan whose frame is the world: the first of the largest group of
+            for a scan that joined no other (the world scan has the identity, or its initial
+            pose where it was given one).
+        world: index of the scan that fixes the world frame: the first of the largest group of
             scans joined by trusted alignments (the first scan when none is).
         edges: every registered pair.
         timings_s: "pairs" (all pairwise registrations), "optimise", "total" (s, lower is better).
@@ -161,17 +166,21 @@ class MultiwayResult:
         }
 
 
-def choose_pairs(clouds: Sequence[np.ndarray], config: MultiwayConfig) -> List[Tuple[int, int]]:
-    """The pairs (i, j), i < j, that are registered: see :attr:`MultiwayConfig.neighbours`."""
+def choose_pairs(clouds: Sequence[np.ndarray], config: MultiwayConfig, init_poses: Optional[Sequence[Optional[np.ndarray]]] = None) -> List[Tuple[int, int]]:
+    """The pairs (i, j), i < j, that are registered: see :attr:`MultiwayConfig.neighbours`.
+
+    `init_poses`: per scan a (4, 4) world_T_scan guess or None; "near" compares the centroids
+    where the guesses put them."""
     n = len(clouds)
+    poses = list(init_poses) if init_poses is not None else [None] * n
     rule = config.neighbours
     if rule == "auto":
-        rule = "all" if n <= config.all_up_to else "sequence"
+        rule = "all" if n <= config.all_up_to else "near" if all(p is not None for p in poses) else "sequence"
     if rule == "all":
         return [(i, j) for i in range(n) for j in range(i + 1, n)]
     if rule == "sequence":
         return [(i, j) for i in range(n) for j in range(i + 1, min(n, i + 1 + config.window))]
-    centres = np.array([c.mean(axis=0) for c in clouds])
+    centres = np.array([c.mean(axis=0) if p is None else apply_transform(p, c.mean(axis=0)[None])[0] for c, p in zip(clouds, poses)])
     d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
     pairs = set()
     for i in range(n):
@@ -186,6 +195,7 @@ def multiway(
     names: Optional[Sequence[str]] = None,
     model=None,
     progress: Optional[Callable[[int, int], None]] = None,
+    init_poses: Optional[Sequence[Optional[np.ndarray]]] = None,
 ) -> MultiwayResult:
     """Register every scan of a scene into the frame of the first one.
 
@@ -195,10 +205,16 @@ def multiway(
         names: how to call the scans (file names); default scan0, scan1, ...
         model: an already loaded network (else loaded once from ``config.register.weights``).
         progress: called as progress(pairs done, pairs in all) after each registration.
+        init_poses: per scan, a (4, 4) guess of its world_T_scan (odometry, a GPS/IMU track, an
+            earlier run) or None where there is none. A pair of scans that both have one is
+            registered from the pose between them (``register(init=...)``: where ICP from it is
+            trusted, nothing else runs); the world scan keeps its guess, so the result is in the
+            guesses' frame; "near" pairs scans by where the guesses put them.
     Returns:
         MultiwayResult.
     Raises:
-        InputError: fewer than two scans, or a scan that cannot be registered (empty, degenerate).
+        InputError: fewer than two scans, a scan that cannot be registered (empty, degenerate),
+            or an initial pose that is not a rigid 4x4 transform.
     """
     from .coarse import load_model
 
@@ -209,18 +225,19 @@ def multiway(
     if len(names) != len(clouds):
         raise InputError(f"{len(names)} names for {len(clouds)} scans")
     points = [as_points(c, name) for c, name in zip(clouds, names)]
+    guesses = _checked_poses(init_poses, names)
     model = model if model is not None else load_model(config.register.weights, config.register.device)
     t_start = time.perf_counter()
 
     # Register the pairs that may overlap (T_i_j maps scan j onto scan i), first without the
     # global search: most pairs of a scene either align at once or do not overlap at all.
-    pairs = choose_pairs(points, config)
+    pairs = choose_pairs(points, config, guesses)
     quick = config.register
     if quick.search.mode == "auto":  # flagged edges are left out or registered again: no full-resolution ICP for them
         quick = replace(quick, search=replace(quick.search, mode="off"), refine_flagged=False)
     found: Dict[Tuple[int, int], Tuple[Edge, RegistrationResult]] = {}
     for done, (i, j) in enumerate(pairs, start=1):
-        found[i, j] = _register_edge(points, names, i, j, quick, model)
+        found[i, j] = _register_edge(points, names, i, j, quick, model, guesses)
         if progress is not None:
             progress(done, len(pairs))
     # Then the search, only on the pairs of scans that no trusted edge reaches yet, until each joins.
@@ -228,7 +245,7 @@ def multiway(
         group_of = _group_of(len(points), [e for e, _ in found.values()])
         for i, j in pairs:
             if group_of[i] != group_of[j] and found[i, j][0].likely_failed:
-                found[i, j] = _register_edge(points, names, i, j, config.register, model)
+                found[i, j] = _register_edge(points, names, i, j, config.register, model, guesses)
                 if not found[i, j][0].likely_failed:  # two groups joined
                     group_of = _group_of(len(points), [e for e, _ in found.values()])
     edges = [e for e, _ in found.values()]
@@ -237,24 +254,44 @@ def multiway(
 
     # Connect the scans through their most confident edges, then optimise the graph.
     world, tree = _spanning_tree(len(points), edges)
+    start = guesses[world] if guesses[world] is not None else np.eye(4)
     poses: List[Optional[np.ndarray]] = [None] * len(points)
-    poses[world] = np.eye(4)  # the world frame, even when no other scan joins it
+    poses[world] = start  # the world frame, even when no other scan joins it
     edges = [_mark(e, tree) for e in edges]
     grid = _merge_grid(config, results)
     if tree:
         info_clouds = [voxel_downsample(clean_points(p, name).points, grid, name) if grid else clean_points(p, name).points for p, name in zip(points, names)]
         distance = float(np.median([r.tight_distance for r, e in zip(results, edges) if e.used]))
-        optimised, pruned = _optimise(info_clouds, edges, world, tree, distance, config)
+        optimised, pruned = _optimise(info_clouds, edges, world, start, tree, distance, config)
         poses = [optimised.get(k) for k in range(len(points))]
         edges = [replace(e, pruned=(e.source, e.target) in pruned) for e in edges]
     t_end = time.perf_counter()
     return MultiwayResult(names, tuple(poses), world, tuple(edges), {"pairs": t_pairs - t_start, "optimise": t_end - t_pairs, "total": t_end - t_start}, grid)
 
 
-def _register_edge(points, names, i: int, j: int, config: RegisterConfig, model) -> Tuple[Edge, RegistrationResult]:
-    """Register scan j onto scan i: the edge j -> i and the full result."""
+def _checked_poses(init_poses: Optional[Sequence[Optional[np.ndarray]]], names: Sequence[str]) -> List[Optional[np.ndarray]]:
+    """The initial world_T_scan poses as (4, 4) float64 arrays (None: no guess), checked rigid."""
+    if init_poses is None:
+        return [None] * len(names)
+    if len(init_poses) != len(names):
+        raise InputError(f"{len(init_poses)} initial poses for {len(names)} scans")
+    poses: List[Optional[np.ndarray]] = []
+    for pose, name in zip(init_poses, names):
+        if pose is not None:
+            pose = np.asarray(pose, dtype=np.float64)
+            if pose.shape != (4, 4):
+                raise InputError(f"{name}: initial pose of shape {pose.shape}; expected a 4x4 transform")
+            check_rigid(pose, f"{name}: initial pose")
+        poses.append(pose)
+    return poses
+
+
+def _register_edge(points, names, i: int, j: int, config: RegisterConfig, model, guesses) -> Tuple[Edge, RegistrationResult]:
+    """Register scan j onto scan i (from T_i_j = inv(world_T_i) @ world_T_j where both have an
+    initial pose): the edge j -> i and the full result."""
     t0 = time.perf_counter()
-    r = register(points[j], points[i], config, model=model, source_name=names[j], target_name=names[i])
+    init = np.linalg.inv(guesses[i]) @ guesses[j] if guesses[i] is not None and guesses[j] is not None else None
+    r = register(points[j], points[i], config, model=model, source_name=names[j], target_name=names[i], init=init)
     return Edge(j, i, r.transformation, r.confidence, r.fitness, r.likely_failed, r.failure_reason, time.perf_counter() - t0, r.searched), r
 
 
@@ -311,16 +348,22 @@ def _merge_grid(config: MultiwayConfig, results: Sequence[RegistrationResult]) -
 
 
 def _optimise(
-    clouds: Sequence[np.ndarray], edges: Sequence[Edge], world: int, tree: Dict[int, Tuple[int, Edge]], distance: float, config: MultiwayConfig
+    clouds: Sequence[np.ndarray],
+    edges: Sequence[Edge],
+    world: int,
+    start: np.ndarray,
+    tree: Dict[int, Tuple[int, Edge]],
+    distance: float,
+    config: MultiwayConfig,
 ) -> Tuple[Dict[int, np.ndarray], set]:
-    """Open3D's pose-graph optimisation from the spanning tree's poses: ({scan: world_T_scan},
-    {(source, target) of the pruned edges})."""
+    """Open3D's pose-graph optimisation from the spanning tree's poses, the world scan held at
+    (4, 4) `start`: ({scan: world_T_scan}, {(source, target) of the pruned edges})."""
     from ._open3d import open3d as o3d
     from .refine import to_open3d
 
     reg = o3d.pipelines.registration
     # Poses along the tree: world_T_child = world_T_parent @ parent_T_child.
-    pose = {world: np.eye(4)}
+    pose = {world: start}
     order = [world]
     while len(order) < len(tree) + 1:
         for child, (parent, edge) in tree.items():

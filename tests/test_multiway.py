@@ -11,12 +11,15 @@ from click.testing import CliRunner
 
 from o3dsoft.cli.main import main
 from o3dsoft.coarse import load_model
+from o3dsoft.config import RegisterConfig, SearchConfig
 from o3dsoft.errors import InputError
-from o3dsoft.io import read_points, write_points
+from o3dsoft.io import read_points, read_poses, write_points
 from o3dsoft.metrics import pair_errors
 from o3dsoft.multiway import Edge, MultiwayConfig, _optimise, _spanning_tree, choose_pairs, merged_cloud, multiway
+from o3dsoft.transforms import euler_to_matrix, rigid
 
 from .conftest import EXAMPLES, apply, blob, random_transform
+from .fakes import AlwaysWrongModel
 
 
 def _edge(source, target, confidence, T=None):
@@ -55,6 +58,15 @@ def test_pairs_all_sequence_and_near():
     assert len(choose_pairs(many, MultiwayConfig())) == 13 * 3 - 3  # auto: sequence beyond 12 scans, window 3
 
 
+def test_near_pairs_scans_where_their_initial_poses_put_them():
+    clouds = [blob(np.random.default_rng(k), 50) for k in range(4)]  # four clouds about the origin
+    guesses = [rigid(np.eye(3), [x, 0.0, 0.0]) for x in (0.0, 5.0, 1.0, 6.0)]
+    assert choose_pairs(clouds, MultiwayConfig(neighbours="near", near=1), guesses) == [(0, 2), (1, 3)]
+    # Beyond all_up_to, "auto" pairs by position where every scan has a pose, else in sequence.
+    assert choose_pairs(clouds, MultiwayConfig(all_up_to=2, near=1), guesses) == [(0, 2), (1, 3)]
+    assert choose_pairs(clouds, MultiwayConfig(all_up_to=2, window=1), guesses[:3] + [None]) == [(0, 1), (1, 2), (2, 3)]
+
+
 def test_spanning_tree_takes_the_most_confident_trusted_edges():
     edges = [_edge(1, 0, 0.9), _edge(2, 0, 0.6), _edge(2, 1, 0.95), _edge(3, 2, 0.2)]
     world, tree = _spanning_tree(4, edges)
@@ -87,7 +99,7 @@ def test_a_wrong_loop_closure_is_pruned_and_the_right_ones_kept():
     ]
     world, tree = _spanning_tree(4, edges)
     edges = [e.__class__(**{**e.__dict__, "used": True, "in_tree": any(e is t for _, t in tree.values())}) for e in edges]
-    optimised, pruned = _optimise(clouds, edges, world, tree, 0.05, MultiwayConfig())
+    optimised, pruned = _optimise(clouds, edges, world, np.eye(4), tree, 0.05, MultiwayConfig())
     assert pruned == {(3, 0)}
     for k in range(4):
         assert pair_errors(optimised[k], poses[k]).rotation_deg < 1e-3
@@ -108,6 +120,55 @@ def test_scans_of_one_object_come_into_one_frame(scans, model):
     points, labels = merged_cloud(clouds, result, voxel=0.002)
     assert set(labels) == {0, 1, 2, 3}
     assert len(points) < sum(map(len, clouds))  # the grid merges the overlapping views
+
+
+def test_initial_poses_start_the_pairs_and_keep_their_frame(scans):
+    clouds, poses = scans
+    rng = np.random.default_rng(5)
+    world = random_transform(rng, max_angle=90.0, max_t=2.0)  # the frame the guesses come in
+    guesses = [world @ rigid(euler_to_matrix(rng.uniform(-4, 4, 3)), rng.uniform(-0.003, 0.003, 3)) @ p for p in poses]
+    wrong = AlwaysWrongModel(euler_to_matrix([180.0, 0.0, 0.0]))  # would turn every scan over
+    config = MultiwayConfig(register=RegisterConfig(search=SearchConfig(mode="off")))
+    result = multiway(clouds, config, model=wrong, init_poses=guesses)
+    assert all(result.joined) and not wrong.batches  # ICP from the guesses was trusted on each pair
+    assert np.allclose(result.poses[0], guesses[0])  # the world scan stays where its guess put it
+    for k in range(1, 4):
+        errors = pair_errors(np.linalg.inv(result.poses[0]) @ result.poses[k], poses[k])  # poses[0] is the identity
+        assert errors.rotation_deg < 1.0 and errors.translation < 0.002  # metres: 1 degree, 2 mm
+
+
+def test_initial_poses_must_be_rigid_and_one_per_scan(scans, model):
+    clouds, _ = scans
+    with pytest.raises(InputError, match="2 initial poses for 4 scans"):
+        multiway(clouds, model=model, init_poses=[np.eye(4)] * 2)
+    with pytest.raises(InputError, match="scan1: initial pose: not a rigid transform"):
+        multiway(clouds, model=model, init_poses=[None, np.diag([2.0, 1.0, 1.0, 1.0]), None, None])
+
+
+def test_poses_files(tmp_path):
+    names = ["a/s0.ply", "a/s1.ply", "a/s2.ply"]
+    T = rigid(euler_to_matrix([10.0, 0.0, 30.0]), [1.0, 2.0, 3.0])
+    kitti = tmp_path / "poses.txt"
+    kitti.write_text("# KITTI layout\n" + "\n".join(" ".join(map(str, P[:3].ravel())) for P in (np.eye(4), T, T)) + "\n")
+    poses = read_poses(kitti, names)
+    assert np.allclose(poses[0], np.eye(4)) and np.allclose(poses[2], T, atol=1e-12)
+    # A poses.json from another folder: its scans are found by file name; a scan without a pose has none.
+    record = {"scans": [{"name": "b/s1.ply", "world_T_scan": T.tolist()}, {"name": "b/s2.ply", "world_T_scan": None}]}
+    (tmp_path / "poses.json").write_text(json.dumps(record))
+    poses = read_poses(tmp_path / "poses.json", names)
+    assert poses[0] is None and np.allclose(poses[1], T) and poses[2] is None
+    bad = tmp_path / "bad.txt"
+    for text, match in [
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n", "1 poses for 3 scans"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0\n1 0 0 0 0 1 0 0 0 0 1 0\n", "bad.txt, line 2: 3 values; expected 12 or 16 per line"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 2 0\n1 0 0 0 0 1 0 0 0 0 1 0\n", "bad.txt, line 2: not a rigid transform"),
+    ]:
+        bad.write_text(text)
+        with pytest.raises(InputError, match=match):
+            read_poses(bad, names)
+    (tmp_path / "other.json").write_text(json.dumps({"scans": [{"name": "c.ply", "world_T_scan": T.tolist()}]}))
+    with pytest.raises(InputError, match="none of its scans with a pose is among the scans given"):
+        read_poses(tmp_path / "other.json", names)
 
 
 def test_a_scan_that_overlaps_none_is_left_out(scans, model):
@@ -139,6 +200,23 @@ def test_cli_writes_poses_and_the_merged_cloud(tmp_path, scans):
         assert pair_errors(np.array(scan["world_T_scan"]), poses[k]).rotation_deg < 1.0
     assert len(read_points(out / "merged.ply")) > 0
     assert (tmp_path / "merged.png").stat().st_size > 0
+
+
+def test_cli_starts_from_initial_poses(tmp_path, scans):
+    clouds, poses = scans
+    files = [write_points(tmp_path / f"view{k}.ply", c) for k, c in enumerate(clouds[:3])]
+    world = rigid(euler_to_matrix([0.0, 0.0, 90.0]), [100.0, 50.0, 0.0])  # e.g. a site's frame
+    guesses = tmp_path / "guesses.txt"
+    guesses.write_text("\n".join(" ".join(f"{v:.9f}" for v in (world @ P)[:3].ravel()) for P in poses[:3]) + "\n")
+    result = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "out"), "--init", str(guesses), "--no-progress"])
+    assert result.exit_code == 0, result.output
+    record = json.loads((tmp_path / "out" / "poses.json").read_text())
+    for k, scan in enumerate(record["scans"]):
+        assert pair_errors(np.array(scan["world_T_scan"]), world @ poses[k]).rotation_deg < 1.0
+    guesses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    short = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "o2"), "--init", str(guesses)])
+    assert short.exit_code == 1 and "guesses.txt: 1 poses for 3 scans" in short.output and "Traceback" not in short.output
+    assert not (tmp_path / "o2").exists()
 
 
 def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
