@@ -65,8 +65,9 @@ _PLY_SIZES.update({"int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "fl
 
 def _check_ply(path: Path) -> None:
     """Raise InputError where a PLY's vertices lack an x, y or z property, or where the file ends
-    before its last vertex: Open3D reads the missing values as whatever memory held, or zeros. A
-    file whose header cannot be read is left to Open3D's reader (which reports it)."""
+    before its last vertex (Open3D reads the missing values as whatever memory held, or zeros) or
+    face (Open3D samples the faces it read: a part of the surface). A file whose header cannot be
+    read is left to Open3D's reader (which reports it)."""
     with open(path, "rb") as f:
         head = f.read(65536)
     end = head.find(b"end_header")
@@ -81,12 +82,12 @@ def _check_ply(path: Path) -> None:
         elif words[:1] == ["element"] and len(words) >= 3 and words[2].isdigit():
             elements.append((words[1], int(words[2]), []))
         elif words[:1] == ["property"] and len(words) >= 3 and elements:
-            elements[-1][2].append((words[1], words[-1]))
+            elements[-1][2].append((words[1], words[-1], words[2:-1]))  # (type, name, a list's count and item types)
     names = [i for i, element in enumerate(elements) if element[0] == "vertex"]
     if not names:
         return
     vertex = names[0]
-    properties = {name for kind, name in elements[vertex][2] if kind != "list"}
+    properties = {name for kind, name, _ in elements[vertex][2] if kind != "list"}
     missing = [axis for axis in "xyz" if axis not in properties]
     if missing:
         raise InputError(
@@ -100,13 +101,33 @@ def _check_ply(path: Path) -> None:
         return
     before = elements[: vertex + 1]  # the elements the vertices' end depends on
     count = elements[vertex][1]
-    if form.startswith("binary") and all(kind in _PLY_SIZES for element in before for kind, _ in element[2]):
-        rows = [sum(_PLY_SIZES[kind] for kind, _ in element[2]) for element in before]
-        size = path.stat().st_size - data_start - sum(n * row for (_, n, _), row in zip(before[:-1], rows[:-1]))
-        have = size // rows[-1] if rows[-1] else count
-    else:  # list properties before the vertices: their size is not known without reading them
-        return
-    _check_whole(path, count, have, "vertices")
+    if not form.startswith("binary") or not all(kind in _PLY_SIZES for element in before for kind, _, _ in element[2]):
+        return  # list properties before the vertices: their size is not known without reading them
+    rows = [sum(_PLY_SIZES[kind] for kind, _, _ in element[2]) for element in before]
+    size = path.stat().st_size - data_start - sum(n * row for (_, n, _), row in zip(before[:-1], rows[:-1]))
+    _check_whole(path, count, size // rows[-1] if rows[-1] else count, "vertices")
+    if len(elements) > vertex + 1 and elements[vertex + 1][0] == "face":
+        _, faces, properties = elements[vertex + 1]
+        least = _least_face_bytes(properties)  # a face holds at least 3 vertex indices
+        if least:
+            _check_whole(path, faces, (size - count * rows[-1]) // least, "faces")
+
+
+def _least_face_bytes(properties) -> int:
+    """The fewest bytes a binary PLY face with these properties takes (a polygon has at least 3
+    vertex indices; any other list may be empty); 0 where a type is unknown."""
+    least = 0
+    for kind, name, types in properties:
+        if kind == "list":
+            sizes = [_PLY_SIZES.get(t, 0) for t in types] if len(types) == 2 else [0]
+            here = sizes[0] + (3 * sizes[-1] if name in ("vertex_indices", "vertex_index") else 0)
+        else:
+            sizes = [_PLY_SIZES.get(kind, 0)]
+            here = sizes[0]
+        if not all(sizes):
+            return 0
+        least += here
+    return least
 
 
 def _check_pcd(path: Path) -> None:
@@ -160,13 +181,22 @@ def _check_off(path: Path) -> None:
 
 
 def _check_stl(path: Path) -> None:
-    """Raise InputError where a binary STL ends before the triangles its header counts."""
+    """Raise InputError where a binary STL ends before the triangles its header counts, or an
+    ascii STL before its closing 'endsolid' line."""
+    size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(84)
-    if len(head) < 84 or head.lstrip().startswith(b"solid"):  # ascii STL: no count to check
+        f.seek(max(0, size - 4096))
+        tail = f.read()
+    declared = int(np.frombuffer(head[80:84], dtype="<u4")[0]) if len(head) == 84 else -1
+    if 84 + 50 * declared == size:  # a whole binary STL (its 80-byte header may begin with "solid" too)
         return
-    declared = int(np.frombuffer(head[80:84], dtype="<u4")[0])
-    _check_whole(path, declared, (path.stat().st_size - 84) // 50, "triangles")
+    if head.lstrip().startswith(b"solid") and tail.isascii() and b"\0" not in tail:  # ascii: no count, but a closing line
+        if not tail.rstrip().rsplit(b"\n", 1)[-1].strip().lower().startswith(b"endsolid"):
+            raise InputError(f"{path}: an ascii STL that ends before its closing 'endsolid' line; is it complete (a copy or a download cut short)?")
+        return
+    if declared >= 0:
+        _check_whole(path, declared, (size - 84) // 50, "triangles")
 
 
 def _lines_from(path: Path, start: int) -> int:
@@ -274,12 +304,7 @@ def _bad_text_line(path: Path, ext: str, parsed: int) -> str:
     columns = _TEXT_COLUMNS[ext]
 
     def numbers(line: str) -> bool:
-        fields = line.split()
-        try:
-            [float(v) for v in fields]
-        except ValueError:
-            return False
-        return len(fields) >= columns
+        return _numbers(line.split(), columns) is not None
 
     header = not numbers(data.split(b"\n", 1)[0].decode("utf-8", errors="replace"))
     if data.count(b"\n") + (not data.endswith(b"\n")) <= parsed + header:  # every line a point, or the header

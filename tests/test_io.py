@@ -153,6 +153,32 @@ def test_a_mesh_cut_short_is_refused(tmp_path, ext, share, match):
         read_points(tmp_path / "cut.ply")
 
 
+def test_a_binary_ply_cut_in_its_faces_and_an_ascii_stl_cut_short_are_refused(tmp_path):
+    box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    binary = trimesh.exchange.ply.export_ply(box, encoding="binary")
+    (tmp_path / "faces.ply").write_bytes(binary[:-20])  # all 8 vertices, the faces cut within the 11th
+    with pytest.raises(InputError, match="faces.ply: the header declares 12 faces, but the file ends after 10; is it complete"):
+        read_points(tmp_path / "faces.ply")
+    text = box.export(file_type="stl_ascii")
+    (tmp_path / "cut.stl").write_text(text[: int(len(text) * 0.95)])
+    with pytest.raises(InputError, match="cut.stl: an ascii STL that ends before its closing 'endsolid' line; is it complete"):
+        read_points(tmp_path / "cut.stl")
+    # Whole files are read: the ascii STL, a binary STL whose 80-byte header begins with "solid",
+    # a binary PLY of one quad (more bytes than a triangle).
+    (tmp_path / "whole.stl").write_text(text)
+    solid = box.export(file_type="stl")
+    (tmp_path / "solid_header.stl").write_bytes(b"solid" + solid[5:])
+    for name in ("whole.stl", "solid_header.stl"):
+        points = read_points(tmp_path / name, mesh_points=200)
+        assert np.allclose(np.abs(points).max(axis=0), [1.0, 0.5, 0.25])
+    header = b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+    header += b"element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype="<f4").tobytes() + bytes([4]) + np.arange(4, dtype="<i4").tobytes()
+    (tmp_path / "quad.ply").write_bytes(header + square)
+    points = read_points(tmp_path / "quad.ply", mesh_points=100)
+    assert points.shape == (100, 3) and np.all(points[:, 2] == 0) and points[:, :2].min() >= 0 and points[:, :2].max() <= 1
+
+
 def test_an_off_with_its_counts_on_the_keywords_line_is_read(tmp_path):
     # ModelNet40's known malformed header, which Open3D reads as a mesh without faces.
     (tmp_path / "modelnet.off").write_text("OFF4 1 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n")
