@@ -74,7 +74,7 @@ def _check_ply(path: Path) -> None:
     data_start = head.find(b"\n", end) + 1
     if not head.startswith(b"ply") or end < 0 or data_start == 0:
         return
-    form, elements = "", []  # elements: [name, count, [(type, name), ...]]
+    form, elements = "", []  # elements: [name, count, [(type, name, a list's count and item types), ...]]
     for line in head[:end].decode("ascii", errors="replace").splitlines():
         words = line.split()
         if words[:1] == ["format"] and len(words) >= 2:
@@ -82,7 +82,7 @@ def _check_ply(path: Path) -> None:
         elif words[:1] == ["element"] and len(words) >= 3 and words[2].isdigit():
             elements.append((words[1], int(words[2]), []))
         elif words[:1] == ["property"] and len(words) >= 3 and elements:
-            elements[-1][2].append((words[1], words[-1], words[2:-1]))  # (type, name, a list's count and item types)
+            elements[-1][2].append((words[1], words[-1], words[2:-1]))
     names = [i for i, element in enumerate(elements) if element[0] == "vertex"]
     if not names:
         return
@@ -187,12 +187,12 @@ def _check_stl(path: Path) -> None:
     with open(path, "rb") as f:
         head = f.read(84)
         f.seek(max(0, size - 4096))
-        tail = f.read()
+        tail = f.read().lower()
     declared = int(np.frombuffer(head[80:84], dtype="<u4")[0]) if len(head) == 84 else -1
-    if 84 + 50 * declared == size:  # a whole binary STL (its 80-byte header may begin with "solid" too)
+    if declared >= 0 and 84 + 50 * declared == size:  # a whole binary STL (its 80-byte header may begin with "solid" too)
         return
-    if head.lstrip().startswith(b"solid") and tail.isascii() and b"\0" not in tail:  # ascii: no count, but a closing line
-        if not tail.rstrip().rsplit(b"\n", 1)[-1].strip().lower().startswith(b"endsolid"):
+    if head.lstrip().lower().startswith(b"solid") and b"\0" not in head:  # ascii: no count, but a closing line after the last facet
+        if tail.rfind(b"endsolid") <= tail.rfind(b"endfacet"):
             raise InputError(f"{path}: an ascii STL that ends before its closing 'endsolid' line; is it complete (a copy or a download cut short)?")
         return
     if declared >= 0:
@@ -303,8 +303,9 @@ def _bad_text_line(path: Path, ext: str, parsed: int) -> str:
     data = path.read_bytes()
     columns = _TEXT_COLUMNS[ext]
 
-    def numbers(line: str) -> bool:
-        return _numbers(line.split(), columns) is not None
+    def numbers(line: str) -> bool:  # as Open3D reads them: a quoted number is no number
+        fields = line.split()
+        return len(fields) >= columns and all(_is_float(v) for v in fields)
 
     header = not numbers(data.split(b"\n", 1)[0].decode("utf-8", errors="replace"))
     if data.count(b"\n") + (not data.endswith(b"\n")) <= parsed + header:  # every line a point, or the header
@@ -679,10 +680,17 @@ def read_transform(path: PathLike) -> np.ndarray:
         T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
     if T.shape != (4, 4):
         raise InputError(f"{path}: expected a 4x4 transform (or 3x4 [R|t]), got shape {T.shape}")
-    check_rigid(T, str(path), tol=READ_TOLERANCE)
+    return _rigid_as_read(T, str(path))
+
+
+def _rigid_as_read(T: np.ndarray, where: str) -> np.ndarray:
+    """The (4, 4) transform read at `where`, checked rigid within READ_TOLERANCE, with the nearest
+    rotation and an exact last row (so that the stricter checks downstream hold)."""
+    check_rigid(T, where, tol=READ_TOLERANCE)
     U, _, Vt = np.linalg.svd(T[:3, :3])
     T = T.copy()
     T[:3, :3] = U @ Vt  # the nearest rotation (det +1, as checked)
+    T[3] = [0.0, 0.0, 0.0, 1.0]
     return T
 
 
@@ -740,51 +748,61 @@ def read_poses(path: PathLike, names: Sequence[str]) -> List[Optional[np.ndarray
         lines = _number_lines(path, (12, 16), "one pose per line, 12 or 16 numbers")
         if len(lines) != len(names):
             raise InputError(f"{path}: {len(lines)} poses for {len(names)} scans; expected one line per scan, in the order the scans are given")
-        found = {names[k]: (f"{path}, line {lineno}", np.array(row, dtype=np.float64).reshape(-1, 4)) for k, (lineno, row) in enumerate(lines)}
-    poses: List[Optional[np.ndarray]] = []
-    for name in names:
-        if name not in found:
-            poses.append(None)
-            continue
-        where, T = found[name]
+        found = {k: (f"{path}, line {lineno}", np.array(row, dtype=np.float64).reshape(-1, 4)) for k, (lineno, row) in enumerate(lines)}
+    poses: List[Optional[np.ndarray]] = [None] * len(names)
+    for k, (where, T) in found.items():
         if T.shape == (3, 4):
             T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
-        check_rigid(T, where, tol=READ_TOLERANCE)
-        U, _, Vt = np.linalg.svd(T[:3, :3])
-        T[:3, :3] = U @ Vt  # the nearest rotation (det +1, as checked)
-        poses.append(T)
+        poses[k] = _rigid_as_read(T, where)
     return poses
 
 
-def _poses_by_name(path: Path, names: Sequence[str]) -> Dict[str, Tuple[str, np.ndarray]]:
-    """{scan name: (where, (4, 4) pose)} from a poses.json; its scans without a pose are left out."""
+def _poses_by_name(path: Path, names: Sequence[str]) -> Dict[int, Tuple[str, np.ndarray]]:
+    """{index of the scan in `names`: (where, (4, 4) pose)} from a poses.json: each entry with a
+    pose goes to the scan of its name, else to the one scan of its file name that no entry named."""
     try:
         record = json.loads(path.read_text())
-    except (UnicodeDecodeError, ValueError) as e:
+    except (UnicodeDecodeError, ValueError, RecursionError) as e:
         raise InputError(f"{path}: not a JSON file ({first_line(e)}); expected o3dsoft multiway's poses.json") from None
     entries = record.get("scans") if isinstance(record, dict) else None
     if not isinstance(entries, list) or not all(isinstance(e, dict) and isinstance(e.get("name"), str) for e in entries):
         raise InputError(f'{path}: expected {{"scans": [{{"name": ..., "world_T_scan": ...}}, ...]}}, as o3dsoft multiway writes')
-    by_file = {}
-    for name in names:
-        by_file.setdefault(Path(name).name, []).append(name)
-    found: Dict[str, Tuple[str, np.ndarray]] = {}
-    for entry in entries:
-        matches = [entry["name"]] if entry["name"] in names else by_file.get(Path(entry["name"]).name, [])
-        pose = entry.get("world_T_scan")
-        if len(matches) != 1 or pose is None:
+    entries = [e for e in entries if e.get("world_T_scan") is not None]
+    index = {name: k for k, name in enumerate(names)}
+    target: Dict[int, dict] = {}
+    for entry in entries:  # exact names first
+        if entry["name"] in index:
+            _claim(path, target, index[entry["name"]], entry, names)
+    for entry in entries:  # then file names, among the scans no entry named
+        if entry["name"] in index:
             continue
+        same = [k for k, name in enumerate(names) if Path(name).name == Path(entry["name"]).name and not any(e["name"] == name for e in entries)]
+        if len(same) > 1:
+            raise InputError(
+                f"{path}: scan {entry['name']!r} matches {len(same)} of the scans given by file name ({', '.join(names[k] for k in same)}); name them as the file does"
+            )
+        if same:
+            _claim(path, target, same[0], entry, names)
+    if not target:
+        raise InputError(f"{path}: none of its scans with a pose is among the scans given (matched by name, then by file name)")
+    found: Dict[int, Tuple[str, np.ndarray]] = {}
+    for k, entry in target.items():
         where = f"{path}, scan {entry['name']!r}"
         try:
-            T = np.array(pose, dtype=np.float64)
-        except (TypeError, ValueError):
+            T = np.array(entry["world_T_scan"], dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
             raise InputError(f"{where}: world_T_scan is not a 4x4 array of numbers") from None
         if T.shape != (4, 4):
             raise InputError(f"{where}: world_T_scan has shape {T.shape}; expected 4x4")
-        found[matches[0]] = (where, T)
-    if not found:
-        raise InputError(f"{path}: none of its scans with a pose is among the scans given (matched by name, then by file name)")
+        found[k] = (where, T)
     return found
+
+
+def _claim(path: Path, target: Dict[int, dict], k: int, entry: dict, names: Sequence[str]) -> None:
+    """Give scan `k` the pose of `entry`, unless another entry already gave it one."""
+    if k in target:
+        raise InputError(f"{path}: scans {target[k]['name']!r} and {entry['name']!r} both give the pose of {names[k]}")
+    target[k] = entry
 
 
 def _is_float(v: str) -> bool:

@@ -173,6 +173,8 @@ def choose_pairs(clouds: Sequence[np.ndarray], config: MultiwayConfig, init_pose
     where the guesses put them."""
     n = len(clouds)
     poses = list(init_poses) if init_poses is not None else [None] * n
+    if len(poses) != n:
+        raise InputError(f"{len(poses)} initial poses for {n} scans")
     rule = config.neighbours
     if rule == "auto":
         rule = "all" if n <= config.all_up_to else "near" if all(p is not None for p in poses) else "sequence"

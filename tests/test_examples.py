@@ -66,6 +66,17 @@ def test_register_arrays_example_recovers_its_transform():
     assert rot < 0.01
 
 
+def test_multiway_sequence_example_corrects_the_odometry():
+    r = subprocess.run([sys.executable, str(REPO / "examples" / "multiway_sequence.py")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = [l.split() for l in r.stdout.splitlines() if l.strip().startswith("view")]
+    assert len(rows) == 6 and "6 of 6 views joined" in r.stdout
+    for row in rows[1:]:  # "viewK: rotation A -> B deg, translation C -> D mm"
+        odometry_deg, joined_deg, odometry_mm, joined_mm = float(row[2]), float(row[4]), float(row[7]), float(row[9])
+        assert joined_deg < 1.0 and joined_mm < 2.0
+        assert joined_deg < odometry_deg and joined_mm < odometry_mm
+
+
 def test_model_file_runs_with_torch_alone(tmp_path):
     # No o3dsoft import in the child: the TorchScript file must carry everything it runs.
     code = (

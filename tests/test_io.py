@@ -76,6 +76,9 @@ def test_text_clouds_name_the_first_line_they_cannot_read(tmp_path, pts):
     (tmp_path / "one_bad.xyz").write_text("\n".join(rows[:50] + ["1.0, 2.0, 3.0"] + rows[50:]) + "\n")
     with pytest.raises(InputError, match=r"one_bad.xyz: 200 points read, but not every line. Line 51: '1.0, 2.0, 3.0'; .* \(1 line not read\)"):
         read_points(tmp_path / "one_bad.xyz")
+    (tmp_path / "quoted.xyz").write_text("\n".join(rows[:3] + ['"1" "2" "3"']) + "\n")  # Open3D skips quoted numbers
+    with pytest.raises(InputError, match="quoted.xyz: 3 points read, but not every line. Line 4: "):
+        read_points(tmp_path / "quoted.xyz")
     (tmp_path / "short.xyzn").write_text("\n".join(r + " 0 0 1" for r in rows[:10]) + "\n1 2 3\n")
     with pytest.raises(InputError, match=r"short.xyzn: 10 points read, .* Line 11: '1 2 3'; expected 6 numbers"):
         read_points(tmp_path / "short.xyzn")
@@ -163,12 +166,14 @@ def test_a_binary_ply_cut_in_its_faces_and_an_ascii_stl_cut_short_are_refused(tm
     (tmp_path / "cut.stl").write_text(text[: int(len(text) * 0.95)])
     with pytest.raises(InputError, match="cut.stl: an ascii STL that ends before its closing 'endsolid' line; is it complete"):
         read_points(tmp_path / "cut.stl")
-    # Whole files are read: the ascii STL, a binary STL whose 80-byte header begins with "solid",
-    # a binary PLY of one quad (more bytes than a triangle).
+    # Whole files are read: ascii STLs (with a name in UTF-8, NUL bytes or a comment after the
+    # end), a binary STL whose 80-byte header begins with "solid", a binary PLY of one quad.
     (tmp_path / "whole.stl").write_text(text)
+    (tmp_path / "named.stl").write_bytes(text.replace("endsolid", "endsolid W\u00fcrfel").encode() + b"\0" * 16)
+    (tmp_path / "comment.stl").write_bytes(text.encode() + b"; exported by a scanner\n")
     solid = box.export(file_type="stl")
     (tmp_path / "solid_header.stl").write_bytes(b"solid" + solid[5:])
-    for name in ("whole.stl", "solid_header.stl"):
+    for name in ("whole.stl", "named.stl", "comment.stl", "solid_header.stl"):
         points = read_points(tmp_path / name, mesh_points=200)
         assert np.allclose(np.abs(points).max(axis=0), [1.0, 0.5, 0.25])
     header = b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
@@ -177,6 +182,8 @@ def test_a_binary_ply_cut_in_its_faces_and_an_ascii_stl_cut_short_are_refused(tm
     (tmp_path / "quad.ply").write_bytes(header + square)
     points = read_points(tmp_path / "quad.ply", mesh_points=100)
     assert points.shape == (100, 3) and np.all(points[:, 2] == 0) and points[:, :2].min() >= 0 and points[:, :2].max() <= 1
+    (tmp_path / "triangle.ply").write_bytes(header.replace(b"vertex 4", b"vertex 3") + square[:36] + bytes([3]) + np.arange(3, dtype="<i4").tobytes())
+    assert len(read_points(tmp_path / "triangle.ply", mesh_points=10)) == 10  # 13 bytes: the least a face takes
 
 
 def test_an_off_with_its_counts_on_the_keywords_line_is_read(tmp_path):

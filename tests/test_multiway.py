@@ -169,6 +169,24 @@ def test_poses_files(tmp_path):
     (tmp_path / "other.json").write_text(json.dumps({"scans": [{"name": "c.ply", "world_T_scan": T.tolist()}]}))
     with pytest.raises(InputError, match="none of its scans with a pose is among the scans given"):
         read_poses(tmp_path / "other.json", names)
+    # An exact name wins over a file name; a file name that fits two scans, or two entries for one
+    # scan, is refused in words.
+    record = {"scans": [{"name": "a/s0.ply", "world_T_scan": np.eye(4).tolist()}, {"name": "old/s0.ply", "world_T_scan": T.tolist()}]}
+    (tmp_path / "exact.json").write_text(json.dumps(record))
+    poses = read_poses(tmp_path / "exact.json", names + ["b/s0.ply"])
+    assert np.allclose(poses[0], np.eye(4)) and np.allclose(poses[3], T)
+    with pytest.raises(InputError, match=r"exact.json: scan 'a/s0.ply' matches 2 of the scans given by file name \(x/s0.ply, y/s0.ply\)"):
+        read_poses(tmp_path / "exact.json", ["x/s0.ply", "y/s0.ply"])
+    record["scans"].append({"name": "new/s0.ply", "world_T_scan": T.tolist()})
+    (tmp_path / "twice.json").write_text(json.dumps(record))
+    with pytest.raises(InputError, match="twice.json: scans 'old/s0.ply' and 'new/s0.ply' both give the pose of b/s0.ply"):
+        read_poses(tmp_path / "twice.json", ["a/s0.ply", "b/s0.ply"])
+    (tmp_path / "huge.json").write_text('{"scans": [{"name": "a/s1.ply", "world_T_scan": [[1' + "0" * 400 + "]]}]}")
+    with pytest.raises(InputError, match="huge.json, scan 'a/s1.ply': world_T_scan is not a 4x4 array of numbers"):
+        read_poses(tmp_path / "huge.json", names)
+    # A last row a rounding off is read as exact, so that the pose passes multiway's stricter check.
+    kitti.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2 + "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1.0005\n")
+    assert read_poses(kitti, names)[2][3].tolist() == [0.0, 0.0, 0.0, 1.0]
 
 
 def test_a_scan_that_overlaps_none_is_left_out(scans, model):
