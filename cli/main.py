@@ -507,7 +507,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     type=click.Choice(["auto", "all", "sequence", "near"]),
     default="auto",
     show_default=True,
-    help="Pairs registered: all, each scan with the next --window (scans in order), each with its --near nearest by centroid (scans roughly placed); auto: all up to 12 scans, else sequence.",
+    help="Pairs registered: all, each scan with the next --window (scans in order), each with its --near nearest by centroid (scans roughly placed, or placed by --init); auto: all up to 12 scans, else near where --init places every scan, sequence otherwise.",
 )
 @click.option("--window", type=click.IntRange(min=1), default=3, show_default=True, help="sequence: following scans each scan is paired with.")
 @click.option("--near", type=click.IntRange(min=1), default=4, show_default=True, help="near: nearest scans each scan is paired with.")
