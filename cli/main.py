@@ -456,7 +456,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         "",
         f"  fitness      {result.fitness:.4f}   share of source points within {result.correspondence_distance:.4g} units of the target (0-1, higher is better)",
         f"  inlier RMSE  {result.inlier_rmse:.4g}   units, over those points (lower is better)",
-        f"  confidence   {result.confidence:.4f}   estimated probability that the alignment is right (0-1, higher is better)"
+        f"  confidence   {result.confidence:.4f}   trust in the alignment (0-1, higher is better; flagged below 0.5)"
         + ("  LIKELY FAILED" if result.likely_failed else ""),
         *(
             [

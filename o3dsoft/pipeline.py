@@ -80,7 +80,7 @@ class RegistrationResult:
             "network", "second network", "second network, turned" (from a rotation of a cube),
             "KISS-Matcher", "feature match", "network starts", "translation votes" or "pose as
             given".
-        confidence: estimated probability that the alignment is right (0-1, higher is better); on
+        confidence: trust in the alignment (0-1, higher is better); on
             two complete-looking clouds whose pose shows no shared point, the larger of the strict
             function and :func:`~o3dsoft.confidence.complete_confidence`, on scans the larger of
             the strict function and :func:`~o3dsoft.confidence.scan_confidence`, on other partial
