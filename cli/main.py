@@ -13,6 +13,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from typing import Optional
 
 import click
 
@@ -583,7 +584,8 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     if as_json:
         click.echo(json.dumps(payload, indent=2))
     else:
-        click.echo(_format_multiway(result, out_dir, len(points)))
+        placed = init_path if init_poses is not None and init_poses[result.world] is not None else None
+        click.echo(_format_multiway(result, out_dir, len(points), placed))
     if render_path is not None:
         from ..render import render_merged
 
@@ -596,12 +598,15 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
         sys.exit(3)
 
 
-def _format_multiway(result, out_dir: Path, merged_points: int) -> str:
+def _format_multiway(result, out_dir: Path, merged_points: int, placed_by: Optional[Path] = None) -> str:
+    """The result as a table; `placed_by`: the --init file that holds the world scan's pose."""
     import numpy as np
 
     from ..transforms import rotation_angle_deg
 
-    lines = [f"o3dsoft multiway  {len(result.names)} scans, world frame: {result.names[result.world]}", "", "Scans:"]
+    world = result.names[result.world]
+    frame = f"that of {placed_by} ({world} held at its pose there)" if placed_by is not None else world
+    lines = [f"o3dsoft multiway  {len(result.names)} scans, world frame: {frame}", "", "Scans:"]
     for name, pose in zip(result.names, result.poses):
         if pose is None:
             lines.append(f"  {name}: not joined (no trusted alignment to another scan)")

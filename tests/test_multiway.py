@@ -228,6 +228,7 @@ def test_cli_starts_from_initial_poses(tmp_path, scans):
     guesses.write_text("\n".join(" ".join(f"{v:.9f}" for v in (world @ P)[:3].ravel()) for P in poses[:3]) + "\n")
     result = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "out"), "--init", str(guesses), "--no-progress"])
     assert result.exit_code == 0, result.output
+    assert f"world frame: that of {guesses} ({files[0]} held at its pose there)" in result.output
     record = json.loads((tmp_path / "out" / "poses.json").read_text())
     for k, scan in enumerate(record["scans"]):
         assert pair_errors(np.array(scan["world_T_scan"]), world @ poses[k]).rotation_deg < 1.0
