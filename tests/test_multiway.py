@@ -8,6 +8,8 @@ import time
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from o3dsoft.cli.main import main
 from o3dsoft.coarse import load_model
@@ -65,6 +67,28 @@ def test_near_pairs_scans_where_their_initial_poses_put_them():
     # Beyond all_up_to, "auto" pairs by position where every scan has a pose, else in sequence.
     assert choose_pairs(clouds, MultiwayConfig(all_up_to=2, near=1), guesses) == [(0, 2), (1, 3)]
     assert choose_pairs(clouds, MultiwayConfig(all_up_to=2, window=1), guesses[:3] + [None]) == [(0, 1), (1, 2), (2, 3)]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_near_pairs_do_not_depend_on_the_frame_the_poses_come_in(seed):
+    rng = np.random.default_rng(seed)
+    clouds = [blob(rng, 30) * 0.1 + rng.uniform(-1, 1, 3) for _ in range(6)]
+    poses = [random_transform(rng, max_angle=180.0, max_t=3.0) for _ in range(6)]
+    frame = random_transform(rng, max_angle=180.0, max_t=100.0)  # the same scene in another world frame
+    config = MultiwayConfig(neighbours="near", near=2)
+    assert choose_pairs(clouds, config, poses) == choose_pairs(clouds, config, [frame @ P for P in poses])
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_poses_read_back_from_kitti_text_as_written(tmp_path_factory, seed):
+    rng = np.random.default_rng(seed)
+    poses = [random_transform(rng, max_angle=180.0, max_t=1000.0) for _ in range(3)]
+    path = tmp_path_factory.mktemp("poses") / "poses.txt"
+    path.write_text("".join(" ".join(f"{v:.9e}" for v in P[:3].ravel()) + "\n" for P in poses))  # KITTI's layout
+    for read, P in zip(read_poses(path, ["a", "b", "c"]), poses):
+        assert np.allclose(read, P, atol=1e-5) and np.allclose(read[:3, :3].T @ read[:3, :3], np.eye(3), atol=1e-12)
 
 
 def test_spanning_tree_takes_the_most_confident_trusted_edges():
