@@ -186,12 +186,13 @@ def _check_stl(path: Path) -> None:
     size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(84)
-        f.seek(max(0, size - 4096))
-        tail = f.read().lower()
     declared = int(np.frombuffer(head[80:84], dtype="<u4")[0]) if len(head) == 84 else -1
     if declared >= 0 and 84 + 50 * declared == size:  # a whole binary STL (its 80-byte header may begin with "solid" too)
         return
     if head.lstrip().lower().startswith(b"solid") and b"\0" not in head:  # ascii: no count, but a closing line after the last facet
+        with open(path, "rb") as f:
+            f.seek(max(0, size - 4096))
+            tail = f.read().lower()
         if tail.rfind(b"endsolid") <= tail.rfind(b"endfacet"):
             raise InputError(f"{path}: an ascii STL that ends before its closing 'endsolid' line; is it complete (a copy or a download cut short)?")
         return
@@ -676,19 +677,18 @@ def read_transform(path: PathLike) -> np.ndarray:
         T = T.astype(np.float64)
     else:
         T = _parse_matrix_text(path)
-    if T.shape == (3, 4):
-        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
-    if T.shape != (4, 4):
+    if T.shape not in ((3, 4), (4, 4)):
         raise InputError(f"{path}: expected a 4x4 transform (or 3x4 [R|t]), got shape {T.shape}")
     return _rigid_as_read(T, str(path))
 
 
 def _rigid_as_read(T: np.ndarray, where: str) -> np.ndarray:
-    """The (4, 4) transform read at `where`, checked rigid within READ_TOLERANCE, with the nearest
-    rotation and an exact last row (so that the stricter checks downstream hold)."""
+    """The (4, 4) transform read at `where` ((3, 4) [R | t] or (4, 4)), checked rigid within
+    READ_TOLERANCE, with the nearest rotation and an exact last row (so that the stricter checks
+    downstream hold)."""
+    T = np.vstack([T[:3], [0.0, 0.0, 0.0, 1.0]]) if T.shape == (3, 4) else T.copy()
     check_rigid(T, where, tol=READ_TOLERANCE)
     U, _, Vt = np.linalg.svd(T[:3, :3])
-    T = T.copy()
     T[:3, :3] = U @ Vt  # the nearest rotation (det +1, as checked)
     T[3] = [0.0, 0.0, 0.0, 1.0]
     return T
@@ -751,8 +751,6 @@ def read_poses(path: PathLike, names: Sequence[str]) -> List[Optional[np.ndarray
         found = {k: (f"{path}, line {lineno}", np.array(row, dtype=np.float64).reshape(-1, 4)) for k, (lineno, row) in enumerate(lines)}
     poses: List[Optional[np.ndarray]] = [None] * len(names)
     for k, (where, T) in found.items():
-        if T.shape == (3, 4):
-            T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
         poses[k] = _rigid_as_read(T, where)
     return poses
 
@@ -769,14 +767,18 @@ def _poses_by_name(path: Path, names: Sequence[str]) -> Dict[int, Tuple[str, np.
         raise InputError(f'{path}: expected {{"scans": [{{"name": ..., "world_T_scan": ...}}, ...]}}, as o3dsoft multiway writes')
     entries = [e for e in entries if e.get("world_T_scan") is not None]
     index = {name: k for k, name in enumerate(names)}
+    exact = [e for e in entries if e["name"] in index]
+    unnamed: Dict[str, List[int]] = {}  # file name: the scans no entry names exactly
+    for k, name in enumerate(names):
+        if not any(e["name"] == name for e in exact):
+            unnamed.setdefault(Path(name).name, []).append(k)
     target: Dict[int, dict] = {}
-    for entry in entries:  # exact names first
-        if entry["name"] in index:
-            _claim(path, target, index[entry["name"]], entry, names)
+    for entry in exact:  # exact names first
+        _claim(path, target, index[entry["name"]], entry, names)
     for entry in entries:  # then file names, among the scans no entry named
         if entry["name"] in index:
             continue
-        same = [k for k, name in enumerate(names) if Path(name).name == Path(entry["name"]).name and not any(e["name"] == name for e in entries)]
+        same = unnamed.get(Path(entry["name"]).name, [])
         if len(same) > 1:
             raise InputError(
                 f"{path}: scan {entry['name']!r} matches {len(same)} of the scans given by file name ({', '.join(names[k] for k in same)}); name them as the file does"
@@ -811,6 +813,16 @@ def _is_float(v: str) -> bool:
         return True
     except ValueError:
         return False
+
+
+def as_rigid(T, name: str) -> np.ndarray:
+    """`T` as a (4, 4) float64 array; InputError naming `name` unless it is a finite rigid 4x4
+    transform (:func:`check_rigid`)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"{name}: expected a 4x4 transform, got shape {T.shape}")
+    check_rigid(T, name)
+    return T
 
 
 def check_rigid(T: np.ndarray, name: str = "transform", tol: float = 1e-4) -> None:

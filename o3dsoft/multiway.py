@@ -24,7 +24,7 @@ import numpy as np
 
 from .config import RegisterConfig
 from .errors import InputError
-from .io import check_rigid
+from .io import as_rigid
 from .pair import CloudLike, as_points
 from .pipeline import RegistrationResult, register
 from .preprocess import clean_points, voxel_downsample
@@ -279,12 +279,7 @@ def _checked_poses(init_poses: Optional[Sequence[Optional[np.ndarray]]], names: 
         raise InputError(f"{len(init_poses)} initial poses for {len(names)} scans")
     poses: List[Optional[np.ndarray]] = []
     for pose, name in zip(init_poses, names):
-        if pose is not None:
-            pose = np.asarray(pose, dtype=np.float64)
-            if pose.shape != (4, 4):
-                raise InputError(f"{name}: initial pose of shape {pose.shape}; expected a 4x4 transform")
-            check_rigid(pose, f"{name}: initial pose")
-        poses.append(pose)
+        poses.append(None if pose is None else as_rigid(pose, f"{name}: initial pose"))
     return poses
 
 

@@ -39,8 +39,7 @@ from . import refine as refine_stage
 from . import symmetry as symmetry_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
-from .errors import InputError
-from .io import check_rigid
+from .io import as_rigid
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
 from .preprocess import local_origin, point_spacing, scene_size
@@ -229,10 +228,7 @@ def register(
     """
     src, tgt = as_points(source, source_name), as_points(target, target_name)
     if init is not None:
-        init = np.asarray(init, dtype=np.float64)
-        if init.shape != (4, 4):
-            raise InputError(f"init: expected a 4x4 transform, got shape {init.shape}")
-        check_rigid(init, "init")
+        init = as_rigid(init, "init")
         src = apply_transform(init, src)
     # Far from the origin (georeferenced scans), both clouds are registered about the target's
     # median: point-to-plane ICP linearises the rotation about the origin, and KISS-Matcher hashes
