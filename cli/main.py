@@ -531,7 +531,9 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
 
     Writes OUT/poses.json (world_T_scan per scan, each edge's transform, confidence and whether it
     was pruned) and OUT/merged.ply. With --init, pairs start from their initial poses and the
-    result stays in their frame. Exit status 3 when a scan joined no other.
+    result stays in their frame; a scan that joins no other then keeps its initial pose
+    (relative to the nearest joined scan) in poses.json, not in merged.ply. Exit status 3 when a
+    scan joined no other.
     """
     from tqdm import tqdm
 
@@ -594,7 +596,12 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
         click.echo(f"Picture: {render_path}", err=as_json)
     left_out = [n for n, j in zip(names, result.joined) if not j]
     if left_out:
-        click.echo(f"Warning: {len(left_out)} scan(s) overlap no other with a trusted alignment and were left out: {', '.join(left_out)}", err=True)
+        kept = [n for n, by in zip(names, result.placed_by) if by == "initial pose"]
+        also = f"; {', '.join(kept)} keep their initial poses in poses.json (unverified)" if kept else ""
+        click.echo(
+            f"Warning: {len(left_out)} scan(s) overlap no other with a trusted alignment and were left out of the merged cloud: {', '.join(left_out)}{also}",
+            err=True,
+        )
         sys.exit(3)
 
 
@@ -607,9 +614,13 @@ def _format_multiway(result, out_dir: Path, merged_points: int, placed_by: Optio
     world = result.names[result.world]
     frame = f"that of {placed_by} ({world} held at its pose there)" if placed_by is not None else world
     lines = [f"o3dsoft multiway  {len(result.names)} scans, world frame: {frame}", "", "Scans:"]
-    for name, pose in zip(result.names, result.poses):
-        if pose is None:
+    for name, pose, by in zip(result.names, result.poses, result.placed_by):
+        if by is None:
             lines.append(f"  {name}: not joined (no trusted alignment to another scan)")
+        elif by == "initial pose":
+            lines.append(
+                f"  {name}: not joined (no trusted alignment to another scan); kept at its initial pose relative to the nearest joined scan, unverified"
+            )
         else:
             lines.append(f"  {name}: joined; world_T_scan turns {rotation_angle_deg(pose[:3, :3]):.2f} deg and moves {np.linalg.norm(pose[:3, 3]):.4g} units")
     used = [e for e in result.edges if e.used]

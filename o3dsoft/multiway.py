@@ -11,7 +11,8 @@
        its initial pose, where it has one: the result stays in the initial poses' frame).
 
 Edges flagged likely failed are left out of the graph; scans that no trusted edge reaches are
-reported and left out of the result.
+reported and left out of the merged cloud. Such a scan that has an initial pose keeps it, relative
+to the nearest joined scan (unverified); one without has no pose.
 """
 
 from __future__ import annotations
@@ -130,8 +131,12 @@ class MultiwayResult:
     Attributes:
         names: the scans' names, in input order.
         poses: (4, 4) world_T_scan per scan (maps the scan's points into the world frame); None
-            for a scan that joined no other (the world scan has the identity, or its initial
-            pose where it was given one).
+            for a scan that joined no other and has no initial pose (the world scan has the
+            identity, or its initial pose where it was given one).
+        placed_by: per scan, how its pose was found: "registration" (joined through trusted
+            alignments), "initial pose" (joined no other: its initial pose relative to the
+            nearest joined scan that has one, world_T_k = world_T_a @ inv(init_a) @ init_k,
+            unverified) or None (no pose).
         world: index of the scan that fixes the world frame: the first of the largest group of
             scans joined by trusted alignments (the first scan when none is).
         edges: every registered pair.
@@ -142,6 +147,7 @@ class MultiwayResult:
 
     names: Tuple[str, ...]
     poses: Tuple[Optional[np.ndarray], ...]
+    placed_by: Tuple[Optional[str], ...]
     world: int
     edges: Tuple[Edge, ...]
     timings_s: Dict[str, float]
@@ -149,16 +155,16 @@ class MultiwayResult:
 
     @property
     def joined(self) -> Tuple[bool, ...]:
-        """Per scan: it has a pose (it is the world scan, or trusted edges connect it to it)."""
-        return tuple(p is not None for p in self.poses)
+        """Per scan: it is the world scan, or trusted edges connect it to it."""
+        return tuple(p == "registration" for p in self.placed_by)
 
     def to_dict(self) -> dict:
         """JSON-ready dict: world frame, per-scan poses and per-edge results."""
         return {
             "world": self.names[self.world],
             "scans": [
-                {"name": name, "joined": pose is not None, "world_T_scan": None if pose is None else pose.tolist()}
-                for name, pose in zip(self.names, self.poses)
+                {"name": name, "joined": by == "registration", "placed_by": by, "world_T_scan": None if pose is None else pose.tolist()}
+                for name, pose, by in zip(self.names, self.poses, self.placed_by)
             ],
             "edges": [e.to_dict(self.names) for e in self.edges],
             "timings_s": self.timings_s,
@@ -182,8 +188,7 @@ def choose_pairs(clouds: Sequence[np.ndarray], config: MultiwayConfig, init_pose
         return [(i, j) for i in range(n) for j in range(i + 1, n)]
     if rule == "sequence":
         return [(i, j) for i in range(n) for j in range(i + 1, min(n, i + 1 + config.window))]
-    centres = np.array([c.mean(axis=0) if p is None else apply_transform(p, c.mean(axis=0)[None])[0] for c, p in zip(clouds, poses)])
-    d = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    d = _distances([_centre(c, p) for c, p in zip(clouds, poses)])
     pairs = set()
     for i in range(n):
         for j in np.argsort(d[i])[1 : config.near + 1]:
@@ -211,7 +216,8 @@ def multiway(
             earlier run) or None where there is none. A pair of scans that both have one is
             registered from the pose between them (``register(init=...)``: where ICP from it is
             trusted, nothing else runs); the world scan keeps its guess, so the result is in the
-            guesses' frame; "near" pairs scans by where the guesses put them.
+            guesses' frame; "near" pairs scans by where the guesses put them; a scan that joins
+            no other keeps its guess relative to the nearest joined scan (``placed_by``).
     Returns:
         MultiwayResult.
     Raises:
@@ -267,8 +273,41 @@ def multiway(
         optimised, pruned = _optimise(info_clouds, edges, world, start, tree, distance, config)
         poses = [optimised.get(k) for k in range(len(points))]
         edges = [replace(e, pruned=(e.source, e.target) in pruned) for e in edges]
+    placed_by: List[Optional[str]] = ["registration" if p is not None else None for p in poses]
+    for k, pose in _place_by_initial_poses(points, poses, guesses).items():
+        poses[k], placed_by[k] = pose, "initial pose"
     t_end = time.perf_counter()
-    return MultiwayResult(names, tuple(poses), world, tuple(edges), {"pairs": t_pairs - t_start, "optimise": t_end - t_pairs, "total": t_end - t_start}, grid)
+    timings = {"pairs": t_pairs - t_start, "optimise": t_end - t_pairs, "total": t_end - t_start}
+    return MultiwayResult(names, tuple(poses), tuple(placed_by), world, tuple(edges), timings, grid)
+
+
+def _centre(cloud: np.ndarray, pose: Optional[np.ndarray]) -> np.ndarray:
+    """(3,) centroid of the finite points of `cloud`, moved by the (4, 4) `pose` where given."""
+    centre = cloud[np.isfinite(cloud).all(axis=1)].mean(axis=0)
+    return centre if pose is None else apply_transform(pose, centre[None])[0]
+
+
+def _distances(centres: Sequence[np.ndarray]) -> np.ndarray:
+    """(n, n) Euclidean distances between the (3,) `centres`."""
+    c = np.asarray(centres)
+    return np.linalg.norm(c[:, None] - c[None], axis=-1)
+
+
+def _place_by_initial_poses(points, poses: Sequence[Optional[np.ndarray]], guesses: Sequence[Optional[np.ndarray]]) -> Dict[int, np.ndarray]:
+    """{scan: world_T_scan} for each scan that joined no other but has an initial pose: where
+    its guess puts it relative to the joined scan with a guess nearest to it (by the centroids
+    the guesses place), world_T_k = world_T_a @ inv(guess_a) @ guess_k, so that the correction
+    the optimisation made at a carries over to k as odometry would."""
+    anchors = [a for a, pose in enumerate(poses) if pose is not None and guesses[a] is not None]
+    lost = [k for k, pose in enumerate(poses) if pose is None and guesses[k] is not None]
+    if not anchors or not lost:
+        return {}
+    d = _distances([_centre(points[k], guesses[k]) for k in anchors + lost])[len(anchors) :, : len(anchors)]
+    placed = {}
+    for row, k in enumerate(lost):
+        a = anchors[int(np.argmin(d[row]))]
+        placed[k] = poses[a] @ np.linalg.inv(guesses[a]) @ guesses[k]
+    return placed
 
 
 def _checked_poses(init_poses: Optional[Sequence[Optional[np.ndarray]]], names: Sequence[str]) -> List[Optional[np.ndarray]]:
@@ -394,15 +433,16 @@ def _optimise(
 
 
 def merged_cloud(clouds: Sequence[CloudLike], result: MultiwayResult, voxel: Optional[float] = None) -> Tuple[np.ndarray, np.ndarray]:
-    """The joined scans in the world frame, on a voxel grid of `voxel` (None: every point).
+    """The joined scans in the world frame, on a voxel grid of `voxel` (None: every point); scans
+    placed by their initial pose alone are left out.
 
     Returns:
         (P, 3) points and (P,) the index of the scan each point came from (the first scan's in
         a voxel holding several).
     """
     parts, labels = [], []
-    for k, (cloud, pose) in enumerate(zip(clouds, result.poses)):
-        if pose is None:
+    for k, (cloud, pose, joined) in enumerate(zip(clouds, result.poses, result.joined)):
+        if not joined:
             continue
         pts = clean_points(as_points(cloud, result.names[k]), result.names[k]).points
         parts.append(apply_transform(pose, pts))

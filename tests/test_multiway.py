@@ -17,7 +17,7 @@ from o3dsoft.config import RegisterConfig, SearchConfig
 from o3dsoft.errors import InputError
 from o3dsoft.io import read_points, read_poses, write_points
 from o3dsoft.metrics import pair_errors
-from o3dsoft.multiway import Edge, MultiwayConfig, _optimise, _spanning_tree, choose_pairs, merged_cloud, multiway
+from o3dsoft.multiway import Edge, MultiwayConfig, _optimise, _place_by_initial_poses, _spanning_tree, choose_pairs, merged_cloud, multiway
 from o3dsoft.transforms import euler_to_matrix, rigid
 
 from .conftest import EXAMPLES, apply, blob, random_transform
@@ -222,6 +222,31 @@ def test_a_scan_that_overlaps_none_is_left_out(scans, model):
     assert not any(e.used for e in result.edges if 1 in (e.source, e.target))
 
 
+def test_a_scan_that_overlaps_none_keeps_its_initial_pose(scans, model):
+    clouds, poses = scans
+    stray = blob(np.random.default_rng(1), 3000) * 0.05
+    stray_guess = rigid(euler_to_matrix([0.0, 0.0, 30.0]), [5.0, 0.0, 0.0])  # 5 m from the views
+    guesses = [poses[0], stray_guess, poses[1]]
+    config = MultiwayConfig(register=RegisterConfig(search=SearchConfig(mode="off")))
+    result = multiway([clouds[0], stray, clouds[1]], config, model=model, init_poses=guesses)
+    assert result.placed_by == ("registration", "initial pose", "registration") and result.joined == (True, False, True)
+    assert np.allclose(result.poses[1], stray_guess, atol=2e-3)  # the joined scans' corrections are near the identity
+    _, labels = merged_cloud([clouds[0], stray, clouds[1]], result)
+    assert set(labels) == {0, 2}  # unverified, so not merged
+    assert json.loads(json.dumps(result.to_dict()))["scans"][1]["placed_by"] == "initial pose"
+
+
+def test_unjoined_scans_are_carried_by_the_nearest_joined_scan():
+    points = [np.zeros((4, 3)) + [x, 0.0, 0.0] for x in (0.0, 9.0, 10.0, 3.0)]
+    guesses = [np.eye(4), np.eye(4), np.eye(4), None]
+    fixed = rigid(euler_to_matrix([0.0, 0.0, 10.0]), [0.0, 1.0, 0.0])  # the optimisation's correction at scan 2
+    poses = [np.eye(4), None, fixed, None]
+    placed = _place_by_initial_poses(points, poses, guesses)
+    assert list(placed) == [1]  # scan 3 has no initial pose: no pose
+    assert np.allclose(placed[1], fixed)  # nearer scan 2 (10 m) than scan 0 (0 m)
+    assert _place_by_initial_poses(points, [None] * 4, guesses) == {}
+
+
 def test_bad_settings_and_too_few_scans(scans, model):
     with pytest.raises(InputError, match="at least two scans"):
         multiway(scans[0][:1], model=model)
@@ -284,8 +309,17 @@ def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
     assert not (tmp_path / "o3").exists()
     left = runner.invoke(main, ["multiway", str(a), str(stray), str(b), "--out", str(tmp_path / "o2"), "--no-progress"])
     assert left.exit_code == 3
-    assert "stray.ply: not joined" in left.output and "left out: " in left.output
+    assert "stray.ply: not joined" in left.output and "left out of the merged cloud: " in left.output
     assert json.loads((tmp_path / "o2" / "poses.json").read_text())["scans"][1]["joined"] is False
+    # With initial poses the stray keeps its own, in poses.json only.
+    clouds_poses = [scans[1][0], np.eye(4), scans[1][1]]
+    (tmp_path / "init.txt").write_text("".join(" ".join(f"{x:.17g}" for x in p[:3].ravel()) + "\n" for p in clouds_poses))
+    kept = runner.invoke(
+        main, ["multiway", str(a), str(stray), str(b), "--out", str(tmp_path / "o5"), "--init", str(tmp_path / "init.txt"), "--search", "off", "--no-progress"]
+    )
+    assert kept.exit_code == 3 and "stray.ply keep their initial poses in poses.json (unverified)" in kept.output
+    record = json.loads((tmp_path / "o5" / "poses.json").read_text())["scans"][1]
+    assert record["placed_by"] == "initial pose" and np.allclose(record["world_T_scan"], np.eye(4), atol=2e-3)
 
 
 @pytest.mark.slow
