@@ -304,8 +304,10 @@ def register(
         ]
         if given:
             raise click.UsageError(f"--pairs registers the pairs of a file; {', '.join(given)} belong(s) to a single pair")
-        if out_path is None or out_path.suffix.lower() != ".csv":
+        if out_path is None:
             raise click.UsageError("--pairs needs --out RESULTS.csv")
+        if out_path.is_dir() or out_path.suffix.lower() != ".csv":
+            raise click.UsageError(f"--out {out_path}: --pairs writes a CSV file; give --out RESULTS.csv")
         _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num_points, no_refine, icp, pipeline)
         return
     if source is None or target is None:
@@ -321,8 +323,8 @@ def register(
     from ..transforms import apply_transform
 
     for opt, p in (("--out", out_path), ("--render", render_path)):
-        if p is not None and p.suffix == "":
-            raise click.UsageError(f"{opt} {p}: give a file name with an extension")
+        if p is not None and (p.suffix == "" or p.is_dir()):
+            raise click.UsageError(f"{opt} {p}: {'is a folder; ' if p.is_dir() else ''}give a file name with an extension")
     if out_path is not None:
         io.check_extension(out_path, io.WRITE_EXTENSIONS, "--out")
     io.check_outputs_apart(
@@ -368,8 +370,10 @@ def register(
     # The outputs last, so that a failed write still leaves the result on screen.
     if out_path is not None:
         io.write_points(out_path, apply_transform(result.transformation, src))
+        click.echo(f"Aligned source: {out_path}", err=as_json)
     if save_transform is not None:
         io.write_transform(save_transform, result.transformation)
+        click.echo(f"Transform: {save_transform}", err=as_json)
     if render_path is not None:
         from ..render import render_registration
 
@@ -393,16 +397,18 @@ def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num
     failed to run."""
     from tqdm import tqdm
 
-    from ..batch import done_lines, model_for, read_pair_jobs, run_jobs
+    from ..batch import done_lines, model_for, read_pair_jobs, reusable_rows, run_jobs
     from ..refine import ICPConfig
 
     jobs = read_pair_jobs(pairs_path)
     config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
     model_for(config)  # a bad --weights fails here, once, not on every row; a run in this process reuses it
     done = done_lines(out_path)
-    skipped = sum(j.line in done for j in jobs)
-    if skipped:
-        click.echo(f"Resuming: {skipped} of {len(jobs)} pairs already in {out_path}", err=True)
+    skipped = len(reusable_rows(jobs, done))
+    again = sum(j.line in done for j in jobs) - skipped
+    if skipped or again:
+        rerun = f"; {again} run again (their line names other files now, or they could not run)" if again else ""
+        click.echo(f"Resuming: {skipped} of {len(jobs)} pairs already in {out_path}{rerun}", err=True)
     bar = tqdm(total=len(jobs) - skipped, unit="pair", disable=True if no_progress else None, dynamic_ncols=True)
     try:
         rows = run_jobs(jobs, config, out_path, workers=workers, ray=ray_address, progress=lambda row: bar.update(1))
@@ -558,6 +564,9 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
     init_poses = io.read_poses(init_path, names) if init_path is not None else None
+    without = [n for n, pose in zip(names, init_poses or ()) if pose is None]
+    if without:
+        click.echo(f"Note: {init_path} gives no initial pose for {len(without)} scan(s), registered without one: {', '.join(without)}", err=True)
     io.check_outputs_apart(
         {"--out's poses": out_dir / "poses.json", "--out's merged cloud": out_dir / "merged.ply", "--render": render_path},
         {**{f"the scan {p}": p for p in scans}, "--init": init_path},

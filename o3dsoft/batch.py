@@ -3,7 +3,7 @@
 Every pair of a pairs file is registered in turn, in a pool of worker processes on this machine
 (``workers``), or on a Ray cluster (``ray``); each worker loads the network once. One CSV row per
 pair, written as each pair ends, so that an interrupted run resumes from its results file and
-skips the pairs already there. A pair whose worker process dies is retried once, then reported as
+skips the pairs already there (unless their line names other files now, or they could not run). A pair whose worker process dies is retried once, then reported as
 failed; a pair whose files cannot be read is reported as failed with the reason. The rows do not
 depend on how the pairs were spread over workers.
 
@@ -28,6 +28,8 @@ COLUMNS = (
     "line",
     "source",
     "target",
+    "ground_truth",
+    "init",
     "status",
     "error",
     "T_target_source",
@@ -92,7 +94,7 @@ def run_job(job: PairJob, config) -> dict:
     from .pipeline import register
 
     t0 = time.perf_counter()
-    row = {"line": job.line, "source": job.source, "target": job.target}
+    row = _named(job)
     try:
         model = model_for(config)
         source, target = io.read_points(job.source), io.read_points(job.target)
@@ -114,6 +116,11 @@ def run_job(job: PairJob, config) -> dict:
         errors = pair_errors(result.transformation, truth)
         row.update(rotation_error_deg=errors.rotation_deg, translation_error=errors.translation)
     return row
+
+
+def _named(job: PairJob) -> dict:
+    """The start of `job`'s row: its line and the files it names ("" where none)."""
+    return {"line": job.line, "source": job.source, "target": job.target, "ground_truth": job.transform or "", "init": job.init or ""}
 
 
 def _worker_start(threads: int) -> None:
@@ -146,6 +153,18 @@ def done_lines(results) -> Dict[int, dict]:
             if row.get("seconds"):  # a row cut short by a kill has no last field
                 rows[int(row["line"])] = row
     return rows
+
+
+def reusable_rows(jobs: Sequence[PairJob], rows: Dict[int, dict]) -> Dict[int, dict]:
+    """The rows of `rows` (:func:`done_lines`) that a resumed run keeps, by line: those that ran
+    and name the files their line names now. A line edited since, or a pair that could not run
+    (a missing file since put in place), runs again."""
+    kept = {}
+    for job in jobs:
+        row = rows.get(job.line)
+        if row is not None and row["status"] == "ok" and all(row[k] == v for k, v in _named(job).items() if k != "line"):
+            kept[job.line] = row
+    return kept
 
 
 class ResultsFile:
@@ -199,7 +218,8 @@ def run_jobs(
     Args:
         jobs: the pairs (:func:`read_pair_jobs`).
         config: RegisterConfig of every pair.
-        results: the CSV file (created, or resumed: rows already there are kept and skipped).
+        results: the CSV file (created, or resumed: the rows there that :func:`reusable_rows` keeps
+            are skipped).
         workers: processes on this machine (1: this process), or Ray actors with `ray`.
         ray: None (no Ray), "local" (start Ray on this machine), "auto" (the cluster ``ray start``
             set up) or a head's address.
@@ -212,10 +232,10 @@ def run_jobs(
     task = task or run_job
     if len({j.line for j in jobs}) != len(jobs):
         raise InputError("two pairs share a line number")
-    rows = done_lines(results)
+    rows = reusable_rows(jobs, done_lines(results))
     todo = [j for j in jobs if j.line not in rows]
     ray_module = _ray_connect(ray) if ray is not None else None  # before any file is written
-    out = ResultsFile(results, {j.line: rows[j.line] for j in jobs if j.line in rows})
+    out = ResultsFile(results, rows)
     try:
         if ray_module is not None:
             runner: Iterator[dict] = _run_ray(ray_module, todo, config, workers, task)
@@ -236,7 +256,7 @@ def run_jobs(
 
 def _crashed(job: PairJob, why: str) -> dict:
     """The row of a pair whose process died each time it ran (`why`, in words)."""
-    return {"line": job.line, "source": job.source, "target": job.target, "status": "failed", "error": why, "seconds": 0.0}
+    return {**_named(job), "status": "failed", "error": why, "seconds": 0.0}
 
 
 def _run_pool(jobs: Sequence[PairJob], config, workers: int, task) -> Iterator[dict]:

@@ -298,6 +298,8 @@ def import_pairs(path: Path) -> List[BenchPair]:
         InputError: not an .npz, a missing key, or arrays of inconsistent shapes (named).
     """
     path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"{path}: is a folder; expected a pairs file")
     if not path.is_file():
         raise UsageError(f"{path}: no such pairs file")
     try:

@@ -44,6 +44,10 @@ def _o3d():
 
 
 def check_extension(path: Path, allowed, what: str) -> str:
+    """`path`'s extension, lower case; UsageError where it is not one of `allowed` for `what`, or
+    `path` is a folder."""
+    if path.is_dir():
+        raise UsageError(f"{path}: is a folder, not a file")
     ext = path.suffix.lower()
     if ext not in allowed:
         raise UsageError(f"{path}: unknown extension {ext or '(none)'!r} for {what}; expected one of {', '.join(allowed)}")
@@ -522,13 +526,14 @@ def make_folder(path: PathLike) -> Path:
 
 def check_writable(path: PathLike) -> None:
     """Raise InputError unless a file can be written at `path`: its folder exists and is
-    writable, and `path` is not a folder (checked before long work, so that it fails at once)."""
+    writable; UsageError where `path` is a folder (checked before long work, so that it fails at
+    once)."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise InputError(f"{path}: cannot write, folder {folder} does not exist")
     if path.is_dir():
-        raise InputError(f"{path}: cannot write, it is a folder")
+        raise UsageError(f"{path}: cannot write, it is a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise InputError(f"{path}: cannot write in folder {folder} (permission denied)")
 
@@ -572,7 +577,8 @@ def atomic_output(path: PathLike) -> Iterator[Path]:
     the file reaches the disk.
 
     The temporary name keeps the extension, so writers that pick a format by extension work.
-    Raises InputError if the file cannot be written there (:func:`check_writable`).
+    Raises InputError (UsageError for a folder) if the file cannot be written there
+    (:func:`check_writable`).
     """
     path = Path(path)
     check_writable(path)

@@ -81,6 +81,8 @@ def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,), options: 
         InputError: a line with another number of fields (names the line); no pair at all.
     """
     path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"{path}: is a folder; expected a pairs file")
     if not path.is_file():
         raise UsageError(f"{path}: no such pairs file")
     expected = "source target transform" if counts == (3,) else "source target [transform]"

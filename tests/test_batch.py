@@ -141,6 +141,21 @@ def test_an_interrupted_run_resumes_from_its_results(tmp_path, pairs_file):
     assert done_lines(results).keys() == {2, 3, 4, 5, 6}
 
 
+def test_a_resumed_run_runs_edited_lines_and_failed_pairs_again(tmp_path, pairs_file):
+    data = pairs_file.parent
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{data}/s0.npy {data}/t0.npy {data}/gt0.txt\n{data}/s1.npy {data}/t1.npy\nlate.npy {data}/t2.npy\n")
+    results = tmp_path / "r.csv"
+    assert [r["status"] for r in run_jobs(read_pair_jobs(pairs), CONFIG, results)] == ["ok", "ok", "failed"]
+    (tmp_path / "late.npy").write_bytes((data / "s2.npy").read_bytes())  # the missing file, put in place
+    pairs.write_text(f"{data}/s0.npy {data}/t0.npy {data}/gt0.txt\n{data}/s1.npy {data}/t1.npy {data}/gt1.txt\nlate.npy {data}/t2.npy\n")
+    ran = []
+    rows = run_jobs(read_pair_jobs(pairs), CONFIG, results, progress=ran.append)
+    assert [r["line"] for r in ran] == [2, 3]  # line 2 now names a ground truth; line 3 could not run
+    assert [r["status"] for r in rows] == ["ok", "ok", "ok"] and float(rows[1]["rotation_error_deg"]) < 1.0
+    assert _rows(results)[2]["ground_truth"] == f"{data}/gt1.txt"
+
+
 def test_a_results_file_of_another_kind_is_not_overwritten(tmp_path, pairs_file):
     other = tmp_path / "notes.csv"
     other.write_text("name,value\na,1\n")
@@ -177,20 +192,22 @@ def test_cli_pairs_with_workers_and_resume(tmp_path, pairs_file):
     seconds = sorted(float(r["seconds"]) for r in _rows(out).values() if r["status"] == "ok")
     assert f"median {(seconds[1] + seconds[2]) / 2:.2f} s per pair" in first.output  # of 4 pairs: the mean of the middle two
     again = runner.invoke(main, ["register", "--pairs", str(pairs_file), "--out", str(out), "--no-progress"])
-    assert "Resuming: 5 of 5 pairs already in" in again.output
+    assert "Resuming: 4 of 5 pairs already in" in again.output and "1 run again" in again.output  # the missing file's pair
 
 
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--pairs", "P", "--out", "r.ply"], "--pairs needs --out RESULTS.csv"),
+        (["--pairs", "P", "--out", "r.ply"], "--pairs writes a CSV file; give --out RESULTS.csv"),
+        (["--pairs", "P"], "--pairs needs --out RESULTS.csv"),
+        (["--pairs", "D", "--out", "r.csv"], "is a folder; expected a pairs file"),
         (["--pairs", "P", "a.ply", "--out", "r.csv"], "SOURCE belong(s) to a single pair"),
         (["a.ply", "b.ply", "--workers", "2"], "--workers and --ray go with --pairs"),
         ([], "give SOURCE and TARGET, or --pairs FILE"),
     ],
 )
 def test_cli_pairs_usage_errors(tmp_path, pairs_file, args, message):
-    args = [str(pairs_file) if a == "P" else str(tmp_path / a) if a.endswith((".ply", ".csv")) else a for a in args]
+    args = [str(pairs_file) if a == "P" else str(tmp_path) if a == "D" else str(tmp_path / a) if a.endswith((".ply", ".csv")) else a for a in args]
     result = CliRunner().invoke(main, ["register", *args])
     assert result.exit_code == 2
     assert message in result.output

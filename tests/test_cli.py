@@ -62,6 +62,7 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert np.allclose(read_transform(d / "T.txt"), T, atol=1e-5)
     assert np.allclose(read_points(d / "aligned.xyz"), apply(T, src), atol=1e-4)
     assert (d / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"Picture: {d / 'fig.png'}" in r.output
+    assert f"Aligned source: {d / 'aligned.xyz'}" in r.output and f"Transform: {d / 'T.txt'}" in r.output
 
 
 def test_register_says_how_many_stray_points_it_dropped(pair_files, tiny_model_path):
@@ -189,6 +190,9 @@ def test_no_refine(pair_files, tiny_model_path):
         (None, ["src.ply", "tgt.pcd", "--points", "4"], 2, "num_points=4 is below the network's neighbourhood size"),
         (None, ["src.ply", "tgt.pcd", "--weights", "missing.pt"], 2, "missing.pt: weights file not found"),
         (lambda d: (d / "wdir").mkdir(), ["src.ply", "tgt.pcd", "--weights", "wdir"], 2, "wdir: is a folder; expected a model file"),
+        (lambda d: (d / "scans").mkdir(), ["scans", "tgt.pcd"], 2, "scans: is a folder, not a file"),
+        (lambda d: (d / "odir").mkdir(), ["src.ply", "tgt.pcd", "--out", "odir"], 2, "--out odir: is a folder; give a file name"),
+        (lambda d: (d / "tdir").mkdir(), ["src.ply", "tgt.pcd", "--save-transform", "tdir"], 2, "tdir: cannot write, it is a folder"),
         (None, ["src.ply", "tgt.pcd", "--second-weights", "incongruant"], 2, "incongruant: weights file not found (shipped models, by name:"),
         (lambda d: (d / "v.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"), ["v.obj", "tgt.pcd"], 1, "v.obj: mesh has 4 vertices but no faces"),
         (None, ["src.ply", "tgt.pcd", "--device", "tpu9"], 2, "invalid device 'tpu9'"),

@@ -281,6 +281,10 @@ def test_cli_starts_from_initial_poses(tmp_path, scans):
     record = json.loads((tmp_path / "out" / "poses.json").read_text())
     for k, scan in enumerate(record["scans"]):
         assert pair_errors(np.array(scan["world_T_scan"]), world @ poses[k]).rotation_deg < 1.0
+    record["scans"] = record["scans"][:2]  # an earlier run without the last view
+    (tmp_path / "earlier.json").write_text(json.dumps(record))
+    some = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "o3"), "--init", str(tmp_path / "earlier.json"), "--no-progress"])
+    assert some.exit_code == 0 and f"gives no initial pose for 1 scan(s), registered without one: {files[2]}" in some.output
     guesses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
     short = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "o2"), "--init", str(guesses)])
     assert short.exit_code == 1 and "guesses.txt: 1 poses for 3 scans" in short.output and "Traceback" not in short.output
