@@ -447,7 +447,7 @@ def _strays_line(removed: dict) -> list:
 def _format_result(source, target, result, errors, model_info, config) -> str:
     from ..coarse import weights_file
 
-    refined, search_mode = config.refine, config.search.mode
+    refined = config.refine
     grid = f" and a {result.voxel:.3g}-unit voxel grid" if result.voxel is not None else ""
     T = result.transformation
     lines = [
@@ -485,7 +485,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     if result.sparser_moved:
         lines.append("  roles        the target is much sparser: it was registered onto the source, and the result inverted")
     if result.searched:
-        why = "the strict confidence flagged the first result, or the clouds look partial" if search_mode == "auto" else "--search always"
+        why = result.search_reason
         screened = f" ({result.screened} screened on at most {config.search.screen.points:,} points per cloud first)" if result.screened else ""
         lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}, {result.agreeing} of them reached the result's pose")
     if errors is not None:

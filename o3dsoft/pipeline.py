@@ -110,6 +110,9 @@ class RegistrationResult:
         screened: estimates refined and scored on the screen clouds first.
         searched: whether the global search ran (not counting the feature match's first candidates
             tried before the second network's pose ends it, ``second_network.shared_check``).
+        search_reason: why it ran, in words (None where it did not): the clouds look like a
+            partial overlap, ``--search always``, no estimate was trusted, the trusted estimate
+            was not trusted at full resolution, or the trusted pose is not fixed by the geometry.
         removed: rows dropped by cleaning, per cloud: {"source_non_finite", "source_duplicates",
             "source_strays" (points over ``preprocess.STRAY_REACH`` times the cloud's reach from
             its median), and the target's}.
@@ -172,6 +175,7 @@ class RegistrationResult:
     copy_transformation: Optional[np.ndarray] = None
     copy_fit: Optional[float] = None
     agreeing: int = 1
+    search_reason: Optional[str] = None
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
@@ -315,6 +319,15 @@ def _register(
     # clouds is not trusted by the complete confidence): feature match, networks from many starts,
     # votes, restart.
     searched = features_first or search.mode == "always" or (search.mode == "auto" and not verifier.confident() and not second_ends)
+    search_reason = (
+        "the clouds look like a partial overlap: the feature match goes first"
+        if features_first
+        else "--search always"
+        if search.mode == "always"
+        else "no estimate was trusted"
+        if searched
+        else None
+    )
     if searched:
         _search(pair, verifier, model, search_model, features_done=features_first)
 
@@ -325,7 +338,7 @@ def _register(
     if search.mode == "auto" and not searched and verifier.reported(best).trust < config.confidence.likely_failed_below:
         # Trusted on the work clouds, not on the clouds it is the answer for: search after all.
         verifier.distrust(chosen, best.trust)
-        searched = True
+        searched, search_reason = True, "the estimate trusted on the work clouds was not trusted at full resolution"
         _search(pair, verifier, model, search_model, features_done=False)
         best = _refine_full(pair, verifier, _select(verifier))
     # Report: where both clouds look complete and the pose shows no shared point, the confidence
@@ -345,7 +358,7 @@ def _register(
         verifier.distrust(chosen, 0.0)
         if second_pending:
             _second_network(pair, verifier)
-        searched = True
+        searched, search_reason = True, "the trusted pose is not fixed by the geometry and shows no shared point"
         _search(pair, verifier, model, search_model, features_done=False)
         found = verifier.reported(_refine_full(pair, verifier, _select(verifier)))
         if _fits_closer(pair, found, best, search.undetermined_gain):
@@ -356,7 +369,8 @@ def _register(
     clock.lap("symmetry")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
     final_level = "work" if unrefined else "full"
-    return _result(best, pair, verifier, network, searched, geometry, copy, clock.timings_ms, final_level), pair.clouds(final_level)
+    result = _result(best, pair, verifier, network, searched, geometry, copy, clock.timings_ms, final_level)
+    return replace(result, search_reason=search_reason), pair.clouds(final_level)
 
 
 def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:

@@ -182,7 +182,7 @@ def test_a_large_rotation_is_found_by_the_search():
     tgt = apply(T, src)
     model = NearSightedModel(T[:3, :3])
     res = register(src, tgt, RegisterConfig(second_network=NO_SECOND, num_points=800, search=SearchConfig(mode="off")), model=model)
-    assert res.likely_failed and res.attempts == 1 and not res.searched and model.batches == [1]
+    assert res.likely_failed and res.attempts == 1 and not res.searched and model.batches == [1] and res.search_reason is None
     model = NearSightedModel(T[:3, :3])
     res = register(
         src,
@@ -193,6 +193,7 @@ def test_a_large_rotation_is_found_by_the_search():
         model=model,
     )
     assert res.searched and not res.likely_failed and res.attempts == 2 and model.batches == [1, 24]
+    assert res.search_reason == "no estimate was trusted"
     assert res.estimate_from == "network starts" and res.to_dict()["estimate_from"] == "network starts"
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
 
@@ -391,6 +392,7 @@ def test_a_doubtful_result_is_searched_further_when_asked(modelnet_root):
     model, search_model = load_model(), load_model("partial")
     first = register(src, tgt, RegisterConfig(), model=model, search_model=search_model)
     assert 0.5 <= first.confidence < 0.9 and pair_errors(first.transformation, T).rotation_deg > 170
+    assert first.search_reason == "the clouds look like a partial overlap: the feature match goes first"
     further = register(src, tgt, RegisterConfig(search=SearchConfig(features=FeatureSearchConfig(stop=0.9))), model=model, search_model=search_model)
     assert further.confidence >= 0.9 and further.attempts > first.attempts
     assert pair_errors(further.transformation, T).rotation_deg < 1.0
@@ -454,6 +456,7 @@ def test_a_result_the_full_clouds_reject_sends_the_pair_to_the_search(monkeypatc
     monkeypatch.setattr(pipeline, "_refine_full", rejected_at_first)
     res = register(src, apply(T, src), config)
     assert len(calls) == 2 and res.searched and res.attempts > first.attempts
+    assert res.search_reason == "the estimate trusted on the work clouds was not trusted at full resolution"
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1.0
 
 
@@ -495,6 +498,7 @@ def test_the_screen_tries_at_most_its_budget_of_estimates():
     search = SearchConfig(mode="always", screen=ScreenConfig(points=512, budget=3))
     res = register(src, apply(T, src), RegisterConfig(attempt_points=2_000, search=search))
     assert res.searched and 2 <= res.screened <= 3  # the network's (these are scans) and the search's
+    assert res.search_reason == "--search always"
 
 
 def test_scans_with_a_stray_far_point_or_in_other_units_are_right_or_flagged():
