@@ -407,7 +407,7 @@ def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num
     skipped = len(reusable_rows(jobs, done))
     again = sum(j.line in done for j in jobs) - skipped
     if skipped or again:
-        rerun = f"; {again} run again (their line names other files now, or they could not run)" if again else ""
+        rerun = f"; {again} run again (their line names other files now, or they failed)" if again else ""
         click.echo(f"Resuming: {skipped} of {len(jobs)} pairs already in {out_path}{rerun}", err=True)
     bar = tqdm(total=len(jobs) - skipped, unit="pair", disable=True if no_progress else None, dynamic_ncols=True)
     try:
@@ -606,30 +606,28 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     left_out = [n for n, j in zip(names, result.joined) if not j]
     if left_out:
         kept = [n for n, by in zip(names, result.placed_by) if by == "initial pose"]
-        also = f"; {', '.join(kept)} keep their initial poses in poses.json (unverified)" if kept else ""
+        also = f"; {', '.join(kept)} placed by the initial poses in poses.json (unverified)" if kept else ""
         click.echo(
-            f"Warning: {len(left_out)} scan(s) overlap no other with a trusted alignment and were left out of the merged cloud: {', '.join(left_out)}{also}",
+            f"Warning: {len(left_out)} scan(s) that no trusted alignment joins to {names[result.world]} were left out of the merged cloud: {', '.join(left_out)}{also}",
             err=True,
         )
         sys.exit(3)
 
 
-def _format_multiway(result, out_dir: Path, merged_points: int, placed_by: Optional[Path] = None) -> str:
-    """The result as a table; `placed_by`: the --init file that holds the world scan's pose."""
+def _format_multiway(result, out_dir: Path, merged_points: int, frame_file: Optional[Path] = None) -> str:
+    """The result as a table; `frame_file`: the --init file that holds the world scan's pose."""
     import numpy as np
 
     from ..transforms import rotation_angle_deg
 
     world = result.names[result.world]
-    frame = f"that of {placed_by} ({world} held at its pose there)" if placed_by is not None else world
+    frame = f"that of {frame_file} ({world} held at its pose there)" if frame_file is not None else world
     lines = [f"o3dsoft multiway  {len(result.names)} scans, world frame: {frame}", "", "Scans:"]
     for name, pose, by in zip(result.names, result.poses, result.placed_by):
         if by is None:
-            lines.append(f"  {name}: not joined (no trusted alignment to another scan)")
+            lines.append(f"  {name}: not joined (no trusted alignment reaches {world})")
         elif by == "initial pose":
-            lines.append(
-                f"  {name}: not joined (no trusted alignment to another scan); kept at its initial pose relative to the nearest joined scan, unverified"
-            )
+            lines.append(f"  {name}: not joined (no trusted alignment reaches {world}); placed by the initial poses, unverified")
         else:
             lines.append(f"  {name}: joined; world_T_scan turns {rotation_angle_deg(pose[:3, :3]):.2f} deg and moves {np.linalg.norm(pose[:3, 3]):.4g} units")
     used = [e for e in result.edges if e.used]

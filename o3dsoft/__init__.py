@@ -1,7 +1,8 @@
 """o3dsoft: rigid registration of 3D point clouds.
 
-A learned soft-alignment network (TorchScript) estimates the pose from any start inside its
-training range; Open3D's point-to-point ICP refines it::
+A learned soft-alignment network (TorchScript) estimates the pose, Open3D's ICP refines it
+(point-to-point, or point-to-plane on scans), and a confidence says when not to trust it; where
+it is not trusted, a global search takes over::
 
     import o3dsoft
     result = o3dsoft.register(source, target)      # (N, 3) arrays or Open3D point clouds

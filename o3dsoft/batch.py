@@ -3,7 +3,7 @@
 Every pair of a pairs file is registered in turn, in a pool of worker processes on this machine
 (``workers``), or on a Ray cluster (``ray``); each worker loads the network once. One CSV row per
 pair, written as each pair ends, so that an interrupted run resumes from its results file and
-skips the pairs already there (unless their line names other files now, or they could not run). A pair whose worker process dies is retried once, then reported as
+skips the pairs already there (unless their line names other files now, or they failed). A pair whose worker process dies is retried once, then reported as
 failed; a pair whose files cannot be read is reported as failed with the reason. The rows do not
 depend on how the pairs were spread over workers.
 
@@ -41,6 +41,8 @@ COLUMNS = (
     "translation_error",
     "seconds",
 )
+# The columns of results files written before rows named their ground truth and initial guess.
+_EARLIER_COLUMNS = tuple(c for c in COLUMNS if c not in ("ground_truth", "init"))
 RETRIES = 1  # a pair whose worker process dies is run this many more times
 
 
@@ -146,7 +148,7 @@ def done_lines(results) -> Dict[int, dict]:
         return {}
     with open(results, newline="") as f:
         reader = csv.DictReader(f)
-        if reader.fieldnames is None or tuple(reader.fieldnames) != COLUMNS:
+        if reader.fieldnames is None or tuple(reader.fieldnames) not in (COLUMNS, _EARLIER_COLUMNS):
             raise InputError(f"{results}: exists and is not an o3dsoft results file (its header differs); choose another --out or remove it")
         rows = {}
         for row in reader:
@@ -157,14 +159,22 @@ def done_lines(results) -> Dict[int, dict]:
 
 def reusable_rows(jobs: Sequence[PairJob], rows: Dict[int, dict]) -> Dict[int, dict]:
     """The rows of `rows` (:func:`done_lines`) that a resumed run keeps, by line: those that ran
-    and name the files their line names now. A line edited since, or a pair that could not run
-    (a missing file since put in place), runs again."""
+    and name the files their line names now (a row of a file without the ground_truth and init
+    columns: the same source and target). A line edited since, or a pair that failed (a
+    missing file since put in place), runs again."""
     kept = {}
     for job in jobs:
         row = rows.get(job.line)
-        if row is not None and row["status"] == "ok" and all(row[k] == v for k, v in _named(job).items() if k != "line"):
-            kept[job.line] = row
+        named = _named(job)
+        if row is not None and row["status"] == "ok" and all(_same_file(row.get(k, v), v) for k, v in named.items() if k != "line"):
+            kept[job.line] = {**named, **row}
     return kept
+
+
+def _same_file(a: str, b: str) -> bool:
+    """Two file names of a results row ("" for none) name the same file (relative to the
+    working folder; the pairs file may have been given by another path)."""
+    return a == b or (bool(a) and bool(b) and os.path.realpath(a) == os.path.realpath(b))
 
 
 class ResultsFile:

@@ -356,13 +356,14 @@ def _pairs_from_npz(path: Path, z) -> List[BenchPair]:
 # --------------------------------------------------------------------------------------------
 class MethodResult(NamedTuple):
     """One method on one pair: its estimate, the time of each stage (ms), and o3dsoft's
-    confidence in it (None for methods that give none)."""
+    confidence in it, whether its search ran and why (None for methods that give none)."""
 
     method: str
     transform: np.ndarray
     times_ms: Dict[str, float]
     confidence: Optional[float] = None
     searched: Optional[bool] = None
+    search_reason: Optional[str] = None
 
 
 def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel], search_model: Optional[CoarseModel] = None) -> List[MethodResult]:
@@ -388,7 +389,9 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         network = result.network_transformation if result.network_transformation is not None else result.coarse_transformation
         out["o3dsoft-coarse"] = MethodResult("o3dsoft-coarse", network, {**coarse_ms, "total": sum(coarse_ms.values())})
         fine_ms = t["refine"] + t["score"]  # ICP and the confidence, over every refined estimate
-        out["o3dsoft"] = MethodResult("o3dsoft", result.transformation, {**coarse_ms, "icp": fine_ms, "total": wall_ms}, result.confidence, result.searched)
+        out["o3dsoft"] = MethodResult(
+            "o3dsoft", result.transformation, {**coarse_ms, "icp": fine_ms, "total": wall_ms}, result.confidence, result.searched, result.search_reason
+        )
     if "oracle" in methods:
         t0 = clock()
         T = refine_stage.icp(src, tgt, pair.transform, icp_distance, config.register.icp).transformation
@@ -461,6 +464,7 @@ def score(pair: BenchPair, result: MethodResult) -> Tuple[dict, PairErrors]:
         "input_chamfer": input_chamfer_distance(pair.source, pair.target, result.transform),
         "confidence": "" if result.confidence is None else result.confidence,
         "searched": "" if result.searched is None else result.searched,
+        "search_reason": result.search_reason or "",
     }
     for stage in STAGES:
         row[f"time_{stage}_ms"] = result.times_ms.get(stage, "")
@@ -515,6 +519,8 @@ def summarise_rows(rows: Sequence[dict], errors: Sequence[PairErrors], config: B
                 searched = [rows[i]["searched"] for i in sel if rows[i]["searched"] != ""]
                 if len(searched) == len(sel):
                     summary["searched_share"] = float(np.mean(searched))
+                    reasons = [rows[i]["search_reason"] for i in sel if rows[i]["search_reason"]]
+                    summary["search_reasons"] = {why: reasons.count(why) for why in sorted(set(reasons))}  # pairs per reason
                 for stage in STAGES[:-1]:
                     values = [rows[i][f"time_{stage}_ms"] for i in sel if rows[i][f"time_{stage}_ms"] != ""]
                     if values:

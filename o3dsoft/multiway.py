@@ -11,8 +11,8 @@
        its initial pose, where it has one: the result stays in the initial poses' frame).
 
 Edges flagged likely failed are left out of the graph; scans that no trusted edge reaches are
-reported and left out of the merged cloud. Such a scan that has an initial pose keeps it, relative
-to the nearest joined scan (unverified); one without has no pose.
+reported and left out of the merged cloud. Where they have initial poses, they are placed by them
+relative to the nearest joined scan (unverified); otherwise they have no pose.
 """
 
 from __future__ import annotations
@@ -130,13 +130,14 @@ class MultiwayResult:
 
     Attributes:
         names: the scans' names, in input order.
-        poses: (4, 4) world_T_scan per scan (maps the scan's points into the world frame); None
-            for a scan that joined no other and has no initial pose (the world scan has the
-            identity, or its initial pose where it was given one).
-        placed_by: per scan, how its pose was found: "registration" (joined through trusted
-            alignments), "initial pose" (joined no other: its initial pose relative to the
-            nearest joined scan that has one, world_T_k = world_T_a @ inv(init_a) @ init_k,
-            unverified) or None (no pose).
+        poses: (4, 4) world_T_scan per scan (maps the scan's points into the world frame), or
+            None (the world scan has the identity, or its initial pose where it was given one).
+        placed_by: per scan, how its pose was found: "registration" (the world scan, and the
+            scans trusted alignments join to it), "initial pose" (a group of scans that no
+            trusted alignment joins to the world scan's, placed by the initial pose of its scan k
+            nearest to a joined scan a that has one, world_T_k = world_T_a @ inv(init_a) @
+            init_k, its other scans by their alignments to k; unverified), or None (no pose:
+            neither the group nor the joined scans have initial poses).
         world: index of the scan that fixes the world frame: the first of the largest group of
             scans joined by trusted alignments (the first scan when none is).
         edges: every registered pair.
@@ -216,8 +217,9 @@ def multiway(
             earlier run) or None where there is none. A pair of scans that both have one is
             registered from the pose between them (``register(init=...)``: where ICP from it is
             trusted, nothing else runs); the world scan keeps its guess, so the result is in the
-            guesses' frame; "near" pairs scans by where the guesses put them; a scan that joins
-            no other keeps its guess relative to the nearest joined scan (``placed_by``).
+            guesses' frame; "near" pairs scans by where the guesses put them; scans that no
+            trusted alignment joins to the world scan are placed by their guesses relative to
+            the nearest joined scan (``placed_by``).
     Returns:
         MultiwayResult.
     Raises:
@@ -261,21 +263,45 @@ def multiway(
     t_pairs = time.perf_counter()
 
     # Connect the scans through their most confident edges, then optimise the graph.
-    world, tree = _spanning_tree(len(points), edges)
+    groups = _groups(len(points), edges)
+    world = groups[0][0]
     start = guesses[world] if guesses[world] is not None else np.eye(4)
+    trees = {world: _tree(groups[0], world, edges)}
     poses: List[Optional[np.ndarray]] = [None] * len(points)
     poses[world] = start  # the world frame, even when no other scan joins it
-    edges = [_mark(e, tree) for e in edges]
+    placed_by: List[Optional[str]] = [None] * len(points)
+    placed_by[world] = "registration"
     grid = _merge_grid(config, results)
-    if tree:
-        info_clouds = [voxel_downsample(clean_points(p, name).points, grid, name) if grid else clean_points(p, name).points for p, name in zip(points, names)]
-        distance = float(np.median([r.tight_distance for r, e in zip(results, edges) if e.used]))
-        optimised, pruned = _optimise(info_clouds, edges, world, start, tree, distance, config)
-        poses = [optimised.get(k) for k in range(len(points))]
-        edges = [replace(e, pruned=(e.source, e.target) in pruned) for e in edges]
-    placed_by: List[Optional[str]] = ["registration" if p is not None else None for p in poses]
-    for k, pose in _place_by_initial_poses(points, poses, guesses).items():
-        poses[k], placed_by[k] = pose, "initial pose"
+    info_clouds: List[np.ndarray] = []
+    pruned: set = set()
+
+    def optimise(root: int, root_pose: np.ndarray) -> Dict[int, np.ndarray]:
+        if not trees[root]:
+            return {root: root_pose}
+        if not info_clouds:
+            info_clouds.extend(
+                voxel_downsample(clean_points(p, name).points, grid, name) if grid else clean_points(p, name).points for p, name in zip(points, names)
+            )
+        distance = float(np.median([r.tight_distance for r in results if not r.likely_failed]))
+        optimised, cut = _optimise(info_clouds, edges, root, root_pose, trees[root], distance, config)
+        pruned.update(cut)
+        return optimised
+
+    edges = [_mark(e, trees[world]) for e in edges]
+    for k, pose in optimise(world, start).items():
+        poses[k], placed_by[k] = pose, "registration"
+    # Groups that no trusted edge joins to the world scan's: where they have initial poses, placed
+    # by them relative to the nearest joined scan, each group as one body.
+    for group in groups[1:]:
+        anchor = _anchor(points, poses, guesses, group)
+        if anchor is None:
+            continue
+        root, root_pose = anchor
+        trees[root] = _tree(group, root, edges)
+        edges = [_mark(e, trees[root]) if e.source in group else e for e in edges]
+        for k, pose in optimise(root, root_pose).items():
+            poses[k], placed_by[k] = pose, "initial pose"
+    edges = [replace(e, pruned=(e.source, e.target) in pruned) for e in edges]
     t_end = time.perf_counter()
     timings = {"pairs": t_pairs - t_start, "optimise": t_end - t_pairs, "total": t_end - t_start}
     return MultiwayResult(names, tuple(poses), tuple(placed_by), world, tuple(edges), timings, grid)
@@ -293,21 +319,28 @@ def _distances(centres: Sequence[np.ndarray]) -> np.ndarray:
     return np.linalg.norm(c[:, None] - c[None], axis=-1)
 
 
-def _place_by_initial_poses(points, poses: Sequence[Optional[np.ndarray]], guesses: Sequence[Optional[np.ndarray]]) -> Dict[int, np.ndarray]:
-    """{scan: world_T_scan} for each scan that joined no other but has an initial pose: where
-    its guess puts it relative to the joined scan with a guess nearest to it (by the centroids
-    the guesses place), world_T_k = world_T_a @ inv(guess_a) @ guess_k, so that the correction
-    the optimisation made at a carries over to k as odometry would."""
-    anchors = [a for a, pose in enumerate(poses) if pose is not None and guesses[a] is not None]
-    lost = [k for k, pose in enumerate(poses) if pose is None and guesses[k] is not None]
-    if not anchors or not lost:
-        return {}
-    d = _distances([_centre(points[k], guesses[k]) for k in anchors + lost])[len(anchors) :, : len(anchors)]
-    placed = {}
-    for row, k in enumerate(lost):
-        a = anchors[int(np.argmin(d[row]))]
-        placed[k] = poses[a] @ np.linalg.inv(guesses[a]) @ guesses[k]
-    return placed
+def _anchor(
+    points: Sequence[np.ndarray], poses: Sequence[Optional[np.ndarray]], guesses: Sequence[Optional[np.ndarray]], group: Sequence[int]
+) -> Optional[Tuple[int, np.ndarray]]:
+    """Where the initial poses place `group` (scans no trusted edge joins to the placed ones):
+    (its scan k nearest to a placed scan a that has a guess, by the centroids the guesses place,
+    and world_T_k = world_T_a @ inv(guess_a) @ guess_k), so that the correction made at a carries
+    over to k as odometry would; None where the group or the placed scans have no guess.
+
+    Args:
+        points: (N_i, 3) per scan; poses: (4, 4) world_T_scan per placed scan, else None;
+        guesses: (4, 4) initial world_T_scan per scan, else None.
+    """
+    placed = [a for a, pose in enumerate(poses) if pose is not None and guesses[a] is not None]
+    members = [k for k in group if guesses[k] is not None]
+    if not placed or not members:
+        return None
+    d = _distances([_centre(points[k], guesses[k]) for k in members + placed])[: len(members), len(members) :]
+    row, col = np.unravel_index(int(np.argmin(d)), d.shape)
+    k, a = members[row], placed[col]
+    pose_a, guess_a, guess_k = poses[a], guesses[a], guesses[k]
+    assert pose_a is not None and guess_a is not None and guess_k is not None
+    return k, pose_a @ np.linalg.inv(guess_a) @ guess_k
 
 
 def _checked_poses(init_poses: Optional[Sequence[Optional[np.ndarray]]], names: Sequence[str]) -> List[Optional[np.ndarray]]:
@@ -338,23 +371,34 @@ def _mark(edge: Edge, tree: Dict[int, Tuple[int, Edge]]) -> Edge:
 
 def _spanning_tree(n: int, edges: Sequence[Edge]) -> Tuple[int, Dict[int, Tuple[int, Edge]]]:
     """A maximum-confidence spanning tree over the trusted edges of the largest group of
-    connected scans (Prim's algorithm): (world scan, {scan: (its parent, the edge between)}).
-    The world scan is the group's first; scans outside the group are not in the dict."""
-    trusted = [e for e in edges if not e.likely_failed]
-    group_of = _group_of(n, trusted)
-    groups = [{k for k in range(n) if group_of[k] == g} for g in sorted(set(group_of))]
-    largest = max(groups, key=lambda g: (len(g), -min(g)))
-    if len(largest) < 2:
-        return 0, {}
-    world = min(largest)
+    connected scans: (world scan, {scan: (its parent, the edge between)}). The world scan is the
+    group's first; scans outside the group are not in the dict."""
+    largest = _groups(n, edges)[0]
+    return largest[0], _tree(largest, largest[0], edges)
+
+
+def _groups(n: int, edges: Sequence[Edge]) -> List[List[int]]:
+    """The groups of scans that trusted edges connect (a scan alone is a group), each in scan
+    order, the largest first (of equal sizes, the one with the first scan)."""
+    members: Dict[int, List[int]] = {}
+    for k, label in enumerate(_group_of(n, edges)):
+        members.setdefault(label, []).append(k)
+    return sorted(members.values(), key=lambda g: (-len(g), g[0]))
+
+
+def _tree(group: Sequence[int], root: int, edges: Sequence[Edge]) -> Dict[int, Tuple[int, Edge]]:
+    """A maximum-confidence spanning tree of `group` over its trusted edges, from `root` (Prim's
+    algorithm): {scan: (its parent, the edge between)}; {} for a scan alone."""
+    inside = set(group)
+    trusted = [e for e in edges if not e.likely_failed and e.source in inside and e.target in inside]
     tree: Dict[int, Tuple[int, Edge]] = {}
-    reached = {world}
-    while len(reached) < len(largest):
+    reached = {root}
+    while len(reached) < len(inside):
         best = max((e for e in trusted if (e.source in reached) != (e.target in reached)), key=lambda e: e.confidence)
         new, parent = (best.target, best.source) if best.source in reached else (best.source, best.target)
         tree[new] = (parent, best)
         reached.add(new)
-    return world, tree
+    return tree
 
 
 def _group_of(n: int, edges: Sequence[Edge]) -> List[int]:

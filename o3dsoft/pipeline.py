@@ -111,7 +111,7 @@ class RegistrationResult:
         searched: whether the global search ran (not counting the feature match's first candidates
             tried before the second network's pose ends it, ``second_network.shared_check``).
         search_reason: why it ran, in words (None where it did not): the clouds look like a
-            partial overlap, ``--search always``, no estimate was trusted, the trusted estimate
+            partial overlap, the search mode is "always", no estimate was trusted, the trusted estimate
             was not trusted at full resolution, or the trusted pose is not fixed by the geometry.
         removed: rows dropped by cleaning, per cloud: {"source_non_finite", "source_duplicates",
             "source_strays" (points over ``preprocess.STRAY_REACH`` times the cloud's reach from
@@ -322,7 +322,7 @@ def _register(
     search_reason = (
         "the clouds look like a partial overlap: the feature match goes first"
         if features_first
-        else "--search always"
+        else "the search mode is 'always'"
         if search.mode == "always"
         else "no estimate was trusted"
         if searched

@@ -156,6 +156,31 @@ def test_a_resumed_run_runs_edited_lines_and_failed_pairs_again(tmp_path, pairs_
     assert _rows(results)[2]["ground_truth"] == f"{data}/gt1.txt"
 
 
+def test_a_resumed_run_knows_its_rows_by_another_path_and_in_an_earlier_layout(tmp_path, pairs_file, monkeypatch):
+    data, sub = pairs_file.parent, tmp_path / "sub"
+    sub.mkdir()
+    for name in ("s0.npy", "t0.npy", "gt0.txt"):
+        (sub / name).write_bytes((data / name).read_bytes())
+    (sub / "pairs.txt").write_text("s0.npy t0.npy gt0.txt\n")
+    results = tmp_path / "r.csv"
+    run_jobs(read_pair_jobs(sub / "pairs.txt"), CONFIG, results)
+    monkeypatch.chdir(sub)  # the same pairs file, named from its folder
+    ran = []
+    run_jobs(read_pair_jobs("pairs.txt"), CONFIG, results, progress=ran.append)
+    assert ran == []
+    # A file written before rows named their ground truth and initial guess.
+    with open(results, newline="") as f:
+        rows = list(csv.DictReader(f))
+    earlier = [c for c in COLUMNS if c not in ("ground_truth", "init")]
+    with open(results, "w", newline="") as f:
+        writer = csv.DictWriter(f, earlier, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    rows = run_jobs(read_pair_jobs("pairs.txt"), CONFIG, results, progress=ran.append)
+    assert ran == [] and rows[0]["ground_truth"].endswith("gt0.txt")
+    assert list(csv.reader(open(results)))[0] == list(COLUMNS)  # rewritten in today's layout
+
+
 def test_a_results_file_of_another_kind_is_not_overwritten(tmp_path, pairs_file):
     other = tmp_path / "notes.csv"
     other.write_text("name,value\na,1\n")

@@ -55,6 +55,8 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     ours = next(s for s in summary["summaries"] if s["method"] == "o3dsoft")
     assert 0 <= ours["searched_share"] <= 1 and "false_alarm_share" in ours and "recall_2deg" in ours
     assert {r["searched"] for r in rows if r["method"] == "o3dsoft"} <= {"True", "False"}
+    searched = sum(r["searched"] == "True" for r in rows if r["method"] == "o3dsoft")
+    assert sum(ours["search_reasons"].values()) == searched and all(r["search_reason"] for r in rows if r["searched"] == "True")
     assert (out / "cdf_rotation_error.png").stat().st_size > 1000 and (out / "recall_vs_angle.png").is_file()
     config = json.loads((out / "config.json").read_text())
     assert config["bench"]["global_"]["voxel"] == 0.05 and config["protocols"] == ["dcp"]

@@ -17,7 +17,7 @@ from o3dsoft.config import RegisterConfig, SearchConfig
 from o3dsoft.errors import InputError
 from o3dsoft.io import read_points, read_poses, write_points
 from o3dsoft.metrics import pair_errors
-from o3dsoft.multiway import Edge, MultiwayConfig, _optimise, _place_by_initial_poses, _spanning_tree, choose_pairs, merged_cloud, multiway
+from o3dsoft.multiway import Edge, MultiwayConfig, _anchor, _optimise, _spanning_tree, choose_pairs, merged_cloud, multiway
 from o3dsoft.transforms import euler_to_matrix, rigid
 
 from .conftest import EXAMPLES, apply, blob, random_transform
@@ -236,15 +236,35 @@ def test_a_scan_that_overlaps_none_keeps_its_initial_pose(scans, model):
     assert json.loads(json.dumps(result.to_dict()))["scans"][1]["placed_by"] == "initial pose"
 
 
-def test_unjoined_scans_are_carried_by_the_nearest_joined_scan():
-    points = [np.zeros((4, 3)) + [x, 0.0, 0.0] for x in (0.0, 9.0, 10.0, 3.0)]
-    guesses = [np.eye(4), np.eye(4), np.eye(4), None]
-    fixed = rigid(euler_to_matrix([0.0, 0.0, 10.0]), [0.0, 1.0, 0.0])  # the optimisation's correction at scan 2
-    poses = [np.eye(4), None, fixed, None]
-    placed = _place_by_initial_poses(points, poses, guesses)
-    assert list(placed) == [1]  # scan 3 has no initial pose: no pose
-    assert np.allclose(placed[1], fixed)  # nearer scan 2 (10 m) than scan 0 (0 m)
-    assert _place_by_initial_poses(points, [None] * 4, guesses) == {}
+def test_a_group_apart_is_placed_by_the_initial_pose_nearest_a_joined_scan():
+    points = [np.zeros((4, 3)) + [x, 0.0, 0.0] for x in (0.0, 10.0, 9.0, 3.0)]
+    rng = np.random.default_rng(2)
+    guesses = [random_transform(rng, 40.0, 0.5), random_transform(rng, 40.0, 0.5), None, random_transform(rng, 40.0, 0.5)]
+    guesses[1][:3, 3] = [10.0, 0.0, 0.0]  # the guesses put scan 1 at 20 m, nearer scan 3 (at 3 m + 10) than scan 0
+    guesses[3][:3, 3] = [10.0, 0.0, 0.0]
+    poses = [random_transform(rng, 40.0, 0.5), None, None, random_transform(rng, 40.0, 0.5)]  # 0 and 3 joined
+    k, pose = _anchor(points, poses, guesses, [1, 2])
+    assert k == 1 and np.allclose(pose, poses[3] @ np.linalg.inv(guesses[3]) @ guesses[1])  # the correction at 3, carried to 1
+    assert _anchor(points, poses, guesses, [2]) is None  # no guess in the group
+    assert _anchor(points, [None, None, None, poses[3]], [None, guesses[1], None, None], [1]) is None  # no placed scan with a guess
+
+
+def test_a_second_group_keeps_its_alignments_and_is_placed_by_its_initial_poses(scans, model):
+    clouds, poses = scans
+    rng = np.random.default_rng(4)
+    shape = blob(rng, 4000) * 0.05
+    apart = [shape[rng.random(len(shape)) < 0.6] + [5.0, 0.0, 0.0] for _ in range(2)]  # two views of another object, 5 m away
+    moved = random_transform(rng, 20.0, 0.01)
+    apart[1] = apply(np.linalg.inv(moved), apart[1] - [5.0, 0.0, 0.0]) + [5.0, 0.0, 0.0]  # world_T_scan = T(5 m) moved T(-5 m)
+    truth = [poses[0], poses[1], np.eye(4), rigid(np.eye(3), [5.0, 0.0, 0.0]) @ moved @ rigid(np.eye(3), [-5.0, 0.0, 0.0])]
+    off = rigid(euler_to_matrix([0.0, 0.0, 6.0]), [0.0, 0.0, 0.0])
+    guesses = [truth[0], truth[1], truth[2], truth[3] @ off]  # the last guess 6 degrees off
+    config = MultiwayConfig(register=RegisterConfig(search=SearchConfig(mode="off")))
+    result = multiway([clouds[0], clouds[1], *apart], config, model=model, init_poses=guesses)
+    assert result.placed_by == ("registration", "registration", "initial pose", "initial pose")
+    relative = np.linalg.inv(result.poses[2]) @ result.poses[3]  # from the alignment of the two views, not the guess
+    assert pair_errors(relative, np.linalg.inv(truth[2]) @ truth[3]).rotation_deg < 1.0
+    assert any(e.in_tree for e in result.edges if {e.source, e.target} == {2, 3})
 
 
 def test_bad_settings_and_too_few_scans(scans, model):
@@ -313,7 +333,7 @@ def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
     assert not (tmp_path / "o3").exists()
     left = runner.invoke(main, ["multiway", str(a), str(stray), str(b), "--out", str(tmp_path / "o2"), "--no-progress"])
     assert left.exit_code == 3
-    assert "stray.ply: not joined" in left.output and "left out of the merged cloud: " in left.output
+    assert "stray.ply: not joined (no trusted alignment reaches" in left.output and "left out of the merged cloud: " in left.output
     assert json.loads((tmp_path / "o2" / "poses.json").read_text())["scans"][1]["joined"] is False
     # With initial poses the stray keeps its own, in poses.json only.
     clouds_poses = [scans[1][0], np.eye(4), scans[1][1]]
@@ -321,7 +341,7 @@ def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
     kept = runner.invoke(
         main, ["multiway", str(a), str(stray), str(b), "--out", str(tmp_path / "o5"), "--init", str(tmp_path / "init.txt"), "--search", "off", "--no-progress"]
     )
-    assert kept.exit_code == 3 and "stray.ply keep their initial poses in poses.json (unverified)" in kept.output
+    assert kept.exit_code == 3 and "stray.ply placed by the initial poses in poses.json (unverified)" in kept.output
     record = json.loads((tmp_path / "o5" / "poses.json").read_text())["scans"][1]
     assert record["placed_by"] == "initial pose" and np.allclose(record["world_T_scan"], np.eye(4), atol=2e-3)
 

@@ -498,7 +498,7 @@ def test_the_screen_tries_at_most_its_budget_of_estimates():
     search = SearchConfig(mode="always", screen=ScreenConfig(points=512, budget=3))
     res = register(src, apply(T, src), RegisterConfig(attempt_points=2_000, search=search))
     assert res.searched and 2 <= res.screened <= 3  # the network's (these are scans) and the search's
-    assert res.search_reason == "--search always"
+    assert res.search_reason == "the search mode is 'always'"
 
 
 def test_scans_with_a_stray_far_point_or_in_other_units_are_right_or_flagged():
