@@ -142,9 +142,11 @@ class KissConfig:
         return asdict(self)
 
 
-# KISS-Matcher refuses voxels below a few centimetres (it is made for scans in metres): smaller
-# scenes are registered magnified so that the voxel is at least this, and the result scaled back.
-_KISS_MIN_VOXEL = 0.05
+# KISS-Matcher is made for scans in metres: it refuses voxels below a few centimetres, and some of
+# its thresholds are absolute (a 3DMatch fragment in millimetres fails where the same in metres
+# does not, every setting scaled). Every scene is given to it scaled so that its voxel is this,
+# and the result scaled back: its answer does not depend on the clouds' units.
+_KISS_VOXEL = 0.05
 # KISS-Matcher crashes the process (a segmentation fault) on clouds of a few hundred points or
 # fewer: it is called only where each cloud keeps at least this many points on its voxel grid.
 KISS_MIN_POINTS = 500
@@ -166,7 +168,7 @@ def kiss_matcher(
 
     if min(len(voxel_downsample(source, voxel)), len(voxel_downsample(target, voxel))) < KISS_MIN_POINTS:
         return None
-    magnify = max(1.0, _KISS_MIN_VOXEL / voxel)
+    magnify = _KISS_VOXEL / voxel
     magnified_voxel = voxel * magnify
     (source, source_centre), (target, target_centre) = _local(source), _local(target)
     with quiet_c_output("stdout"):  # it prints warnings about its noise bounds on every call

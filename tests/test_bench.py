@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from o3dsoft import bench
 from o3dsoft.cli.main import main
 from o3dsoft.errors import InputError, UsageError
+from o3dsoft.io import read_points, read_transform
 from o3dsoft.metrics import pair_errors
 from o3dsoft.transforms import apply_transform, rotation_angle_deg
 
@@ -646,8 +647,9 @@ def test_the_source_commit_is_read_without_writing_to_the_checkout(tmp_path):
 
 
 def test_kiss_matchers_radii_are_in_voxels_of_the_clouds_it_is_given(monkeypatch):
-    # Small scenes are magnified for KISS-Matcher (it refuses voxels of under a few centimetres):
-    # the radii, in voxels, scale with the voxel it is given, and its answer is scaled back.
+    # Every scene is scaled for KISS-Matcher so that its voxel is 5 cm (it refuses smaller ones,
+    # and some of its thresholds are absolute): the radii, in voxels, scale with the voxel it is
+    # given, and its answer is scaled back.
     import sys
     import types
 
@@ -673,8 +675,26 @@ def test_kiss_matchers_radii_are_in_voxels_of_the_clouds_it_is_given(monkeypatch
     assert made[-1].voxel_size == pytest.approx(0.05)
     assert (made[-1].normal_radius, made[-1].fpfh_radius) == (pytest.approx(0.125), pytest.approx(0.2))
     assert np.allclose(T[:3, 3], [0.2, 0.4, 0.6])  # back in the clouds' units
-    baselines.kiss_matcher(points, points, 0.2)  # no radii given: KISS-Matcher's own
-    assert (made[-1].voxel_size, made[-1].normal_radius, made[-1].fpfh_radius) == (0.2, pytest.approx(0.6), pytest.approx(1.0))
+    T = baselines.kiss_matcher(points, points, 0.2)  # no radii given: KISS-Matcher's own; shrunk 4 times
+    assert (made[-1].voxel_size, made[-1].normal_radius, made[-1].fpfh_radius) == (pytest.approx(0.05), pytest.approx(0.15), pytest.approx(0.25))
+    assert np.allclose(T[:3, 3], [4.0, 8.0, 12.0])
+
+
+def test_kiss_matcher_answers_in_millimetres_as_in_metres(real_scans_root):
+    from o3dsoft import baselines
+    from o3dsoft.preprocess import scene_size
+
+    if not baselines.installed("kiss_matcher"):
+        pytest.skip("the optional package kiss-matcher is not installed")
+    folder = real_scans_root / "3dmatch_redkitchen"
+    src, tgt = read_points(folder / "cloud_bin_6.ply"), read_points(folder / "cloud_bin_4.ply")
+    truth = read_transform(folder / "gt_6_to_4.txt")
+    voxel = 0.01 * scene_size(tgt)
+    mm = np.diag([1000.0, 1000.0, 1000.0, 1.0])
+    for scale in (np.eye(4), mm):  # metres, then millimetres: at its native scale it was 180 degrees off
+        T = baselines.kiss_matcher(1000.0 * src if scale is mm else src, 1000.0 * tgt if scale is mm else tgt, voxel * scale[0, 0])
+        errors = pair_errors(np.linalg.inv(scale) @ T @ scale, truth)
+        assert errors.rotation_deg < 5.0 and errors.translation < 0.1  # metres
 
 
 def test_kiss_matcher_is_not_called_on_clouds_too_small_for_it(monkeypatch):
