@@ -435,13 +435,20 @@ def _errors_dict(e) -> dict:
     return d
 
 
-def _strays_line(removed: dict) -> list:
-    """The line saying how many stray far points cleaning dropped, where it dropped any."""
+def _strays_line(removed: dict, isolated_radius: float) -> list:
+    """The lines saying how many stray far points cleaning dropped and how many isolated grid
+    points were left out (`isolated_radius`: in voxels), where there were any."""
     from ..preprocess import STRAY_PERCENTILE, STRAY_REACH
 
     n, m = removed.get("source_strays", 0), removed.get("target_strays", 0)
     reach = f"over {STRAY_REACH * 2:,.0f} times farther from the median than {STRAY_PERCENTILE:.0f} % of the cloud"
-    return [f"  strays: source {n}, target {m} points dropped ({reach})"] if n or m else []
+    lines = [f"  strays: source {n}, target {m} points dropped ({reach})"] if n or m else []
+    n, m = removed.get("source_isolated", 0), removed.get("target_isolated", 0)
+    if n or m:
+        lines.append(
+            f"  isolated: source {n}, target {m} grid points left out (scattered outliers: fewer than two other points within {isolated_radius:g} voxels)"
+        )
+    return lines
 
 
 def _format_result(source, target, result, errors, model_info, config) -> str:
@@ -454,7 +461,7 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
         f"o3dsoft register  {source} -> {target}",
         f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
-        *_strays_line(result.removed),
+        *_strays_line(result.removed, config.isolated_radius),
         f"  model:  {model_info['path']}"
         + (f"; second network: {weights_file(config.second_network.weights)}" if "second_network" in result.timings_ms else ""),
         "",

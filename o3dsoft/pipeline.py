@@ -115,7 +115,8 @@ class RegistrationResult:
             was not trusted at full resolution, or the trusted pose is not fixed by the geometry.
         removed: rows dropped by cleaning, per cloud: {"source_non_finite", "source_duplicates",
             "source_strays" (points over ``preprocess.STRAY_REACH`` times the cloud's reach from
-            its median), and the target's}.
+            its median), "source_isolated" (grid points left out of the registration as
+            scattered outliers, ``RegisterConfig.isolated_radius``), and the target's}.
         network_transformation: (4, 4) the network's own estimate from the pose as given, before
             ICP; None when the network did not run (a feature match tried first was confident).
         points_used: points per cloud (source, target) at each stage: "network", "attempts"
@@ -640,5 +641,7 @@ def _result(
             "target_duplicates": tgt_report.duplicates,
             "source_strays": src_report.strays,
             "target_strays": tgt_report.strays,
+            "source_isolated": pair.isolated[0],
+            "target_isolated": pair.isolated[1],
         },
     )

@@ -166,6 +166,17 @@ def voxel_downsample(points: np.ndarray, voxel: float, name: str = "cloud", min_
     return down
 
 
+def isolated_points(points: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) True for the points of (N, 3) `points` with fewer than two other points within
+    `radius` (cloud units): Open3D's radius outlier removal."""
+    from .refine import to_open3d
+
+    _, kept = to_open3d(points).remove_radius_outlier(nb_points=2, radius=radius)  # others, not counting the point
+    isolated = np.ones(len(points), dtype=bool)
+    isolated[np.asarray(kept, dtype=np.int64)] = False
+    return isolated
+
+
 def robust_extent(points: np.ndarray) -> np.ndarray:
     """(3,) sides of the box holding the central 98 % of the (N, 3) points along each axis (cloud
     units): a few stray far points do not change it."""

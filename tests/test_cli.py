@@ -65,6 +65,19 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert f"Aligned source: {d / 'aligned.xyz'}" in r.output and f"Transform: {d / 'T.txt'}" in r.output
 
 
+def test_register_says_how_many_isolated_points_it_left_out(tmp_path):
+    from .conftest import EXAMPLES
+
+    rng = np.random.default_rng(0)
+    files = []
+    for name in ("bun045", "bun000"):
+        points = read_points(EXAMPLES / f"{name}.ply")
+        files.append(write_points(tmp_path / f"{name}.ply", np.vstack([points, rng.uniform(points.min(0), points.max(0), (len(points) // 10, 3))])))
+    r = run("register", *files, "--voxel", "0.002")
+    assert r.exit_code == 0, r.output
+    assert re.search(r"isolated: source \d+, target \d+ grid points left out \(scattered outliers: fewer than two other points within 3 voxels\)", r.output)
+
+
 def test_register_says_how_many_stray_points_it_dropped(pair_files, tiny_model_path):
     d, src, T = pair_files
     write_points(d / "glitch.ply", np.vstack([src, [[1e12, -1e12, 5e11]]]))

@@ -8,6 +8,7 @@ from o3dsoft.preprocess import (
     clean_points,
     data_grid,
     denormalise_transform,
+    isolated_points,
     normalisation_for,
     normalise_pair,
     normalise_transform,
@@ -18,6 +19,15 @@ from o3dsoft.preprocess import (
 )
 
 from .conftest import apply, blob, random_transform
+
+
+def test_isolated_points_have_fewer_than_two_others_within_the_radius():
+    grid = np.stack(np.meshgrid(np.arange(20.0), np.arange(20.0), [0.0]), axis=-1).reshape(-1, 3)  # a plane, spacing 1
+    lone = np.array([[5.0, 5.0, 10.0], [30.0, 0.0, 0.0], [0.0, 0.0, -3.5]])  # 10, 10 and 3.5 from the plane
+    pair = np.array([[50.0, 50.0, 50.0], [51.0, 50.0, 50.0]])  # two outliers side by side: one other each
+    three = np.array([[0.0, 50.0, 50.0], [1.0, 50.0, 50.0], [2.0, 50.0, 50.0]])  # two others each: a thin structure
+    isolated = isolated_points(np.vstack([grid, lone, pair, three]), 3.0)
+    assert not isolated[: len(grid)].any() and isolated[len(grid) : len(grid) + 5].all() and not isolated[-3:].any()
 
 
 def test_clean_drops_non_finite_and_duplicates_in_order():
