@@ -435,7 +435,7 @@ def _errors_dict(e) -> dict:
     return d
 
 
-def _strays_line(removed: dict, isolated_radius: float) -> list:
+def _cleaning_lines(removed: dict, isolated_radius: float) -> list:
     """The lines saying how many stray far points cleaning dropped and how many isolated grid
     points were left out (`isolated_radius`: in voxels), where there were any."""
     from ..preprocess import STRAY_PERCENTILE, STRAY_REACH
@@ -446,7 +446,7 @@ def _strays_line(removed: dict, isolated_radius: float) -> list:
     n, m = removed.get("source_isolated", 0), removed.get("target_isolated", 0)
     if n or m:
         lines.append(
-            f"  isolated: source {n}, target {m} grid points left out (scattered outliers: fewer than two other points within {isolated_radius:g} voxels)"
+            f"  isolated: source {n}, target {m} grid points left out (fewer than two other points within {isolated_radius:g} voxels: scattered outliers, or the sparsest far returns)"
         )
     return lines
 
@@ -456,12 +456,13 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
 
     refined = config.refine
     grid = f" and a {result.voxel:.3g}-unit voxel grid" if result.voxel is not None else ""
+    without = ", without its isolated points" if result.removed.get("source_isolated") or result.removed.get("target_isolated") else ""
     T = result.transformation
     lines = [
         f"o3dsoft register  {source} -> {target}",
-        f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
+        f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}{without}); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
-        *_strays_line(result.removed, config.isolated_radius),
+        *_cleaning_lines(result.removed, config.isolated_radius),
         f"  model:  {model_info['path']}"
         + (f"; second network: {weights_file(config.second_network.weights)}" if "second_network" in result.timings_ms else ""),
         "",

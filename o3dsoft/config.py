@@ -267,9 +267,10 @@ class RegisterConfig:
             given.
         isolated_radius: on a voxel grid, points with fewer than two others within this many
             voxels are isolated (scattered outliers: flying pixels, dust, spurious returns) and left
-            out of the registration (default 3; 0: keep them). A scattered outlier keeps a cell
-            of its own where a surface shares its cells, so on the grid 2 % of scattered points
-            in a fragment become 5-13 % of its points.
+            out of the registration, in clouds the grid merged to half their points or fewer
+            (default 3; 0: keep them). A scattered outlier keeps a cell of its own where a
+            surface shares its cells, so on the grid 2 % of scattered points in a fragment
+            become 5-13 % of its points.
         num_points: points sampled from each cloud for the network (default 1024).
         coarse_iterations: network passes, each on the source moved by the estimate so far
             (default 1).
@@ -341,8 +342,8 @@ class RegisterConfig:
             raise InputError(f"voxel must be positive (or 0: keep every point), got {self.voxel}")
         if not 0 <= self.data_voxel < 1:
             raise InputError(f"data_voxel must be in [0, 1), got {self.data_voxel}")
-        if not self.isolated_radius >= 0:
-            raise InputError(f"isolated_radius must be at least 0, got {self.isolated_radius}")
+        if not 0 <= self.isolated_radius < float("inf"):
+            raise InputError(f"isolated_radius must be finite and at least 0, got {self.isolated_radius}")
         if search.features.candidates < 1:
             raise InputError(f"search.features.candidates must be at least 1, got {search.features.candidates}")
         if self.max_rotation is not None and not 0 < self.max_rotation <= 180:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from functools import cached_property
-from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union
+from typing import TYPE_CHECKING, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -123,7 +123,11 @@ class PreparedPair:
         if self.voxel is not None:
             self.full = self._grid(self.full, self.voxel, names, k)
             if config.isolated_radius > 0:
-                self.full, self.isolated = self._without_isolated(self.full, config.isolated_radius * self.voxel, k)
+                # Only where the grid merged the cloud's points: there a scattered point keeps a
+                # cell of its own while a surface shares its cells (a sparse cloud's points are
+                # no outliers).
+                merged = [len(grid) <= len(report.points) // 2 for grid, report in zip(self.full, self.cleaned)]
+                self.full, self.isolated = self._without_isolated(self.full, config.isolated_radius * self.voxel, merged, k)
         # Scans: on a voxel grid, or more points than any ModelNet40 shape has (clouds a user
         # downsampled already: the data's grid leaves them as they are).
         self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
@@ -157,18 +161,18 @@ class PreparedPair:
         return (voxel_downsample(clouds[0], voxel, names[0], min_points=k), voxel_downsample(clouds[1], voxel, names[1], min_points=k))
 
     @staticmethod
-    def _without_isolated(clouds: Clouds, radius: float, k: int) -> Tuple[Clouds, Tuple[int, int]]:
-        """Each cloud without its :func:`~o3dsoft.preprocess.isolated_points` at `radius` where
-        they are at least :data:`ISOLATED_MIN_SHARE` of it, unless that would leave it fewer than
-        `k` points or half its points (then it is sparse, not scattered): the clouds and how
-        many points each lost."""
+    def _without_isolated(clouds: Clouds, radius: float, merged: Sequence[bool], k: int) -> Tuple[Clouds, Tuple[int, int]]:
+        """Each cloud that the grid `merged` without its :func:`~o3dsoft.preprocess.isolated_points`
+        at `radius` (cloud units) where they are at least :data:`ISOLATED_MIN_SHARE` of it,
+        unless that would leave it fewer than `k` points or half its points (then it is sparse,
+        not scattered): the clouds and how many points each lost."""
         kept, lost = [], []
-        for cloud in clouds:
-            isolated = isolated_points(cloud, radius)
+        for cloud, filtered in zip(clouds, merged):
+            isolated = isolated_points(cloud, radius) if filtered else np.zeros(len(cloud), dtype=bool)
             n = int(isolated.sum())
             keep = n >= ISOLATED_MIN_SHARE * len(cloud) and len(cloud) - n >= max(k, len(cloud) // 2)
             kept.append(cloud[~isolated] if keep else cloud)
-            lost.append(int(isolated.sum()) if keep else 0)
+            lost.append(n if keep else 0)
         return (kept[0], kept[1]), (lost[0], lost[1])
 
     @property

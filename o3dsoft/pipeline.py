@@ -101,7 +101,8 @@ class RegistrationResult:
         correspondence_distance: the ICP / scoring distance used (cloud units).
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
-        num_source, num_target: points registered (after cleaning and the voxel grid; the work
+        num_source, num_target: points registered (after cleaning, the voxel grid and the
+            isolated points left out there; the work
             clouds' for a flagged result left unrefined, ``refine_flagged=False``).
         voxel: the voxel grid the clouds were registered on (cloud units): the config's, or one
             from the data (:func:`o3dsoft.preprocess.data_grid`); None: every point.

@@ -73,9 +73,12 @@ def test_register_says_how_many_isolated_points_it_left_out(tmp_path):
     for name in ("bun045", "bun000"):
         points = read_points(EXAMPLES / f"{name}.ply")
         files.append(write_points(tmp_path / f"{name}.ply", np.vstack([points, rng.uniform(points.min(0), points.max(0), (len(points) // 10, 3))])))
-    r = run("register", *files, "--voxel", "0.002")
+    r = run("register", *files, "--voxel", "0.004")
     assert r.exit_code == 0, r.output
-    assert re.search(r"isolated: source \d+, target \d+ grid points left out \(scattered outliers: fewer than two other points within 3 voxels\)", r.output)
+    assert re.search(
+        r"isolated: source \d+, target \d+ grid points left out \(fewer than two other points within 3 voxels: scattered outliers, or the sparsest far returns\)",
+        r.output,
+    )
 
 
 def test_register_says_how_many_stray_points_it_dropped(pair_files, tiny_model_path):
