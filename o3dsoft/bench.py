@@ -297,11 +297,10 @@ def import_pairs(path: Path) -> List[BenchPair]:
         UsageError: no such file.
         InputError: not an .npz, a missing key, or arrays of inconsistent shapes (named).
     """
+    from .scans import check_pairs_file
+
     path = Path(path)
-    if path.is_dir():
-        raise UsageError(f"{path}: is a folder; expected a pairs file")
-    if not path.is_file():
-        raise UsageError(f"{path}: no such pairs file")
+    check_pairs_file(path)
     try:
         z = np.load(path, allow_pickle=False)
     except Exception as e:  # numpy raises several types for non-npz files

@@ -86,8 +86,9 @@ class Edge:
     Attributes:
         confidence: the registration's confidence (0-1, higher is better).
         used: the edge entered the pose graph (not flagged likely failed).
-        in_tree: it is one of the spanning tree's edges, which place the scans before the
-            optimisation (never pruned).
+        in_tree: it is one of a spanning tree's edges (of the world scan's group, or of a group
+            placed by initial poses), which place the scans before the optimisation (never
+            pruned).
         pruned: the optimisation's line process rejected it as a wrong loop closure.
         seconds: time of the pairwise registration (s, lower is better).
         searched: the global search ran on this pair (only for scans that no quick alignment
@@ -262,46 +263,39 @@ def multiway(
     results = [r for _, r in found.values()]
     t_pairs = time.perf_counter()
 
-    # Connect the scans through their most confident edges, then optimise the graph.
+    # Connect the scans through their most confident edges, then optimise the graph: the world
+    # scan's group, then each group that no trusted edge joins to it, placed by the initial poses
+    # relative to the nearest placed scan, as one body.
     groups = _groups(len(points), edges)
     world = groups[0][0]
-    start = guesses[world] if guesses[world] is not None else np.eye(4)
-    trees = {world: _tree(groups[0], world, edges)}
     poses: List[Optional[np.ndarray]] = [None] * len(points)
-    poses[world] = start  # the world frame, even when no other scan joins it
     placed_by: List[Optional[str]] = [None] * len(points)
-    placed_by[world] = "registration"
     grid = _merge_grid(config, results)
-    info_clouds: List[np.ndarray] = []
-    pruned: set = set()
-
-    def optimise(root: int, root_pose: np.ndarray) -> Dict[int, np.ndarray]:
-        if not trees[root]:
-            return {root: root_pose}
-        if not info_clouds:
-            info_clouds.extend(
-                voxel_downsample(clean_points(p, name).points, grid, name) if grid else clean_points(p, name).points for p, name in zip(points, names)
-            )
-        distance = float(np.median([r.tight_distance for r in results if not r.likely_failed]))
-        optimised, cut = _optimise(info_clouds, edges, root, root_pose, trees[root], distance, config)
-        pruned.update(cut)
-        return optimised
-
-    edges = [_mark(e, trees[world]) for e in edges]
-    for k, pose in optimise(world, start).items():
-        poses[k], placed_by[k] = pose, "registration"
-    # Groups that no trusted edge joins to the world scan's: where they have initial poses, placed
-    # by them relative to the nearest joined scan, each group as one body.
-    for group in groups[1:]:
-        anchor = _anchor(points, poses, guesses, group)
+    trusted = [r.tight_distance for r in results if not r.likely_failed]
+    distance = float(np.median(trusted)) if trusted else 0.0  # the graph's distance (no graph without trusted edges)
+    info_clouds: List[np.ndarray] = []  # built for the first graph
+    tree_edges, pruned = set(), set()
+    for g, group in enumerate(groups):
+        if g == 0:  # the world scan, held at its initial pose where it has one
+            anchor: Optional[Tuple[int, np.ndarray]] = (world, guesses[world] if guesses[world] is not None else np.eye(4))
+        else:
+            anchor = _anchor(points, poses, guesses, group)
         if anchor is None:
             continue
         root, root_pose = anchor
-        trees[root] = _tree(group, root, edges)
-        edges = [_mark(e, trees[root]) if e.source in group else e for e in edges]
-        for k, pose in optimise(root, root_pose).items():
-            poses[k], placed_by[k] = pose, "initial pose"
-    edges = [replace(e, pruned=(e.source, e.target) in pruned) for e in edges]
+        tree = _tree(group, root, edges)
+        placed = {root: root_pose}
+        if tree:
+            if not info_clouds:
+                info_clouds = [
+                    voxel_downsample(clean_points(p, name).points, grid, name) if grid else clean_points(p, name).points for p, name in zip(points, names)
+                ]
+            placed, cut = _optimise(info_clouds, edges, root, root_pose, tree, distance, config)
+            tree_edges.update((e.source, e.target) for _, e in tree.values())
+            pruned.update(cut)
+        for k, pose in placed.items():
+            poses[k], placed_by[k] = pose, "registration" if g == 0 else "initial pose"
+    edges = [replace(e, used=not e.likely_failed, in_tree=(e.source, e.target) in tree_edges, pruned=(e.source, e.target) in pruned) for e in edges]
     t_end = time.perf_counter()
     timings = {"pairs": t_pairs - t_start, "optimise": t_end - t_pairs, "total": t_end - t_start}
     return MultiwayResult(names, tuple(poses), tuple(placed_by), world, tuple(edges), timings, grid)
@@ -364,19 +358,6 @@ def _register_edge(points, names, i: int, j: int, config: RegisterConfig, model,
     return Edge(j, i, r.transformation, r.confidence, r.fitness, r.likely_failed, r.failure_reason, time.perf_counter() - t0, r.searched), r
 
 
-def _mark(edge: Edge, tree: Dict[int, Tuple[int, Edge]]) -> Edge:
-    in_tree = any(parent_edge is edge for _, parent_edge in tree.values())
-    return replace(edge, used=not edge.likely_failed, in_tree=in_tree)
-
-
-def _spanning_tree(n: int, edges: Sequence[Edge]) -> Tuple[int, Dict[int, Tuple[int, Edge]]]:
-    """A maximum-confidence spanning tree over the trusted edges of the largest group of
-    connected scans: (world scan, {scan: (its parent, the edge between)}). The world scan is the
-    group's first; scans outside the group are not in the dict."""
-    largest = _groups(n, edges)[0]
-    return largest[0], _tree(largest, largest[0], edges)
-
-
 def _groups(n: int, edges: Sequence[Edge]) -> List[List[int]]:
     """The groups of scans that trusted edges connect (a scan alone is a group), each in scan
     order, the largest first (of equal sizes, the one with the first scan)."""
@@ -436,8 +417,9 @@ def _optimise(
     distance: float,
     config: MultiwayConfig,
 ) -> Tuple[Dict[int, np.ndarray], set]:
-    """Open3D's pose-graph optimisation from the spanning tree's poses, the world scan held at
-    (4, 4) `start`: ({scan: world_T_scan}, {(source, target) of the pruned edges})."""
+    """Open3D's pose-graph optimisation of the scans of `tree` over the trusted `edges` among
+    them (the tree's certain, the others loop closures), from the tree's poses, the scan `world`
+    held at (4, 4) `start`: ({scan: world_T_scan}, {(source, target) of the pruned edges})."""
     from ._open3d import open3d as o3d
     from .refine import to_open3d
 
@@ -452,16 +434,17 @@ def _optimise(
                 pose[child] = pose[parent] @ T_parent_child
                 order.append(child)
     node_of = {scan: k for k, scan in enumerate(order)}
+    certain = {(e.source, e.target) for _, e in tree.values()}  # the tree's edges; the other trusted ones are loop closures
     graph = reg.PoseGraph()
     for scan in order:
         graph.nodes.append(reg.PoseGraphNode(pose[scan]))
     o3d_clouds = {scan: to_open3d(clouds[scan]) for scan in order}
     graph_edges = []
     for e in edges:
-        if not e.used or e.source not in node_of or e.target not in node_of:
+        if e.likely_failed or e.source not in node_of or e.target not in node_of:
             continue
         info = reg.get_information_matrix_from_point_clouds(o3d_clouds[e.source], o3d_clouds[e.target], distance, e.transformation)
-        graph.edges.append(reg.PoseGraphEdge(node_of[e.source], node_of[e.target], e.transformation, info, uncertain=not e.in_tree))
+        graph.edges.append(reg.PoseGraphEdge(node_of[e.source], node_of[e.target], e.transformation, info, uncertain=(e.source, e.target) not in certain))
         graph_edges.append((e.source, e.target))
     option = reg.GlobalOptimizationOption(
         max_correspondence_distance=distance,

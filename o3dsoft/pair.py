@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from functools import cached_property
-from typing import TYPE_CHECKING, Dict, Optional, Sequence, Tuple, Union
+from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union
 
 import numpy as np
 
@@ -126,8 +126,12 @@ class PreparedPair:
                 # Only where the grid merged the cloud's points: there a scattered point keeps a
                 # cell of its own while a surface shares its cells (a sparse cloud's points are
                 # no outliers).
-                merged = [len(grid) <= len(report.points) // 2 for grid, report in zip(self.full, self.cleaned)]
-                self.full, self.isolated = self._without_isolated(self.full, config.isolated_radius * self.voxel, merged, k)
+                radius = config.isolated_radius * self.voxel
+                src, tgt = (
+                    self._without_isolated(grid, radius, k) if len(grid) <= len(report.points) // 2 else (grid, 0)
+                    for grid, report in zip(self.full, self.cleaned)
+                )
+                self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
         # Scans: on a voxel grid, or more points than any ModelNet40 shape has (clouds a user
         # downsampled already: the data's grid leaves them as they are).
         self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
@@ -161,19 +165,16 @@ class PreparedPair:
         return (voxel_downsample(clouds[0], voxel, names[0], min_points=k), voxel_downsample(clouds[1], voxel, names[1], min_points=k))
 
     @staticmethod
-    def _without_isolated(clouds: Clouds, radius: float, merged: Sequence[bool], k: int) -> Tuple[Clouds, Tuple[int, int]]:
-        """Each cloud that the grid `merged` without its :func:`~o3dsoft.preprocess.isolated_points`
-        at `radius` (cloud units) where they are at least :data:`ISOLATED_MIN_SHARE` of it,
-        unless that would leave it fewer than `k` points or half its points (then it is sparse,
-        not scattered): the clouds and how many points each lost."""
-        kept, lost = [], []
-        for cloud, filtered in zip(clouds, merged):
-            isolated = isolated_points(cloud, radius) if filtered else np.zeros(len(cloud), dtype=bool)
-            n = int(isolated.sum())
-            keep = n >= ISOLATED_MIN_SHARE * len(cloud) and len(cloud) - n >= max(k, len(cloud) // 2)
-            kept.append(cloud[~isolated] if keep else cloud)
-            lost.append(n if keep else 0)
-        return (kept[0], kept[1]), (lost[0], lost[1])
+    def _without_isolated(cloud: np.ndarray, radius: float, k: int) -> Tuple[np.ndarray, int]:
+        """(N', 3) `cloud` without its :func:`~o3dsoft.preprocess.isolated_points` at `radius`
+        (cloud units) where they are at least :data:`ISOLATED_MIN_SHARE` of it, unless that would
+        leave it fewer than `k` points or half its points (then it is sparse, not scattered); and
+        how many points it lost."""
+        isolated = isolated_points(cloud, radius)
+        n = int(isolated.sum())
+        if n < ISOLATED_MIN_SHARE * len(cloud) or len(cloud) - n < max(k, len(cloud) // 2):
+            return cloud, 0
+        return cloud[~isolated], n
 
     @property
     def reduced(self) -> bool:

@@ -320,27 +320,24 @@ def _register(
     # Search while nothing is confident (and the second network's pose of two complete-looking
     # clouds is not trusted by the complete confidence): feature match, networks from many starts,
     # votes, restart.
-    searched = features_first or search.mode == "always" or (search.mode == "auto" and not verifier.confident() and not second_ends)
-    search_reason = (
-        "the clouds look like a partial overlap: the feature match goes first"
-        if features_first
-        else "the search mode is 'always'"
-        if search.mode == "always"
-        else "no estimate was trusted"
-        if searched
-        else None
-    )
-    if searched:
+    search_reason: Optional[str] = None  # why the search ran; None while it has not
+    if features_first:
+        search_reason = "the clouds look like a partial overlap: the feature match goes first"
+    elif search.mode == "always":
+        search_reason = "the search mode is 'always'"
+    elif search.mode == "auto" and not verifier.confident() and not second_ends:
+        search_reason = "no estimate was trusted"
+    if search_reason:
         _search(pair, verifier, model, search_model, features_done=features_first)
 
     # Select the most trusted, then refine it at full resolution, where it is trusted or not.
     chosen = _select(verifier)
     unrefined = not config.refine_flagged and verifier.reported(chosen).trust < config.confidence.likely_failed_below  # left as the work clouds gave it
     best = chosen if unrefined else _refine_full(pair, verifier, chosen)
-    if search.mode == "auto" and not searched and verifier.reported(best).trust < config.confidence.likely_failed_below:
+    if search.mode == "auto" and not search_reason and verifier.reported(best).trust < config.confidence.likely_failed_below:
         # Trusted on the work clouds, not on the clouds it is the answer for: search after all.
         verifier.distrust(chosen, best.trust)
-        searched, search_reason = True, "the estimate trusted on the work clouds was not trusted at full resolution"
+        search_reason = "the estimate trusted on the work clouds was not trusted at full resolution"
         _search(pair, verifier, model, search_model, features_done=False)
         best = _refine_full(pair, verifier, _select(verifier))
     # Report: where both clouds look complete and the pose shows no shared point, the confidence
@@ -350,7 +347,7 @@ def _register(
     best = verifier.reported(best)
     geometry = _assess(pair, best)
     clock.lap("degeneracy")
-    if search.mode == "auto" and not searched and geometry.reason and not pair.scans and verifier.shares_no_point(best):
+    if search.mode == "auto" and not search_reason and geometry.reason and not pair.scans and verifier.shares_no_point(best):
         # Trusted, but the pose does not hold and shows no shared point: on two independent
         # samplings a wrong pose that fits a part closely is trusted strictly and fits as well
         # turned. (A symmetric shape's right pose shows the points noisy clouds share; on scans
@@ -360,7 +357,7 @@ def _register(
         verifier.distrust(chosen, 0.0)
         if second_pending:
             _second_network(pair, verifier)
-        searched, search_reason = True, "the trusted pose is not fixed by the geometry and shows no shared point"
+        search_reason = "the trusted pose is not fixed by the geometry and shows no shared point"
         _search(pair, verifier, model, search_model, features_done=False)
         found = verifier.reported(_refine_full(pair, verifier, _select(verifier)))
         if _fits_closer(pair, found, best, search.undetermined_gain):
@@ -371,8 +368,7 @@ def _register(
     clock.lap("symmetry")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
     final_level = "work" if unrefined else "full"
-    result = _result(best, pair, verifier, network, searched, geometry, copy, clock.timings_ms, final_level)
-    return replace(result, search_reason=search_reason), pair.clouds(final_level)
+    return _result(best, pair, verifier, network, search_reason, geometry, copy, clock.timings_ms, final_level), pair.clouds(final_level)
 
 
 def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
@@ -589,7 +585,7 @@ def _result(
     pair: PreparedPair,
     verifier: Verifier,
     network: NetworkPass,
-    searched: bool,
+    search_reason: Optional[str],
     geometry: degeneracy_stage.Degeneracy,
     copy: symmetry_stage.Symmetry,
     timings_ms: Dict[str, float],
@@ -600,7 +596,7 @@ def _result(
     trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
     agreeing = verifier.agreeing(best)
     partial = choice_applies(pair) and confidence_stage.partial_confidence(best.scored, agreeing, config.confidence) > 0
-    reason = geometry.reason or _failure_reason(best, config, searched, pair.complete, (agreeing, len(verifier.attempts)) if partial else None)
+    reason = geometry.reason or _failure_reason(best, config, search_reason is not None, pair.complete, (agreeing, len(verifier.attempts)) if partial else None)
     if copy.reason:  # two poses fit as closely: the confidence is shared between them
         trust, reason = best.trust / 2, copy.reason
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
@@ -625,7 +621,8 @@ def _result(
         num_target=len(tgt),
         attempts=len(verifier.attempts),
         screened=len(verifier.screened),
-        searched=searched,
+        searched=search_reason is not None,
+        search_reason=search_reason,
         network_transformation=network.transformation,
         points_used={"network": (len(pair.net[0]), len(pair.net[1])), "attempts": (len(pair.work[0]), len(pair.work[1])), "final": (len(src), len(tgt))},
         constraint=geometry.constraint,

@@ -70,6 +70,14 @@ class PairEntry(NamedTuple):
     line: int
 
 
+def check_pairs_file(path: Path) -> None:
+    """UsageError unless `path` is a file (a pairs file of ``register --pairs`` or the bench)."""
+    if path.is_dir():
+        raise UsageError(f"{path}: is a folder; expected a pairs file")
+    if not path.is_file():
+        raise UsageError(f"{path}: no such pairs file")
+
+
 def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,), options: Tuple[str, ...] = ()) -> List[Tuple[int, List[Path], Dict[str, Path]]]:
     """(line number, files, named files) of each pair a pairs file lists: lines of `counts` file
     names (``source target transform``; ``#`` starts a comment; a name with spaces in quotes),
@@ -81,10 +89,7 @@ def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,), options: 
         InputError: a line with another number of fields (names the line); no pair at all.
     """
     path = Path(path)
-    if path.is_dir():
-        raise UsageError(f"{path}: is a folder; expected a pairs file")
-    if not path.is_file():
-        raise UsageError(f"{path}: no such pairs file")
+    check_pairs_file(path)
     expected = "source target transform" if counts == (3,) else "source target [transform]"
     expected += "".join(f" [{name}=transform]" for name in options)
     lines = []
