@@ -545,9 +545,9 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
 
     Writes OUT/poses.json (world_T_scan per scan, each edge's transform, confidence and whether it
     was pruned) and OUT/merged.ply. With --init, pairs start from their initial poses and the
-    result stays in their frame; a scan that joins no other then keeps its initial pose
-    (relative to the nearest joined scan) in poses.json, not in merged.ply. Exit status 3 when a
-    scan joined no other.
+    result stays in their frame; scans that no trusted alignment joins to the world scan are then
+    placed by their initial poses (relative to the nearest joined scan) in poses.json, not in
+    merged.ply. Exit status 3 when a scan is not joined to the world scan.
     """
     from tqdm import tqdm
 
