@@ -204,6 +204,29 @@ def _check_stl(path: Path) -> None:
         _check_whole(path, declared, (size - 84) // 50, "triangles")
 
 
+# The fewest fields after the keyword of each OBJ record a mesh is read from.
+_OBJ_FIELDS = {b"v": 3, b"vn": 3, b"vt": 1, b"f": 3}
+
+
+def _check_obj(path: Path) -> None:
+    """Raise InputError where an OBJ mesh ends in the middle of a vertex or face record (a line
+    with fewer fields than its keyword needs, and no line end after it): OBJ declares no counts,
+    and its readers keep what came before, a part of the surface."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        f.seek(max(0, size - 4096))
+        tail = f.read()
+    if not tail or tail.endswith((b"\n", b"\r")):
+        return
+    words = tail.rsplit(b"\n", 1)[-1].split(b"#", 1)[0].split()
+    if words and words[0] in _OBJ_FIELDS and len(words) - 1 < _OBJ_FIELDS[words[0]]:
+        line = path.read_bytes().count(b"\n") + 1
+        raise InputError(
+            f"{path}: line {line}: the file ends in the middle of a '{words[0].decode()}' record ({len(words) - 1} of its "
+            f"{_OBJ_FIELDS[words[0]]} fields); is it complete (a copy or a download cut short)?"
+        )
+
+
 def _lines_from(path: Path, start: int) -> int:
     """How many non-blank lines the file holds from byte `start` on (a text body: one element a line)."""
     return sum(1 for line in path.read_bytes()[start:].splitlines() if line.strip())
@@ -217,7 +240,7 @@ def _check_whole(path: Path, declared: int, have: int, noun: str) -> None:
 
 
 # What each format's header declares, checked against what the file holds before Open3D reads it.
-_WHOLE_CHECKS = {".ply": _check_ply, ".pcd": _check_pcd, ".off": _check_off, ".stl": _check_stl}
+_WHOLE_CHECKS = {".ply": _check_ply, ".pcd": _check_pcd, ".off": _check_off, ".stl": _check_stl, ".obj": _check_obj}
 
 
 def sample_mesh(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
@@ -272,13 +295,11 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         vertices = np.asarray(mesh.vertices)
         faces = np.asarray(mesh.triangles)
         if len(faces) > 0:
-            if len(vertices) == 0:
-                raise InputError(f"{path}: mesh has faces but no vertices")
-            return sample_mesh(vertices, faces, mesh_points, seed)
+            return _sampled(path, vertices, faces, mesh_points, seed)
         if ext in MESH_ONLY_EXTENSIONS:
             vertices, faces = _trimesh_mesh(path)  # what Open3D refuses: no faces, or ModelNet40's "OFF490 518 0" header
             if len(faces) > 0:
-                return sample_mesh(vertices, faces, mesh_points, seed)
+                return _sampled(path, vertices, faces, mesh_points, seed)
             if len(vertices) == 0:
                 raise InputError(f"{path}: could not read any vertex or face; is it a valid {ext[1:].upper()} file?")
             raise InputError(f"{path}: mesh has {len(vertices)} vertices but no faces; points are sampled on faces, so a mesh needs at least one")
@@ -291,6 +312,18 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
     if bad:  # a line Open3D skipped: the cloud would be read in part
         raise InputError(f"{path}: {len(points)} points read, but not every line.{bad}")
     return points
+
+
+def _sampled(path: Path, vertices: np.ndarray, faces: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """:func:`sample_mesh` of a mesh read from `path`, whose faces must name its vertices."""
+    if len(vertices) == 0:
+        raise InputError(f"{path}: mesh has faces but no vertices")
+    outside = faces[(faces < 0) | (faces >= len(vertices))]
+    if len(outside):
+        raise InputError(
+            f"{path}: a face refers to vertex {outside[0] + 1} (counting from 1), but {len(vertices)} vertices were read; is a vertex line malformed or missing?"
+        )
+    return sample_mesh(vertices, faces, n, seed)
 
 
 TEXT_EXTENSIONS = (".xyz", ".xyzn", ".xyzrgb", ".pts")
@@ -413,16 +446,16 @@ def _trimesh_mesh(path: Path) -> Tuple[np.ndarray, np.ndarray]:
     nothing = (np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
     try:
         loaded = trimesh.load(str(path), process=False)  # vertices without faces load as a PointCloud
-    except Exception:  # any parse failure means: no usable mesh
+        if isinstance(loaded, trimesh.Scene):
+            loaded = loaded.dump(concatenate=True) if loaded.geometry else None
+        vertices = getattr(loaded, "vertices", None)
+        if vertices is None:
+            return nothing
+        faces = getattr(loaded, "faces", None)
+        faces = np.zeros((0, 3), dtype=np.int64) if faces is None else np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        return np.asarray(vertices, dtype=np.float64).reshape(-1, 3), faces
+    except Exception:  # any parse failure (a vertex line of two numbers reshapes to no (V, 3)) means: no usable mesh
         return nothing
-    if isinstance(loaded, trimesh.Scene):
-        loaded = loaded.dump(concatenate=True) if loaded.geometry else None
-    vertices = getattr(loaded, "vertices", None)
-    if vertices is None:
-        return nothing
-    faces = getattr(loaded, "faces", None)
-    faces = np.zeros((0, 3), dtype=np.int64) if faces is None else np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    return np.asarray(vertices, dtype=np.float64).reshape(-1, 3), faces
 
 
 def read_scans(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS) -> List[Tuple[str, np.ndarray]]:

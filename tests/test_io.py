@@ -156,6 +156,21 @@ def test_a_mesh_cut_short_is_refused(tmp_path, ext, share, match):
         read_points(tmp_path / "cut.ply")
 
 
+@pytest.mark.parametrize("share, record, line", [(0.3, "v", r"\d+"), (0.9, "f", r"\d+")])
+def test_an_obj_cut_in_a_record_is_refused(tmp_path, share, record, line):
+    # OBJ declares no counts: a file cut in its vertices left a numpy error, one cut in its faces a part of the surface.
+    text = trimesh.creation.icosphere(subdivisions=2).export(file_type="obj")
+    cut = text[: int(len(text) * share)].rstrip("0123456789 -.\n") + " 1"  # one field short: the keyword and one number
+    (tmp_path / "cut.obj").write_text(cut)
+    with pytest.raises(InputError, match=rf"cut.obj: line {line}: the file ends in the middle of a '{record}' record \(1 of its 3 fields\); is it complete"):
+        read_points(tmp_path / "cut.obj")
+    (tmp_path / "whole.obj").write_text(text.rstrip("\n"))  # no line end after the last record: whole
+    assert np.allclose(np.linalg.norm(read_points(tmp_path / "whole.obj", mesh_points=100), axis=1), 1.0, atol=0.1)
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1\nv 0 0 1\nf 1 2 4\n")  # a vertex line of two numbers
+    with pytest.raises(InputError, match=r"bad.obj: a face refers to vertex \d \(counting from 1\), but \d vertices were read; is a vertex line malformed"):
+        read_points(tmp_path / "bad.obj")
+
+
 def test_a_binary_ply_cut_in_its_faces_and_an_ascii_stl_cut_short_are_refused(tmp_path):
     box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
     binary = trimesh.exchange.ply.export_ply(box, encoding="binary")
