@@ -937,6 +937,14 @@ _TURNS = click.option(
     help="Also run each pair N times with the source turned about its centroid by a random rotation (seeded by --seed), "
     "as 'FOLDER turned': results that do not hang on the frames the scans were saved in.",
 )
+_NOISE = click.option(
+    "--noise",
+    type=click.FloatRange(min=0, max=0.1),
+    default=0.0,
+    show_default=True,
+    help="Also run each pair with Gaussian noise of this standard deviation, as a share of the scene's size, added to both clouds "
+    "(seeded by --seed), as 'FOLDER noise P %': a noisier sensor than the folder's. 0.003 on a 4 m room: 1.2 cm per coordinate.",
+)
 
 
 @bench.command("scans")
@@ -951,15 +959,16 @@ _TURNS = click.option(
 )
 @_MIN_OVERLAP
 @_TURNS
+@_NOISE
 @_bench_options
 @_friendly_errors
-def bench_scans(folders, kind, min_overlap, turns, **common):
+def bench_scans(folders, kind, min_overlap, turns, noise, **common):
     """Every method on the pairs of each folder of real scans: those its pairs.txt lists, or every
     overlapping pair of a Stanford .conf. Table, CSV, JSON, plots; the peers KISS-Matcher +
     small_gicp too when installed (pip install 'o3dsoft[peers]')."""
     from ..bench import scan_folder
 
-    _run_scan_bench([scan_folder(folder, min_overlap, kind) for folder in folders], min_overlap, turns, common)
+    _run_scan_bench([scan_folder(folder, min_overlap, kind) for folder in folders], min_overlap, turns, noise, common)
 
 
 @bench.command("bunny")
@@ -975,9 +984,10 @@ def bench_scans(folders, kind, min_overlap, turns, **common):
     help="Translation threshold of the 1-degree recall, in the scans' units (metres for the bunny); x5 for the 5-degree one.",
 )
 @_TURNS
+@_NOISE
 @_bench_options
 @_friendly_errors
-def bench_bunny(data, min_overlap, recall_translation, turns, **common):
+def bench_bunny(data, min_overlap, recall_translation, turns, noise, **common):
     """Every method on every overlapping pair of the Stanford bunny scans (bench scans on one folder,
     thresholds 1 deg / 2 mm and 5 deg / 1 cm)."""
     import os
@@ -989,13 +999,14 @@ def bench_bunny(data, min_overlap, recall_translation, turns, **common):
     if not folder.is_dir():
         raise UsageError(f"{folder}: no such folder of scans; pass --data FOLDER (scans + a Stanford .conf)")
     scans = scan_folder(folder, min_overlap, "object")._replace(recall=((1.0, recall_translation), (5.0, 5 * recall_translation)))
-    _run_scan_bench([scans], min_overlap, turns, common)
+    _run_scan_bench([scans], min_overlap, turns, noise, common)
 
 
-def _run_scan_bench(folders, min_overlap, turns, common):
+def _run_scan_bench(folders, min_overlap, turns, noise, common):
     """Run the bench on the pairs of every folder (each folder a protocol with its own thresholds),
-    then on their turned copies (each folder's a protocol "FOLDER turned")."""
-    from ..bench import check_methods, peers_installed, turned_pairs
+    then on their turned copies (each folder's a protocol "FOLDER turned") and their noisy ones
+    ("FOLDER noise P %")."""
+    from ..bench import check_methods, noise_protocol, noisy_pairs, peers_installed, turned_pairs
     from ..errors import UsageError
 
     if common["methods"]:
@@ -1018,14 +1029,22 @@ def _run_scan_bench(folders, min_overlap, turns, common):
     if len(recall) < len(folders):
         raise UsageError("two folders have the same name; give folders of different names")
     pairs = [p for scans in folders for p in scans.pairs]
+    given = list(zip(folders, description))
     if turns:
-        for scans, entry in zip(folders, list(description)):
+        for scans, entry in given:
             name = f"{scans.name} turned"
             titles[name] = f"{titles[scans.name]}, the source turned {turns} times"
             recall[name] = scans.recall
             description.append({**{k: v for k, v in entry.items() if k != "pairs"}, "folder": name, "turns": turns})
         click.echo(f"and every pair again with the source turned {turns} times ({turns * len(pairs)} pairs)", err=True)
-        pairs += turned_pairs(pairs, turns, common["seed"])
+    if noise:
+        for scans, entry in given:
+            name = noise_protocol(scans.name, noise)
+            titles[name] = f"{titles[scans.name]}, noise {noise:g} x the scene's size on both clouds"
+            recall[name] = scans.recall
+            description.append({**{k: v for k, v in entry.items() if k != "pairs"}, "folder": name, "noise": noise})
+        click.echo(f"and every pair again with noise of {noise:g} x the scene's size ({len(pairs)} pairs)", err=True)
+    pairs += turned_pairs(pairs, turns, common["seed"]) + noisy_pairs(pairs, noise, common["seed"])
     _run_bench("scans", iter(pairs), len(pairs), {"benchmark": "scans", "min_overlap": min_overlap, "folders": description}, recall, titles, **common)
 
 

@@ -13,6 +13,7 @@ from o3dsoft.cli.main import main
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.io import read_points, read_transform
 from o3dsoft.metrics import pair_errors
+from o3dsoft.preprocess import scene_size
 from o3dsoft.transforms import apply_transform, rotation_angle_deg
 
 from .conftest import EXAMPLES
@@ -306,6 +307,22 @@ def test_turned_pairs_keep_their_truth(two_scans):
     assert bench.turned_pairs(pairs, 0) == []
 
 
+def test_noisy_pairs_add_noise_of_the_scene_size(two_scans):
+    pairs = bench.scan_folder(two_scans, 0.3).pairs
+    noisy = bench.noisy_pairs(pairs, 0.003, seed=5)
+    assert [(p.protocol, p.index, p.category) for p in noisy] == [("scans noise 0.3 %", p.index, p.category) for p in pairs]
+    for p, original in zip(noisy, pairs):
+        assert p.transform is original.transform and p.source.dtype == original.source.dtype
+        size = scene_size(original.target)
+        for moved, cloud in ((p.source, original.source), (p.target, original.target)):
+            offsets = (moved - cloud).ravel() / size
+            assert abs(offsets.mean()) < 2e-4 and abs(offsets.std() - 0.003) < 2e-4  # thousands of points
+    again = bench.noisy_pairs(pairs, 0.003, seed=5)
+    assert all(np.array_equal(a.source, b.source) and np.array_equal(a.target, b.target) for a, b in zip(noisy, again))
+    assert not np.array_equal(bench.noisy_pairs(pairs, 0.003, seed=6)[0].source, noisy[0].source)
+    assert bench.noisy_pairs(pairs, 0.0) == []
+
+
 def test_scan_pairs_from_a_pairs_file(listed_scans):
     scans = bench.scan_folder(listed_scans)
     assert scans.name == "room" and [p.category for p in scans.pairs] == ["bun045->bun000"]
@@ -358,6 +375,13 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     assert "| method | recall | time (ms) | turned 2 times: recall | time (ms) |" in table and "room turned" not in table
     (row,) = [line for line in table.splitlines() if line.startswith("| room (rgbd, 1 pairs) |")]
     assert row.count("|") == 9
+    r = _bench(["scans", str(listed_scans), "--noise", "0.003", "--method", "fpfh-ransac+icp", "--out", str(tmp_path / "n"), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert "room (rgbd: success within 2 deg / 0.05 and 15 deg / 0.3), noise 0.003 x the scene's size on both clouds" in r.output
+    summary = json.loads((tmp_path / "n" / "summary.json").read_text())
+    assert {s["protocol"]: s["pairs"] for s in summary["summaries"]} == {"room": 1, "room noise 0.3 %": 1}
+    assert summary["recall_thresholds"]["room noise 0.3 %"] == summary["recall_thresholds"]["room"]
+    assert _bench(["scans", str(listed_scans), "--noise", "0.5"]).exit_code == 2  # beyond a tenth of the scene
     r = _bench(["scans", str(tmp_path / "nowhere")])
     assert r.exit_code == 2 and "no such folder of scans" in r.output
 
