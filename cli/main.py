@@ -230,7 +230,13 @@ def _register_config(
     help="Initial guess of T_target_source (4x4 text or .npy; odometry, a previous pose): the source starts there, ICP from it is tried first, "
     "and where it is trusted neither the feature match nor the network runs; --max-rotation then bounds the turn away from it.",
 )
-@click.option("--out", "out_path", type=click.Path(path_type=Path), help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las).")
+@click.option(
+    "--out",
+    "out_path",
+    type=click.Path(path_type=Path),
+    help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las), with its colours and normals "
+    "(into .ply, .pcd; normals into .xyzn too) and, LAS/LAZ into .las, every LAS dimension.",
+)
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
 @click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")
@@ -320,7 +326,6 @@ def register(
     from ..pipeline import register as run_register
     from ..preprocess import local_origin
     from ..refine import ICPConfig
-    from ..transforms import apply_transform
 
     for opt, p in (("--out", out_path), ("--render", render_path)):
         if p is not None and (p.suffix == "" or p.is_dir()):
@@ -369,7 +374,7 @@ def register(
         )
     # The outputs last, so that a failed write still leaves the result on screen.
     if out_path is not None:
-        io.write_points(out_path, apply_transform(result.transformation, src))
+        io.write_moved(out_path, source, src, result.transformation)  # with the source's colours, normals, LAS dimensions
         click.echo(f"Aligned source: {out_path}", err=as_json)
     if save_transform is not None:
         io.write_transform(save_transform, result.transformation)
@@ -564,11 +569,13 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
         seen[key] = p
     if render_path is not None and render_path.suffix.lower() != ".png":
         raise click.UsageError(f"--render {render_path}: give a .png file name")
-    names, clouds = [], []
+    names, clouds, colors = [], [], []
     for p in scans:
-        for name, points in io.read_scans(p):
+        found = io.read_scans(p)
+        for name, points in found:
             names.append(name)
             clouds.append(points)
+            colors.append(io.read_attributes(p, len(points)).colors if len(found) == 1 else None)
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
     init_poses = io.read_poses(init_path, names) if init_path is not None else None
@@ -598,18 +605,18 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     payload = result.to_dict()
     with io.atomic_output(out_dir / "poses.json") as tmp:
         tmp.write_text(json.dumps(payload, indent=2))
-    points, labels = merged_cloud(clouds, result, result.voxel)
-    io.write_points(out_dir / "merged.ply", points)
+    merged = merged_cloud(clouds, result, result.voxel, colors)
+    io.write_points(out_dir / "merged.ply", merged.points, merged.colors)
     if as_json:
         click.echo(json.dumps(payload, indent=2))
     else:
         placed = init_path if init_poses is not None and init_poses[result.world] is not None else None
-        click.echo(_format_multiway(result, out_dir, len(points), placed))
+        click.echo(_format_multiway(result, out_dir, len(merged.points), placed))
     if render_path is not None:
         from ..render import render_merged
 
         joined = sum(result.joined)
-        render_merged(render_path, points, labels, names, f"{joined} of {len(names)} scans joined.")
+        render_merged(render_path, merged.points, merged.scans, names, f"{joined} of {len(names)} scans joined.")
         click.echo(f"Picture: {render_path}", err=as_json)
     left_out = [n for n, j in zip(names, result.joined) if not j]
     if left_out:

@@ -18,7 +18,7 @@ import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
+from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -527,6 +527,25 @@ def _write_las(f, points: np.ndarray) -> None:
     las.write(f)
 
 
+def _write_las_moved(path: Path, source: Path, T: np.ndarray) -> Path:
+    """The LAS/LAZ file `source` as LAS with its coordinates moved by the (4, 4) `T`, every other
+    dimension kept; at a coordinate step of at most :data:`LAS_RESOLUTION` (the source's where
+    finer), from the moved cloud's lowest corner."""
+    import laspy
+
+    las = laspy.read(str(source))
+    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    scales = np.minimum(np.asarray(las.header.scales, dtype=np.float64), LAS_RESOLUTION)
+    offsets = np.floor(xyz.min(axis=0))
+    if ((xyz.max(axis=0) - offsets) / scales >= 2**31).any():
+        raise InputError(f"{path}: the moved cloud spans more than LAS holds at a step of {scales.min():g} units")
+    las.header.scales, las.header.offsets = scales, offsets  # the stored integers are all set anew below
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    with atomic_output(path) as tmp:
+        las.write(str(tmp))
+    return path
+
+
 def _read_npy_points(path: Path) -> np.ndarray:
     try:
         arr = np.load(path, allow_pickle=False)
@@ -646,39 +665,114 @@ def _umask() -> int:
     return mask
 
 
-def write_points(path: PathLike, points: np.ndarray) -> Path:
-    """Write (N, 3) points to any of the point formats (by extension), atomically.
+def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray] = None, normals: Optional[np.ndarray] = None) -> Path:
+    """Write (N, 3) points to any of the point formats (by extension), atomically; with (N, 3)
+    `colors` (0-1) and `normals` where the format holds them (colours: .ply, .pcd; normals: .ply,
+    .pcd, .xyzn), ignored elsewhere.
 
     The files are written here rather than by Open3D, whose writers report success after a
     failed write (a full disk left a truncated file): binary little-endian PLY of float64
-    coordinates, PCD of float32 (as Open3D writes them: its reader takes no other), and text with 10 decimals (.pts: the point count first; .xyzn: the normals that
-    format carries, estimated from 30 neighbours), and LAS 1.4 of point format 0 at a 1e-4-unit
-    step (0.1 mm for metres)."""
+    coordinates (normals float64, colours 8-bit), PCD of float32 (as Open3D writes them: its reader
+    takes no other; colours packed in one 'rgb' field), and text with 10 decimals (.pts: the
+    point count first; .xyzn: the normals that format carries, estimated from 30 neighbours where
+    none are given), and LAS 1.4 of point format 0 at a 1e-4-unit step (0.1 mm for metres)."""
     path = Path(path)
     ext = check_extension(path, WRITE_EXTENSIONS, "writing points")
     points = np.ascontiguousarray(points, dtype=np.float64)
+    for name, values in (("colors", colors), ("normals", normals)):
+        if values is not None and np.shape(values) != points.shape:
+            raise ValueError(f"{name} must be (N, 3) as the points {points.shape}, got {np.shape(values)}")
+    rgb = None if colors is None else np.round(np.clip(np.asarray(colors, dtype=np.float64), 0.0, 1.0) * 255).astype(np.uint8)
     with atomic_output(path) as tmp, open(tmp, "wb") as f:
         if ext == ".npy":
             np.save(f, points)
         elif ext == ".las":
             _write_las(f, points)
         elif ext == ".ply":
-            header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n" + "".join(f"property double {a}\n" for a in "xyz") + "end_header\n"
-            f.write(header.encode("ascii") + points.astype("<f8").tobytes())
+            fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+            fields += [] if normals is None else [("nx", "<f8"), ("ny", "<f8"), ("nz", "<f8")]
+            fields += [] if rgb is None else [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+            rows = np.empty(len(points), dtype=fields)
+            for k, name in enumerate("xyz"):
+                rows[name] = points[:, k]
+                if normals is not None:
+                    rows[f"n{name}"] = normals[:, k]
+            if rgb is not None:
+                rows["red"], rows["green"], rows["blue"] = rgb.T
+            kinds = {"<f8": "double", "u1": "uchar"}
+            header = (
+                f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+                + "".join(f"property {kinds[t]} {n}\n" for n, t in fields)
+                + "end_header\n"
+            )
+            f.write(header.encode("ascii") + rows.tobytes())
         elif ext == ".pcd":
-            n = len(points)
-            header = f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
-            f.write(header.encode("ascii") + points.astype("<f4").tobytes())
+            columns = [points.astype("<f4")] + ([] if normals is None else [np.asarray(normals).astype("<f4")])
+            if rgb is not None:  # PCD's packed colour: 0x00RRGGBB read as a float32
+                packed = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2].astype(np.uint32)
+                columns.append(packed.astype("<u4").view("<f4")[:, None])
+            names = ["x", "y", "z"] + ([] if normals is None else ["normal_x", "normal_y", "normal_z"]) + ([] if rgb is None else ["rgb"])
+            n, k = len(points), len(names)
+            header = (
+                f"# .PCD v0.7\nVERSION 0.7\nFIELDS {' '.join(names)}\nSIZE {' '.join(['4'] * k)}\nTYPE {' '.join(['F'] * k)}\n"
+                f"COUNT {' '.join(['1'] * k)}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+            )
+            f.write(header.encode("ascii") + np.hstack(columns).astype("<f4").tobytes())
         else:
             columns = points
             if ext == ".xyzn":
-                o3d = _o3d()
-                cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-                cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
-                columns = np.hstack([points, np.asarray(cloud.normals)])
+                if normals is None:
+                    o3d = _o3d()
+                    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+                    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
+                    normals = np.asarray(cloud.normals)
+                columns = np.hstack([points, normals])
             header = {".pts": str(len(points)), ".csv": "x,y,z"}.get(ext, "")
             np.savetxt(f, columns, fmt="%.10f", delimiter="," if ext == ".csv" else " ", header=header, comments="")
     return path
+
+
+class PointAttributes(NamedTuple):
+    """Per-point attributes of a cloud file, row for row with :func:`read_points`: colors (N, 3)
+    in 0-1 and normals (N, 3); None where the file holds none."""
+
+    colors: Optional[np.ndarray] = None
+    normals: Optional[np.ndarray] = None
+
+
+def read_attributes(path: PathLike, count: int) -> PointAttributes:
+    """The colours and normals of a point-cloud file Open3D reads (.ply without faces, .pcd,
+    .xyzn, .xyzrgb), where it holds `count` points as :func:`read_points` read them; none for
+    other files (a mesh's points are sampled, a table's or scanner file's carry none here)."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in (".ply", ".pcd", ".xyzn", ".xyzrgb"):
+        return PointAttributes()
+    o3d = _o3d()
+    with quiet_c_output():
+        if ext == ".ply" and len(o3d.io.read_triangle_mesh(str(path)).triangles) > 0:
+            return PointAttributes()
+        cloud = o3d.io.read_point_cloud(str(path), format="auto")
+    if len(cloud.points) != count:
+        return PointAttributes()
+    return PointAttributes(
+        np.asarray(cloud.colors, dtype=np.float64) if cloud.has_colors() else None,
+        np.asarray(cloud.normals, dtype=np.float64) if cloud.has_normals() else None,
+    )
+
+
+def write_moved(path: PathLike, source: PathLike, points: np.ndarray, T: np.ndarray) -> Path:
+    """Write the (N, 3) `points` read from the file `source` (:func:`read_points`), moved by the
+    (4, 4) rigid `T`, to `path` (any of :data:`WRITE_EXTENSIONS`), with what of the source's
+    per-point attributes the output holds: a LAS/LAZ source written as .las keeps every dimension
+    (intensity, returns, classification, GPS time, colour), its coordinates moved; a point cloud's
+    colours go into .ply and .pcd, and its normals, turned by T, into .ply, .pcd and .xyzn."""
+    path, source = Path(path), Path(source)
+    if path.suffix.lower() == ".las" and source.suffix.lower() in (".las", ".laz"):
+        return _write_las_moved(path, source, T)
+    colors, normals = read_attributes(source, len(points))
+    R = T[:3, :3]
+    return write_points(path, points @ R.T + T[:3, 3], colors, None if normals is None else normals @ R.T)
 
 
 def _sync(path: Path) -> None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -459,28 +459,43 @@ def _optimise(
     return {scan: np.asarray(graph.nodes[node_of[scan]].pose).copy() for scan in order}, pruned
 
 
-def merged_cloud(clouds: Sequence[CloudLike], result: MultiwayResult, voxel: Optional[float] = None) -> Tuple[np.ndarray, np.ndarray]:
-    """The joined scans in the world frame, on a voxel grid of `voxel` (None: every point); scans
-    placed by their initial pose alone are left out.
+class Merged(NamedTuple):
+    """points: (P, 3) the joined scans in the world frame; scans: (P,) the index of the scan each
+    point came from (the first scan's in a voxel holding several); colors: (P, 3) in 0-1, where
+    every joined scan has colours, else None."""
 
-    Returns:
-        (P, 3) points and (P,) the index of the scan each point came from (the first scan's in
-        a voxel holding several).
-    """
-    parts, labels = [], []
+    points: np.ndarray
+    scans: np.ndarray
+    colors: Optional[np.ndarray] = None
+
+
+def merged_cloud(
+    clouds: Sequence[CloudLike], result: MultiwayResult, voxel: Optional[float] = None, colors: Optional[Sequence[Optional[np.ndarray]]] = None
+) -> Merged:
+    """The joined scans in the world frame, on a voxel grid of `voxel` (None: every point; a
+    voxel's point and colour are the means of those in it); scans placed by their initial pose
+    alone are left out. `colors`: per scan, (N_k, 3) in 0-1 row for row with its cloud, or None."""
+    parts, labels, tints = [], [], []
     for k, (cloud, pose, joined) in enumerate(zip(clouds, result.poses, result.joined)):
         if not joined:
             continue
-        pts = clean_points(as_points(cloud, result.names[k]), result.names[k]).points
-        parts.append(apply_transform(pose, pts))
-        labels.append(np.full(len(pts), k))
+        kept = clean_points(as_points(cloud, result.names[k]), result.names[k])
+        parts.append(apply_transform(pose, kept.points))
+        labels.append(np.full(len(kept.points), k))
+        tint = None if colors is None else colors[k]
+        tints.append(None if tint is None else np.asarray(tint, dtype=np.float64)[kept.rows])
     points, label = np.concatenate(parts), np.concatenate(labels)
+    color = np.concatenate(tints) if all(t is not None for t in tints) else None
     if voxel:
         keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
         _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
         inverse = inverse.reshape(-1)
-        sums = np.zeros((len(first), 3))
-        np.add.at(sums, inverse, points)
         counts = np.bincount(inverse, minlength=len(first))[:, None]
-        return sums / counts, label[first]
-    return points, label
+
+        def mean(values: np.ndarray) -> np.ndarray:
+            sums = np.zeros((len(first), 3))
+            np.add.at(sums, inverse, values)
+            return sums / counts
+
+        return Merged(mean(points), label[first], None if color is None else mean(color))
+    return Merged(points, label, color)

@@ -22,6 +22,7 @@ class CleanReport(NamedTuple):
     non_finite: int
     duplicates: int
     strays: int = 0
+    rows: Optional[np.ndarray] = None  # (N',) where each kept point was in the input
 
 
 # A point farther from its cloud's median than this many times the cloud's reach (twice the distance
@@ -56,14 +57,14 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
     pts = pts.astype(np.float64, copy=False)
     finite = np.isfinite(pts).all(axis=1)
     non_finite = int((~finite).sum())
-    pts = pts[finite]
+    pts, rows = pts[finite], np.flatnonzero(finite)
     keep = first_of_each_row(pts)
     duplicates = len(pts) - len(keep)
-    pts = pts[keep]
+    pts, rows = pts[keep], rows[keep]
     stray = stray_points(pts)
     strays = int(stray.sum())
     if strays:
-        pts = pts[~stray]
+        pts, rows = pts[~stray], rows[~stray]
     if len(pts) < min_points:
         removed = f"{non_finite} rows with NaN/inf, {duplicates} duplicates" + (f" and {strays} strays" if strays else "")
         detail = f" ({removed} removed)" if non_finite or duplicates or strays else ""
@@ -74,7 +75,7 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
             f"{name}: a coordinate of {largest:.3g} remains after dropping {strays} strays; no scan measures that far (at most {MAX_COORDINATE:g} units): is the file damaged?"
         )
     check_spread(pts, name)
-    return CleanReport(pts, non_finite, duplicates, strays)
+    return CleanReport(pts, non_finite, duplicates, strays, rows)
 
 
 def stray_points(points: np.ndarray) -> np.ndarray:

@@ -2,6 +2,7 @@ import json
 import re
 
 import numpy as np
+import open3d as o3d
 import pytest
 from click.testing import CliRunner
 
@@ -63,6 +64,22 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert np.allclose(read_points(d / "aligned.xyz"), apply(T, src), atol=1e-4)
     assert (d / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"Picture: {d / 'fig.png'}" in r.output
     assert f"Aligned source: {d / 'aligned.xyz'}" in r.output and f"Transform: {d / 'T.txt'}" in r.output
+
+
+def test_the_aligned_source_keeps_its_colours_and_normals(pair_files, tiny_model_path):
+    d, src, T = pair_files
+    colors = np.random.default_rng(3).random(src.shape)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
+    cloud.colors = o3d.utility.Vector3dVector(colors)
+    cloud.estimate_normals()
+    normals = np.asarray(cloud.normals).copy()
+    o3d.io.write_point_cloud(str(d / "coloured.ply"), cloud)
+    r = run("register", d / "coloured.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--out", d / "aligned.ply", "--save-transform", d / "T.txt")
+    assert r.exit_code == 0, r.output
+    aligned, R = o3d.io.read_point_cloud(str(d / "aligned.ply")), read_transform(d / "T.txt")[:3, :3]
+    assert np.allclose(np.asarray(aligned.points), apply(read_transform(d / "T.txt"), src))
+    assert np.abs(np.asarray(aligned.colors) - colors).max() <= 0.5 / 255 + 1e-9  # 8-bit, as the file held them
+    assert np.allclose(np.asarray(aligned.normals), normals @ R.T)  # turned with the points
 
 
 def test_register_says_how_many_isolated_points_it_left_out(tmp_path):

@@ -1,9 +1,11 @@
 import numpy as np
+import open3d as o3d
 import pytest
 import trimesh
 
 from o3dsoft.errors import InputError, UsageError
-from o3dsoft.io import LAS_RESOLUTION, read_points, read_scans, read_transform, sample_mesh, write_points, write_transform
+from o3dsoft.io import LAS_RESOLUTION, read_attributes, read_points, read_scans, read_transform, sample_mesh, write_moved, write_points, write_transform
+from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid
 
 from .conftest import blob
 
@@ -169,6 +171,56 @@ def test_an_obj_cut_in_a_record_is_refused(tmp_path, share, record, line):
     (tmp_path / "bad.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1\nv 0 0 1\nf 1 2 4\n")  # a vertex line of two numbers
     with pytest.raises(InputError, match=r"bad.obj: a face refers to vertex \d \(counting from 1\), but \d vertices were read; is a vertex line malformed"):
         read_points(tmp_path / "bad.obj")
+
+
+@pytest.mark.parametrize("source_ext", [".ply", ".pcd", ".xyzn"])
+def test_a_moved_cloud_keeps_the_attributes_its_format_holds(tmp_path, source_ext):
+    rng = np.random.default_rng(0)
+    points, colors = rng.normal(size=(300, 3)), rng.random((300, 3))
+    normals = rng.normal(size=(300, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.colors, cloud.normals = o3d.utility.Vector3dVector(colors), o3d.utility.Vector3dVector(normals)
+    source = tmp_path / f"source{source_ext}"
+    o3d.io.write_point_cloud(str(source), cloud)
+    T = rigid(euler_to_matrix(np.array([10.0, -20.0, 30.0])), np.array([1.0, 2.0, 3.0]))
+    read = read_points(source)
+    carried = {".ply": (True, True), ".pcd": (True, True), ".xyzn": (False, True), ".csv": (False, False), ".npy": (False, False)}
+    for out_ext, (has_colors, has_normals) in carried.items():
+        out = write_moved(tmp_path / f"out{out_ext}", source, read, T)
+        assert np.allclose(read_points(out), apply_transform(T, points), atol=1e-5)  # PCD holds float32
+        if out_ext in (".csv", ".npy"):
+            continue
+        back = o3d.io.read_point_cloud(str(out))
+        kept_colors = source_ext != ".xyzn" and has_colors  # .xyzn holds no colour to carry
+        assert back.has_colors() == kept_colors and back.has_normals() == has_normals
+        if kept_colors:
+            assert np.abs(np.asarray(back.colors) - colors).max() <= 0.5 / 255 + 1e-6
+        assert np.allclose(np.asarray(back.normals), normals @ T[:3, :3].T, atol=1e-6)
+    mesh = trimesh.creation.box().export(file_type="ply")  # a mesh's points are sampled: nothing to carry
+    (tmp_path / "mesh.ply").write_bytes(mesh)
+    assert read_attributes(tmp_path / "mesh.ply", len(read_points(tmp_path / "mesh.ply"))) == (None, None)
+
+
+def test_a_moved_las_keeps_every_dimension(tmp_path):
+    laspy = pytest.importorskip("laspy")
+    rng = np.random.default_rng(1)
+    xyz = rng.normal(size=(200, 3)) * 10 + [500000.0, 4000000.0, 50.0]  # georeferenced, at a 1 cm step
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.scales, header.offsets = np.full(3, 0.01), np.floor(xyz.min(axis=0))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    las.intensity, las.classification = np.arange(200, dtype=np.uint16), np.full(200, 2, dtype=np.uint8)
+    las.red = rng.integers(0, 65535, 200).astype(np.uint16)
+    las.write(str(tmp_path / "scan.las"))
+    read = read_points(tmp_path / "scan.las")
+    T = rigid(euler_to_matrix(np.array([0.0, 0.0, 90.0])), np.array([10.0, 0.0, 0.0]))
+    write_moved(tmp_path / "moved.las", tmp_path / "scan.las", read, T)
+    moved = laspy.read(str(tmp_path / "moved.las"))
+    assert moved.header.point_format.id == 3 and len(moved.points) == 200
+    assert np.allclose(np.column_stack([moved.x, moved.y, moved.z]), apply_transform(T, read), atol=1e-4)
+    for name in ("intensity", "classification", "red"):
+        assert np.array_equal(np.asarray(moved[name]), np.asarray(las[name]))
 
 
 def test_a_binary_ply_cut_in_its_faces_and_an_ascii_stl_cut_short_are_refused(tmp_path):

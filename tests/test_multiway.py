@@ -6,6 +6,7 @@ import json
 import time
 
 import numpy as np
+import open3d as o3d
 import pytest
 from click.testing import CliRunner
 from hypothesis import given, settings
@@ -146,9 +147,16 @@ def test_scans_of_one_object_come_into_one_frame(scans, model):
     assert sum(e.in_tree for e in result.edges) == 3
     record = json.loads(json.dumps(result.to_dict()))
     assert [s["name"] for s in record["scans"]] == ["view0", "view1", "view2", "view3"]
-    points, labels = merged_cloud(clouds, result, voxel=0.002)
-    assert set(labels) == {0, 1, 2, 3}
+    points, labels, colors = merged_cloud(clouds, result, voxel=0.002)
+    assert set(labels) == {0, 1, 2, 3} and colors is None
     assert len(points) < sum(map(len, clouds))  # the grid merges the overlapping views
+    tints = [np.tile([k / 3, 0.5, 1 - k / 3], (len(c), 1)) for k, c in enumerate(clouds)]  # one colour per view
+    whole = merged_cloud(clouds, result, colors=tints)
+    assert np.allclose(whole.colors, np.column_stack([whole.scans / 3, np.full(len(whole.scans), 0.5), 1 - whole.scans / 3]))
+    gridded = merged_cloud(clouds, result, voxel=0.002, colors=tints)
+    assert np.allclose(gridded.points, points) and gridded.colors.shape == points.shape
+    assert np.allclose(gridded.colors[:, 1], 0.5) and np.allclose(gridded.colors[:, 0] + gridded.colors[:, 2], 1.0)  # means of the views'
+    assert merged_cloud(clouds, result, colors=tints[:3] + [None]).colors is None  # a view without colours: none
 
 
 def test_initial_poses_start_the_pairs_and_keep_their_frame(scans):
@@ -236,7 +244,7 @@ def test_a_scan_that_overlaps_none_keeps_its_initial_pose(scans, model):
     result = multiway([clouds[0], stray, clouds[1]], config, model=model, init_poses=guesses)
     assert result.placed_by == ("registration", "initial pose", "registration") and result.joined == (True, False, True)
     assert np.allclose(result.poses[1], stray_guess, atol=2e-3)  # the joined scans' corrections are near the identity
-    _, labels = merged_cloud([clouds[0], stray, clouds[1]], result)
+    labels = merged_cloud([clouds[0], stray, clouds[1]], result).scans
     assert set(labels) == {0, 2}  # unverified, so not merged
     assert json.loads(json.dumps(result.to_dict()))["scans"][1]["placed_by"] == "initial pose"
 
@@ -281,7 +289,7 @@ def test_bad_settings_and_too_few_scans(scans, model):
 
 def test_cli_writes_poses_and_the_merged_cloud(tmp_path, scans):
     clouds, poses = scans
-    files = [write_points(tmp_path / f"view{k}.ply", c) for k, c in enumerate(clouds[:3])]
+    files = [write_points(tmp_path / f"view{k}.ply", c, colors=np.tile([k / 2, 0.2, 0.8], (len(c), 1))) for k, c in enumerate(clouds[:3])]
     out = tmp_path / "out"
     result = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(out), "--render", str(tmp_path / "merged.png"), "--no-progress"])
     assert result.exit_code == 0, result.output
@@ -290,7 +298,9 @@ def test_cli_writes_poses_and_the_merged_cloud(tmp_path, scans):
     for k, scan in enumerate(record["scans"]):
         assert scan["joined"]
         assert pair_errors(np.array(scan["world_T_scan"]), poses[k]).rotation_deg < 1.0
-    assert len(read_points(out / "merged.ply")) > 0
+    merged = o3d.io.read_point_cloud(str(out / "merged.ply"))  # the scans' colours, averaged on the grid
+    assert len(merged.points) > 0 and merged.has_colors()
+    assert np.allclose(np.asarray(merged.colors)[:, 1:], [0.2, 0.8], atol=1 / 255) and np.ptp(np.asarray(merged.colors)[:, 0]) > 0.9
     assert (tmp_path / "merged.png").stat().st_size > 0
 
 
