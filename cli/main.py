@@ -234,8 +234,8 @@ def _register_config(
     "--out",
     "out_path",
     type=click.Path(path_type=Path),
-    help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las), with its colours and normals "
-    "(into .ply, .pcd; normals into .xyzn too) and, LAS/LAZ into .las, every LAS dimension.",
+    help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las); a PLY, PCD, XYZN or XYZRGB source's colours "
+    "and normals go with it (into .ply, .pcd; normals into .xyzn too), and a LAS/LAZ source's every dimension into .las.",
 )
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
@@ -416,7 +416,7 @@ def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num
         click.echo(f"Resuming: {skipped} of {len(jobs)} pairs already in {out_path}{rerun}", err=True)
     bar = tqdm(total=len(jobs) - skipped, unit="pair", disable=True if no_progress else None, dynamic_ncols=True)
     try:
-        rows = run_jobs(jobs, config, out_path, workers=workers, ray=ray_address, progress=lambda row: bar.update(1))
+        rows = run_jobs(jobs, config, out_path, workers=workers, ray=ray_address, progress=lambda row: bar.update(1), done=done)
     finally:
         bar.close()
     failed = [r for r in rows if r["status"] != "ok"]
@@ -569,13 +569,13 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
         seen[key] = p
     if render_path is not None and render_path.suffix.lower() != ".png":
         raise click.UsageError(f"--render {render_path}: give a .png file name")
-    names, clouds, colors = [], [], []
+    names, clouds, files = [], [], []
     for p in scans:
         found = io.read_scans(p)
         for name, points in found:
             names.append(name)
             clouds.append(points)
-            colors.append(io.read_attributes(p, len(points)).colors if len(found) == 1 else None)
+            files.append(p if len(found) == 1 else None)  # an E57 of several scans: no colours read here
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
     init_poses = io.read_poses(init_path, names) if init_path is not None else None
@@ -605,6 +605,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     payload = result.to_dict()
     with io.atomic_output(out_dir / "poses.json") as tmp:
         tmp.write_text(json.dumps(payload, indent=2))
+    colors = [io.read_attributes(f, len(c)).colors if f is not None and joined else None for f, c, joined in zip(files, clouds, result.joined)]
     merged = merged_cloud(clouds, result, result.voxel, colors)
     io.write_points(out_dir / "merged.ply", merged.points, merged.colors)
     if as_json:

@@ -222,6 +222,7 @@ def run_jobs(
     ray: Optional[str] = None,
     progress: Optional[Callable[[dict], None]] = None,
     task: Optional[Callable[[PairJob, object], dict]] = None,
+    done: Optional[Dict[int, dict]] = None,
 ) -> List[dict]:
     """Register every pair of `jobs` not already in the CSV `results`; append each row as it ends.
 
@@ -236,13 +237,14 @@ def run_jobs(
         progress: called with each row as it ends.
         task: what runs each pair, :func:`run_job` (a module-level function, so that worker
             processes can import it; tests pass one that crashes).
+        done: the rows `results` holds, as :func:`done_lines` read them (read here when None).
     Returns:
         All rows, in the order of `jobs`.
     """
     task = task or run_job
     if len({j.line for j in jobs}) != len(jobs):
         raise InputError("two pairs share a line number")
-    rows = reusable_rows(jobs, done_lines(results))
+    rows = reusable_rows(jobs, done_lines(results) if done is None else done)
     todo = [j for j in jobs if j.line not in rows]
     ray_module = _ray_connect(ray) if ray is not None else None  # before any file is written
     out = ResultsFile(results, rows)

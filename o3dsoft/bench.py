@@ -260,8 +260,10 @@ def noisy_pairs(pairs: Sequence[BenchPair], sigma: float, seed: int = 0) -> List
     `seed` and the pair's index; the truth unchanged), under the protocol ``"<protocol> noise
     <100 sigma> %"``: how each method and its confidence hold up on noisier sensors than the
     folder's. Indices as in the pairs; none for `sigma` 0."""
+    if sigma <= 0:
+        return []
     noisy = []
-    for p in pairs if sigma > 0 else ():
+    for p in pairs:
         rng = np.random.default_rng([seed, p.index])
         scale = sigma * scene_size(p.target)
         source, target = (c + rng.normal(scale=scale, size=c.shape).astype(c.dtype) for c in (p.source, p.target))

@@ -23,6 +23,7 @@ from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple, 
 import numpy as np
 
 from .errors import InputError, UsageError, first_line
+from .transforms import apply_transform
 
 PathLike = Union[str, Path]
 
@@ -204,27 +205,28 @@ def _check_stl(path: Path) -> None:
         _check_whole(path, declared, (size - 84) // 50, "triangles")
 
 
-# The fewest fields after the keyword of each OBJ record a mesh is read from.
-_OBJ_FIELDS = {b"v": 3, b"vn": 3, b"vt": 1, b"f": 3}
+# OBJ records with fewer fields than a mesh is read from: a vertex (v, vn) of under 3 numbers, a
+# face of under 3 vertices, a texture coordinate of none.
+_SHORT_OBJ_RECORD = re.compile(rb"^[ \t]*(?:(?:v|vn|f)(?:[ \t]+[^ \t\r\n]+){0,2}|vt)[ \t]*\r?$", re.MULTILINE)
 
 
 def _check_obj(path: Path) -> None:
-    """Raise InputError where an OBJ mesh ends in the middle of a vertex or face record (a line
-    with fewer fields than its keyword needs, and no line end after it): OBJ declares no counts,
-    and its readers keep what came before, a part of the surface."""
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        f.seek(max(0, size - 4096))
-        tail = f.read()
-    if not tail or tail.endswith((b"\n", b"\r")):
+    """Raise InputError at the first OBJ record with fewer fields than its keyword needs: a file
+    cut short in its last line, or a malformed line (OBJ declares no counts, and its readers skip
+    such a line, so that the vertices after it shift and the faces join the wrong ones)."""
+    text = path.read_bytes()
+    short = _SHORT_OBJ_RECORD.search(text)
+    if short is None:
         return
-    words = tail.rsplit(b"\n", 1)[-1].split(b"#", 1)[0].split()
-    if words and words[0] in _OBJ_FIELDS and len(words) - 1 < _OBJ_FIELDS[words[0]]:
-        line = path.read_bytes().count(b"\n") + 1
+    line = text.count(b"\n", 0, short.start()) + 1
+    record = short.group().split()
+    keyword, found, fields = record[0].decode(), len(record) - 1, {b"vt": 1}.get(record[0], 3)
+    if short.end() == len(text.rstrip(b"\r\n \t")) and not text.endswith((b"\n", b"\r")):  # the last line, unended
         raise InputError(
-            f"{path}: line {line}: the file ends in the middle of a '{words[0].decode()}' record ({len(words) - 1} of its "
-            f"{_OBJ_FIELDS[words[0]]} fields); is it complete (a copy or a download cut short)?"
+            f"{path}: line {line}: the file ends in the middle of a '{keyword}' record ({found} of its {fields} fields); "
+            "is it complete (a copy or a download cut short)?"
         )
+    raise InputError(f"{path}: line {line}: a '{keyword}' record with {found} field(s), expected at least {fields}; is the file damaged?")
 
 
 def _lines_from(path: Path, start: int) -> int:
@@ -530,15 +532,14 @@ def _write_las(f, points: np.ndarray) -> None:
 def _write_las_moved(path: Path, source: Path, T: np.ndarray) -> Path:
     """The LAS/LAZ file `source` as LAS with its coordinates moved by the (4, 4) `T`, every other
     dimension kept; at a coordinate step of at most :data:`LAS_RESOLUTION` (the source's where
-    finer), from the moved cloud's lowest corner."""
+    finer, coarser only where the moved cloud spans more than 2^31 steps), from its lowest corner."""
     import laspy
 
     las = laspy.read(str(source))
-    xyz = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64) @ T[:3, :3].T + T[:3, 3]
-    scales = np.minimum(np.asarray(las.header.scales, dtype=np.float64), LAS_RESOLUTION)
+    xyz = apply_transform(T, np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64))
     offsets = np.floor(xyz.min(axis=0))
-    if ((xyz.max(axis=0) - offsets) / scales >= 2**31).any():
-        raise InputError(f"{path}: the moved cloud spans more than LAS holds at a step of {scales.min():g} units")
+    # The source's step, at most LAS_RESOLUTION, coarser only where the turned cloud spans more than 2^31 steps.
+    scales = np.maximum(np.minimum(np.asarray(las.header.scales, dtype=np.float64), LAS_RESOLUTION), (xyz.max(axis=0) - offsets + 1.0) / (2**31 - 1))
     las.header.scales, las.header.offsets = scales, offsets  # the stored integers are all set anew below
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     with atomic_output(path) as tmp:
@@ -771,8 +772,7 @@ def write_moved(path: PathLike, source: PathLike, points: np.ndarray, T: np.ndar
     if path.suffix.lower() == ".las" and source.suffix.lower() in (".las", ".laz"):
         return _write_las_moved(path, source, T)
     colors, normals = read_attributes(source, len(points))
-    R = T[:3, :3]
-    return write_points(path, points @ R.T + T[:3, 3], colors, None if normals is None else normals @ R.T)
+    return write_points(path, apply_transform(T, points), colors, None if normals is None else normals @ T[:3, :3].T)
 
 
 def _sync(path: Path) -> None:
