@@ -150,7 +150,7 @@ class PreparedPair:
         self.net_normalised: Clouds = (src_norm, tgt_norm)
         clock.lap("sample_normalise")
         self.work: Clouds = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
-        self._scorers: Dict[str, confidence_stage.Scorer] = {}
+        self._scorers: Dict[Tuple[str, bool], confidence_stage.Scorer] = {}
         self._normals: Dict[str, np.ndarray] = {}
 
     @cached_property
@@ -211,13 +211,20 @@ class PreparedPair:
             self._normals[level] = refine_stage.normals(self.clouds(level)[1], self.config.icp.normal_neighbours)
         return self._normals[level]
 
-    def scorer(self, level: str) -> confidence_stage.Scorer:
-        """The confidence's scorer of the clouds at `level`, built once."""
-        if level not in self._scorers:
+    def scorer(self, level: str, reverse: bool = False) -> confidence_stage.Scorer:
+        """The confidence's scorer of the clouds at `level`, built once; `reverse`: of the target
+        onto the source (the alignment seen from the target's side; call it with the inverse
+        pose), without the planar share."""
+        key = (level, reverse)
+        if key not in self._scorers:
             d = self.config.confidence.distance * self.norm.scale  # the confidence's own d, whatever ICP's
-            normals = self.target_normals(level) if self.scans else None  # for the scan confidence's planar share
-            self._scorers[level] = confidence_stage.Scorer(*self.clouds(level), d, self.config.icp.max_points, self.config.confidence, normals)
-        return self._scorers[level]
+            source, target = self.clouds(level)
+            if reverse:
+                self._scorers[key] = confidence_stage.Scorer(target, source, d, self.config.icp.max_points, self.config.confidence)
+            else:
+                normals = self.target_normals(level) if self.scans else None  # for the scan confidence's planar share
+                self._scorers[key] = confidence_stage.Scorer(source, target, d, self.config.icp.max_points, self.config.confidence, normals)
+        return self._scorers[key]
 
     @cached_property
     def feature_match(self) -> FeatureMatch:

@@ -141,6 +141,10 @@ class RegistrationResult:
             ``confidence.agree_deg`` and ``agree_shift``; at least 1): on a partial overlap whose
             pose shows no shared point the confidence weighs it
             (:func:`~o3dsoft.confidence.partial_confidence`).
+        target_consistency: on scans whose result the strict confidence alone trusts: the
+            consistency seen from the target's side (the target onto the source by the inverse
+            pose; 0-1, higher is better); where the strict confidence flags it from there, so is
+            the result. None where not measured.
         sparser_moved: the target was much sparser than the source (``sparser_moves``), so it was
             registered onto the source and the result inverted; every field still speaks of the
             source onto the target.
@@ -178,6 +182,7 @@ class RegistrationResult:
     copy_fit: Optional[float] = None
     agreeing: int = 1
     search_reason: Optional[str] = None
+    target_consistency: Optional[float] = None
 
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
@@ -345,6 +350,9 @@ def _register(
     # on other partial overlaps, the one of how many attempts reached the pose (the search ran by
     # the strict one).
     best = verifier.reported(best)
+    final_level = "work" if unrefined else "full"
+    target_side = _target_side(pair, best, final_level)
+    clock.lap("score")
     geometry = _assess(pair, best)
     clock.lap("degeneracy")
     if search.mode == "auto" and not search_reason and geometry.reason and not pair.scans and verifier.shares_no_point(best):
@@ -367,8 +375,7 @@ def _register(
     copy = _probe_symmetry(pair, verifier, best, geometry)
     clock.lap("symmetry")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
-    final_level = "work" if unrefined else "full"
-    return _result(best, pair, verifier, network, search_reason, geometry, copy, clock.timings_ms, final_level), pair.clouds(final_level)
+    return _result(best, pair, verifier, network, search_reason, geometry, copy, target_side, clock.timings_ms, final_level), pair.clouds(final_level)
 
 
 def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
@@ -384,6 +391,18 @@ def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
         pair.config.degeneracy,
         lambda: pair.scorer("screen"),
     )
+
+
+def _target_side(pair: PreparedPair, best: Attempt, level: str) -> Optional[confidence_stage.Features]:
+    """On scans whose result the strict confidence alone trusts (not the scan confidence): the
+    alignment scored from the target's side, the target onto the source by the inverse pose, on
+    the clouds at `level`; None where not measured. ICP and the choice tune a pose to the
+    source's side, and on noisy scans that overlap little a wrong pose can fit that side closely
+    (noise thickens the surfaces); a right one fits from both (docs/scans.md)."""
+    c = pair.config.confidence
+    if not pair.scans or best.trust < c.likely_failed_below or confidence_stage.scan_confidence(best.scored, c) >= c.likely_failed_below:
+        return None
+    return pair.scorer(level, reverse=True)(np.linalg.inv(best.fine.transformation))
 
 
 def _probe_symmetry(pair: PreparedPair, verifier: Verifier, best: Attempt, geometry: degeneracy_stage.Degeneracy) -> symmetry_stage.Symmetry:
@@ -450,6 +469,9 @@ def _inverted(result: RegistrationResult, source: np.ndarray, target: np.ndarray
         points_used={stage: (n_t, n_s) for stage, (n_s, n_t) in result.points_used.items()},
         removed=removed,
         sparser_moved=True,
+        # measured with the roles swapped: the target's side of the registration is the source's here
+        consistency=result.consistency if result.target_consistency is None else result.target_consistency,
+        target_consistency=None if result.target_consistency is None else result.consistency,
     )
 
 
@@ -588,6 +610,7 @@ def _result(
     search_reason: Optional[str],
     geometry: degeneracy_stage.Degeneracy,
     copy: symmetry_stage.Symmetry,
+    target_side: Optional[confidence_stage.Features],
     timings_ms: Dict[str, float],
     final_level: str = "full",
 ) -> RegistrationResult:
@@ -599,6 +622,14 @@ def _result(
     reason = geometry.reason or _failure_reason(best, config, search_reason is not None, pair.complete, (agreeing, len(verifier.attempts)) if partial else None)
     if copy.reason:  # two poses fit as closely: the confidence is shared between them
         trust, reason = best.trust / 2, copy.reason
+    back = None if target_side is None else confidence_stage.confidence(target_side, config.confidence)
+    if target_side is not None and back is not None and back < config.confidence.likely_failed_below and not geometry.reason:  # trusted from one side only
+        trust = max(back, confidence_stage.scan_confidence(best.scored, config.confidence))
+        reason = (
+            f"it fits from the source's side only: of the target's points near the source, {100 * target_side.consistency:.0f} % lie within "
+            f"{target_side.tight_distance:.3g} units of it (of the source's, {100 * best.scored.consistency:.0f} %), where a right alignment "
+            "of two scans fits from both sides"
+        )
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
         reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units?); {reason}"
     return RegistrationResult(
@@ -630,6 +661,7 @@ def _result(
         copy_transformation=copy.copy,
         copy_fit=copy.fit,
         agreeing=agreeing,
+        target_consistency=None if target_side is None else target_side.consistency,
         voxel=pair.voxel,
         icp_method=pair.config.icp.method,
         removed={

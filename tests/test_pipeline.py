@@ -528,6 +528,23 @@ def test_a_low_overlap_rgbd_pair_in_millimetres_as_in_metres(real_scans_root):
         assert not res.likely_failed and errors.rotation_deg < 5.0 and errors.translation < 0.1  # metres
 
 
+def test_a_noisy_low_overlap_pair_that_fits_from_one_side_only_is_flagged(real_scans_root):
+    from o3dsoft import bench
+
+    folder = bench.scan_folder(real_scans_root / "3dmatch_redkitchen")
+    pairs = {p.category: p for p in folder.pairs}
+    config = RegisterConfig(search=SearchConfig(kiss=False))  # the feature match alone: the same estimates on every run
+    for seed in (0, 3):  # noise of 0.5 % of the room (1.8 cm) on both fragments, which overlap by 10-21 %
+        (noisy,) = bench.noisy_pairs([pairs["cloud_bin_34->cloud_bin_6"]], 0.005, seed=seed)
+        res = register(noisy.source, noisy.target, config)
+        assert pair_errors(res.transformation, noisy.transform).rotation_deg > 90.0  # wrong, and fitting the source's side closely:
+        assert res.consistency > 0.91 and res.target_consistency < 0.88  # trusted by the strict confidence from there alone
+        assert res.likely_failed and res.failure_reason.startswith("it fits from the source's side only: of the target's points near the source, 8")
+    right = register(pairs["cloud_bin_6->cloud_bin_4"].source, pairs["cloud_bin_6->cloud_bin_4"].target, config)  # fits from both sides
+    assert pair_errors(right.transformation, pairs["cloud_bin_6->cloud_bin_4"].transform).rotation_deg < 3.0
+    assert not right.likely_failed and right.target_consistency > 0.9
+
+
 def test_scattered_outliers_on_the_grid_are_left_out():
     src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
     tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
