@@ -234,7 +234,7 @@ def _register_config(
     "--out",
     "out_path",
     type=click.Path(path_type=Path),
-    help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las); a PLY, PCD, XYZN or XYZRGB source's colours "
+    help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las); a PLY, PCD, XYZN, XYZRGB or LAS source's colours "
     "and normals go with it (into .ply, .pcd; normals into .xyzn too), and a LAS/LAZ source's every dimension into .las.",
 )
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")

@@ -743,10 +743,13 @@ class PointAttributes(NamedTuple):
 
 def read_attributes(path: PathLike, count: int) -> PointAttributes:
     """The colours and normals of a point-cloud file Open3D reads (.ply without faces, .pcd,
-    .xyzn, .xyzrgb), where it holds `count` points as :func:`read_points` read them; none for
-    other files (a mesh's points are sampled, a table's or scanner file's carry none here)."""
+    .xyzn, .xyzrgb), and the colours of a LAS/LAZ file of a colour point format, where it holds
+    `count` points as :func:`read_points` read them; none for other files (a mesh's points are
+    sampled; tables, E57 and .pts carry none here)."""
     path = Path(path)
     ext = path.suffix.lower()
+    if ext in (".las", ".laz"):
+        return _las_colours(path, count)
     if ext not in (".ply", ".pcd", ".xyzn", ".xyzrgb"):
         return PointAttributes()
     o3d = _o3d()
@@ -762,12 +765,25 @@ def read_attributes(path: PathLike, count: int) -> PointAttributes:
     )
 
 
+def _las_colours(path: Path, count: int) -> PointAttributes:
+    """A LAS/LAZ file's red, green and blue as (N, 3) colours in 0-1: 16-bit values, or 8-bit ones
+    where no value exceeds 255 (as some writers store them)."""
+    import laspy
+
+    las = laspy.read(str(path))
+    if len(las.points) != count or not {"red", "green", "blue"} <= set(las.point_format.dimension_names):
+        return PointAttributes()
+    rgb = np.column_stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)]).astype(np.float64)
+    return PointAttributes(rgb / (255.0 if rgb.max(initial=0.0) <= 255.0 else 65535.0))
+
+
 def write_moved(path: PathLike, source: PathLike, points: np.ndarray, T: np.ndarray) -> Path:
     """Write the (N, 3) `points` read from the file `source` (:func:`read_points`), moved by the
     (4, 4) rigid `T`, to `path` (any of :data:`WRITE_EXTENSIONS`), with what of the source's
     per-point attributes the output holds: a LAS/LAZ source written as .las keeps every dimension
-    (intensity, returns, classification, GPS time, colour), its coordinates moved; a point cloud's
-    colours go into .ply and .pcd, and its normals, turned by T, into .ply, .pcd and .xyzn."""
+    (intensity, returns, classification, GPS time, colour), its coordinates moved; colours
+    (:func:`read_attributes`) go into .ply and .pcd, and normals, turned by T, into .ply, .pcd and
+    .xyzn."""
     path, source = Path(path), Path(source)
     if path.suffix.lower() == ".las" and source.suffix.lower() in (".las", ".laz"):
         return _write_las_moved(path, source, T)

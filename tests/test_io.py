@@ -226,6 +226,13 @@ def test_a_moved_las_keeps_every_dimension(tmp_path):
     assert np.allclose(np.column_stack([moved.x, moved.y, moved.z]), apply_transform(T, read), atol=1e-4)
     for name in ("intensity", "classification", "red"):
         assert np.array_equal(np.asarray(moved[name]), np.asarray(las[name]))
+    las.green, las.blue = las.red // 2, las.red // 4
+    las.write(str(tmp_path / "scan.las"))  # coloured: its colours go into a PLY too, in 0-1
+    write_moved(tmp_path / "moved.ply", tmp_path / "scan.las", read, T)
+    coloured = o3d.io.read_point_cloud(str(tmp_path / "moved.ply"))
+    rgb = np.column_stack([las.red, las.green, las.blue]) / 65535.0
+    assert np.abs(np.asarray(coloured.colors) - rgb).max() <= 0.5 / 255 + 1e-6
+    assert read_attributes(tmp_path / "scan.las", 199) == (None, None)  # not the points read: nothing
     # Stored at the finest step that holds it, a 100-unit cube turned 45 degrees needs a coarser one: taken, not refused.
     cube = rng.random((200, 3)) * 100.0
     header = laspy.LasHeader(point_format=0, version="1.4")
