@@ -79,7 +79,8 @@ class RegistrationResult:
             "network", "second network", "second network, turned" (from a rotation of a cube),
             "KISS-Matcher", "feature match", "network starts", "translation votes" or "pose as
             given".
-        confidence: trust in the alignment (0-1, higher is better); on
+        confidence: trust in the alignment (0-1, higher is better; on scans lowered to the
+            strict function seen from the target's side where that flags it, `target_consistency`); on
             two complete-looking clouds whose pose shows no shared point, the larger of the strict
             function and :func:`~o3dsoft.confidence.complete_confidence`, on scans the larger of
             the strict function and :func:`~o3dsoft.confidence.scan_confidence`, on other partial
@@ -144,7 +145,8 @@ class RegistrationResult:
         target_consistency: on scans whose result the strict confidence alone trusts: the
             consistency seen from the target's side (the target onto the source by the inverse
             pose; 0-1, higher is better); where the strict confidence flags it from there, so is
-            the result. None where not measured.
+            the result. None where not measured (also where one cloud's points are over 1.5 times
+            sparser: both sides would count the same cloud's).
         sparser_moved: the target was much sparser than the source (``sparser_moves``), so it was
             registered onto the source and the result inverted; every field still speaks of the
             source onto the target.
@@ -351,7 +353,7 @@ def _register(
     # the strict one).
     best = verifier.reported(best)
     final_level = "work" if unrefined else "full"
-    target_side = _target_side(pair, best, final_level)
+    target_side = _target_side(pair, best, "full" if pair.config.refine and pair.reduced and not unrefined else "work")  # where best was scored
     clock.lap("score")
     geometry = _assess(pair, best)
     clock.lap("degeneracy")
@@ -396,13 +398,18 @@ def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
 def _target_side(pair: PreparedPair, best: Attempt, level: str) -> Optional[confidence_stage.Features]:
     """On scans whose result the strict confidence alone trusts (not the scan confidence): the
     alignment scored from the target's side, the target onto the source by the inverse pose, on
-    the clouds at `level`; None where not measured. ICP and the choice tune a pose to the
-    source's side, and on noisy scans that overlap little a wrong pose can fit that side closely
-    (noise thickens the surfaces); a right one fits from both (docs/scans.md)."""
+    the clouds at `level` (where `best` was scored); None where not measured. ICP and the choice
+    tune a pose to the source's side, and on noisy scans that overlap little a wrong pose can fit
+    that side closely (noise thickens the surfaces); a right one fits from both (docs/scans.md).
+    Not measured where one cloud is over ``confidence.spacings`` times sparser: the scorer counts
+    the sparser cloud's points from either side, so the two sides would be one."""
     c = pair.config.confidence
     if not pair.scans or best.trust < c.likely_failed_below or confidence_stage.scan_confidence(best.scored, c) >= c.likely_failed_below:
         return None
-    return pair.scorer(level, reverse=True)(np.linalg.inv(best.fine.transformation))
+    forward, reverse = pair.scorer(level), pair.scorer(level, reverse=True)
+    if forward.swapped or reverse.swapped:
+        return None
+    return reverse(np.linalg.inv(best.fine.transformation))
 
 
 def _probe_symmetry(pair: PreparedPair, verifier: Verifier, best: Attempt, geometry: degeneracy_stage.Degeneracy) -> symmetry_stage.Symmetry:
@@ -625,10 +632,13 @@ def _result(
     back = None if target_side is None else confidence_stage.confidence(target_side, config.confidence)
     if target_side is not None and back is not None and back < config.confidence.likely_failed_below and not geometry.reason:  # trusted from one side only
         trust = max(back, confidence_stage.scan_confidence(best.scored, config.confidence))
+        if target_side.overlap < config.confidence.min_overlap:
+            seen = f"the target's points near the source are only {100 * target_side.overlap:.0f} % of the smaller cloud"
+        else:
+            seen = f"of the target's points near the source, {100 * target_side.consistency:.0f} % lie within {target_side.tight_distance:.3g} units of it"
         reason = (
-            f"it fits from the source's side only: of the target's points near the source, {100 * target_side.consistency:.0f} % lie within "
-            f"{target_side.tight_distance:.3g} units of it (of the source's, {100 * best.scored.consistency:.0f} %), where a right alignment "
-            "of two scans fits from both sides"
+            f"it fits from the source's side only: {seen} (of the source's, {100 * best.scored.consistency:.0f} %), where a right alignment "
+            "of two scans fits from both sides" + ("; the global search found nothing clearly better" if search_reason is not None else "")
         )
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
         reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units?); {reason}"

@@ -544,6 +544,21 @@ def test_a_noisy_low_overlap_pair_that_fits_from_one_side_only_is_flagged(real_s
     assert pair_errors(right.transformation, pairs["cloud_bin_6->cloud_bin_4"].transform).rotation_deg < 3.0
     assert not right.likely_failed and right.target_consistency > 0.9
 
+    # A source on a grid of three times the spacing: the scorer counts its points from either side, so no other side is measured.
+    from o3dsoft.clock import StageClock
+    from o3dsoft.pair import PreparedPair
+    from o3dsoft.pipeline import _target_side
+    from o3dsoft.refine import ICPResult
+    from o3dsoft.verify import Attempt
+
+    pair = pairs["cloud_bin_6->cloud_bin_4"]
+    _, first = np.unique(np.floor(pair.source / 0.1).astype(np.int64), axis=0, return_index=True)
+    for source in (pair.source, pair.source[np.sort(first)]):
+        prepared = PreparedPair(source, pair.target, config, 32, ("source", "target"), StageClock())
+        trusted = Attempt(0.9, prepared.scorer("work")(pair.transform), ICPResult(pair.transform, 1.0, 0.0), pair.transform, pair.transform)
+        side = _target_side(prepared, trusted, "work")
+        assert (side is None) == (len(source) < len(pair.source))
+
 
 def test_scattered_outliers_on_the_grid_are_left_out():
     src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
