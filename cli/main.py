@@ -1014,7 +1014,7 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common):
     """Run the bench on the pairs of every folder (each folder a protocol with its own thresholds),
     then on their turned copies (each folder's a protocol "FOLDER turned") and their noisy ones
     ("FOLDER noise P %")."""
-    from ..bench import check_methods, noise_protocol, noisy_pairs, peers_installed, turned_pairs
+    from ..bench import check_methods, noise_protocol, noisy_pairs, peers_installed, turned_pairs, turned_protocol
     from ..errors import UsageError
 
     if common["methods"]:
@@ -1038,19 +1038,19 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common):
         raise UsageError("two folders have the same name; give folders of different names")
     pairs = [p for scans in folders for p in scans.pairs]
     given = list(zip(folders, description))
-    if turns:
+
+    def variant(protocol, title: str, setting: dict) -> None:  # each folder's pairs again, as protocol(folder name)
         for scans, entry in given:
-            name = f"{scans.name} turned"
-            titles[name] = f"{titles[scans.name]}, the source turned {turns} times"
+            name = protocol(scans.name)
+            titles[name] = f"{titles[scans.name]}, {title}"
             recall[name] = scans.recall
-            description.append({**{k: v for k, v in entry.items() if k != "pairs"}, "folder": name, "turns": turns})
+            description.append({**{k: v for k, v in entry.items() if k != "pairs"}, "folder": name, **setting})
+
+    if turns:
+        variant(turned_protocol, f"the source turned {turns} times", {"turns": turns})
         click.echo(f"and every pair again with the source turned {turns} times ({turns * len(pairs)} pairs)", err=True)
     if noise:
-        for scans, entry in given:
-            name = noise_protocol(scans.name, noise)
-            titles[name] = f"{titles[scans.name]}, noise {noise:g} x the scene's size on both clouds"
-            recall[name] = scans.recall
-            description.append({**{k: v for k, v in entry.items() if k != "pairs"}, "folder": name, "noise": noise})
+        variant(lambda name: noise_protocol(name, noise), f"noise {noise:g} x the scene's size on both clouds", {"noise": noise})
         click.echo(f"and every pair again with noise of {noise:g} x the scene's size ({len(pairs)} pairs)", err=True)
     pairs += turned_pairs(pairs, turns, common["seed"]) + noisy_pairs(pairs, noise, common["seed"])
     _run_bench("scans", iter(pairs), len(pairs), {"benchmark": "scans", "min_overlap": min_overlap, "folders": description}, recall, titles, **common)

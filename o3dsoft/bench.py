@@ -250,8 +250,13 @@ def turned_pairs(pairs: Sequence[BenchPair], turns: int, seed: int = 0) -> List[
             R = random_rotation(np.random.default_rng([seed, p.index, k]))
             M = rigid(R, centre - R @ centre)  # source' = M source
             source = apply_transform(M, p.source.astype(np.float64)).astype(p.source.dtype)
-            turned.append(p._replace(protocol=f"{p.protocol} turned", index=p.index * turns + k, source=source, transform=p.transform @ np.linalg.inv(M)))
+            turned.append(p._replace(protocol=turned_protocol(p.protocol), index=p.index * turns + k, source=source, transform=p.transform @ np.linalg.inv(M)))
     return turned
+
+
+def turned_protocol(protocol: str) -> str:
+    """The protocol name of `protocol`'s turned pairs (:func:`turned_pairs`)."""
+    return f"{protocol} turned"
 
 
 def noisy_pairs(pairs: Sequence[BenchPair], sigma: float, seed: int = 0) -> List[BenchPair]:

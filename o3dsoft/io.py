@@ -510,6 +510,11 @@ def _read_las(path: Path) -> np.ndarray:
         raise InputError(f"{path}: not a readable LAS/LAZ file ({first_line(e)})") from None
     if len(las.points) == 0:
         raise InputError(f"{path}: holds 0 points")
+    return _las_xyz(las)
+
+
+def _las_xyz(las) -> np.ndarray:
+    """(N, 3) float64 coordinates of a laspy LasData (its scaled x, y, z)."""
     return np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64)
 
 
@@ -536,7 +541,7 @@ def _write_las_moved(path: Path, source: Path, T: np.ndarray) -> Path:
     import laspy
 
     las = laspy.read(str(source))
-    xyz = apply_transform(T, np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64))
+    xyz = apply_transform(T, _las_xyz(las))
     offsets = np.floor(xyz.min(axis=0))
     # The source's step, at most LAS_RESOLUTION, coarser only where the turned cloud spans more than 2^31 steps.
     scales = np.maximum(np.minimum(np.asarray(las.header.scales, dtype=np.float64), LAS_RESOLUTION), (xyz.max(axis=0) - offsets + 1.0) / (2**31 - 1))

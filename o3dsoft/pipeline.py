@@ -629,8 +629,8 @@ def _result(
     reason = geometry.reason or _failure_reason(best, config, search_reason is not None, pair.complete, (agreeing, len(verifier.attempts)) if partial else None)
     if copy.reason:  # two poses fit as closely: the confidence is shared between them
         trust, reason = best.trust / 2, copy.reason
-    back = None if target_side is None else confidence_stage.confidence(target_side, config.confidence)
-    if target_side is not None and back is not None and back < config.confidence.likely_failed_below and not geometry.reason:  # trusted from one side only
+    back = 1.0 if target_side is None else confidence_stage.confidence(target_side, config.confidence)
+    if target_side is not None and back < config.confidence.likely_failed_below and not geometry.reason:  # trusted from one side only
         trust = max(back, confidence_stage.scan_confidence(best.scored, config.confidence))
         if target_side.overlap < config.confidence.min_overlap:
             seen = f"the target's points near the source are only {100 * target_side.overlap:.0f} % of the smaller cloud"
