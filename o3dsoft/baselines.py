@@ -21,7 +21,7 @@ import numpy as np
 
 from ._open3d import open3d as o3d
 from .io import quiet_c_output
-from .preprocess import local_origin, stray_points, voxel_downsample
+from .preprocess import local_origin, stray_points
 from .refine import to_open3d
 from .transforms import in_frame_at, rigid
 
@@ -165,14 +165,19 @@ def kiss_matcher(
     (too few for it). `normal_radius`, `feature_radius`: its normals' and FPFH features' radii in
     voxels (None: KISS-Matcher's own, 3 and 5)."""
     import kiss_matcher as km  # optional: o3dsoft[peers]
+    from threadpoolctl import threadpool_limits
 
-    if min(len(voxel_downsample(source, voxel)), len(voxel_downsample(target, voxel))) < KISS_MIN_POINTS:
+    (source, source_centre), (target, target_centre) = _local(source), _local(target)
+    source, target = _kiss_grid(source, voxel), _kiss_grid(target, voxel)
+    if min(len(source), len(target)) < KISS_MIN_POINTS:
         return None
     magnify = _KISS_VOXEL / voxel
     magnified_voxel = voxel * magnify
-    (source, source_centre), (target, target_centre) = _local(source), _local(target)
-    with quiet_c_output("stdout"):  # it prints warnings about its noise bounds on every call
-        config = km.KISSMatcherConfig(magnified_voxel)
+    # It prints warnings about its noise bounds on every call. Its matching's OpenMP threads add
+    # matches in the order they finish, and the answer hangs on that order: one thread gives the
+    # same answer on every call, no slower.
+    with quiet_c_output("stdout"), threadpool_limits(1, user_api="openmp"):
+        config = km.KISSMatcherConfig(magnified_voxel, use_voxel_sampling=False)
         if normal_radius is not None:
             config.normal_radius = normal_radius * magnified_voxel
         if feature_radius is not None:
@@ -182,6 +187,24 @@ def kiss_matcher(
     # target - ct = R (source - cs) + t, so T_target_source's translation is t + ct - R cs.
     R = np.asarray(solution.rotation, dtype=np.float64)
     return rigid(R, np.asarray(solution.translation, dtype=np.float64).ravel() / magnify + target_centre - R @ source_centre)
+
+
+def _kiss_grid(points: np.ndarray, voxel: float) -> np.ndarray:
+    """(K, 3) the centroids of the (N, 3) points in each occupied cell of a grid of `voxel` with a
+    corner at the origin, in the order of the cells' (z, y, x): KISS-Matcher's own grid, taken here
+    because KISS-Matcher writes its threads' cells in the order they finish, and its answer hangs on
+    that order."""
+    if len(points) == 0:
+        return np.empty((0, 3))
+    cells = np.floor(points / voxel).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    if int(span[0]) * int(span[1]) * int(span[2]) < 2**62:  # one integer key per cell, z slowest
+        _, inverse, counts = np.unique((cells[:, 2] * span[1] + cells[:, 1]) * span[0] + cells[:, 0], return_inverse=True, return_counts=True)
+    else:
+        _, inverse, counts = np.unique(cells[:, ::-1], axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    return np.column_stack([np.bincount(inverse, weights=points[:, k], minlength=len(counts)) for k in range(3)]) / counts[:, None]
 
 
 def _local(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

@@ -7,6 +7,9 @@ import signal
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from o3dsoft import bench
 from o3dsoft.cli.main import main
@@ -682,8 +685,9 @@ def test_kiss_matchers_radii_are_in_voxels_of_the_clouds_it_is_given(monkeypatch
     made = []
 
     class Config:
-        def __init__(self, voxel):
+        def __init__(self, voxel, use_voxel_sampling=True):
             self.voxel_size, self.normal_radius, self.fpfh_radius = voxel, 3 * voxel, 5 * voxel
+            self.use_voxel_sampling = use_voxel_sampling
             made.append(self)
 
     class Matcher:
@@ -702,6 +706,7 @@ def test_kiss_matchers_radii_are_in_voxels_of_the_clouds_it_is_given(monkeypatch
     T = baselines.kiss_matcher(points, points, 0.2)  # no radii given: KISS-Matcher's own; shrunk 4 times
     assert (made[-1].voxel_size, made[-1].normal_radius, made[-1].fpfh_radius) == (pytest.approx(0.05), pytest.approx(0.15), pytest.approx(0.25))
     assert np.allclose(T[:3, 3], [4.0, 8.0, 12.0])
+    assert not made[-1].use_voxel_sampling  # the clouds come on o3dsoft's grid (next test)
 
 
 def test_kiss_matcher_answers_in_millimetres_as_in_metres(real_scans_root):
@@ -721,6 +726,42 @@ def test_kiss_matcher_answers_in_millimetres_as_in_metres(real_scans_root):
         assert errors.rotation_deg < 5.0 and errors.translation < 0.1  # metres
 
 
+def test_kiss_matcher_gives_the_same_pose_on_every_call(real_scans_root):
+    # On its own grid it did not: its threads write the cells in the order they finish, and on this
+    # noisy low-overlap pair five calls of six ended at another pose than the first. The clouds are
+    # now given to it on o3dsoft's grid (the cells' centroids, in a fixed order).
+    from o3dsoft import baselines
+    from o3dsoft.preprocess import scene_size
+
+    if not baselines.installed("kiss_matcher"):
+        pytest.skip("the optional package kiss-matcher is not installed")
+    folder = real_scans_root / "3dmatch_redkitchen"
+    src, tgt = read_points(folder / "cloud_bin_34.ply"), read_points(folder / "cloud_bin_21.ply")
+    size = max(scene_size(src), scene_size(tgt))
+    rng = np.random.default_rng(0)
+    src, tgt = src + rng.normal(scale=0.005 * size, size=src.shape), tgt + rng.normal(scale=0.005 * size, size=tgt.shape)
+    poses = [baselines.kiss_matcher(src, tgt, 0.01 * size, 2.5, 4.0) for _ in range(5)]
+    assert all(np.abs(T - poses[0]).max() < 1e-9 for T in poses[1:])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    points=hnp.arrays(np.float64, st.tuples(st.integers(1, 60), st.just(3)), elements=st.floats(-5.0, 5.0)),
+    voxel=st.floats(0.05, 3.0),
+    order=st.randoms(use_true_random=False),
+)
+def test_kiss_grid_is_each_cells_centroid_in_the_cells_order_whatever_the_points_order(points, voxel, order):
+    from o3dsoft.baselines import _kiss_grid
+
+    cells: dict = {}
+    for p in points:
+        cells.setdefault(tuple(np.floor(p / voxel).astype(int)), []).append(p)
+    expected = np.array([np.mean(cells[c], axis=0) for c in sorted(cells, key=lambda c: c[::-1])])  # z slowest
+    shuffled = points[order.sample(range(len(points)), len(points))]
+    assert np.allclose(_kiss_grid(points, voxel), expected, atol=1e-12)
+    assert np.allclose(_kiss_grid(shuffled, voxel), expected, atol=1e-12)
+
+
 def test_kiss_matcher_is_not_called_on_clouds_too_small_for_it(monkeypatch):
     # It crashes the process on clouds of a hundred points or so: none is asked of it there.
     import sys
@@ -738,7 +779,7 @@ def test_kiss_matcher_is_not_called_on_clouds_too_small_for_it(monkeypatch):
         def estimate(self, source, target):
             return types.SimpleNamespace(rotation=np.eye(3), translation=np.zeros((3, 1)))
 
-    monkeypatch.setitem(sys.modules, "kiss_matcher", types.SimpleNamespace(KISSMatcherConfig=lambda voxel: voxel, KISSMatcher=Matcher))
+    monkeypatch.setitem(sys.modules, "kiss_matcher", types.SimpleNamespace(KISSMatcherConfig=lambda voxel, **settings: voxel, KISSMatcher=Matcher))
     rng = np.random.default_rng(0)
     many, few = rng.uniform(size=(20_000, 3)), rng.uniform(size=(300, 3))
     assert len(voxel_downsample(few, 0.01)) == 300 and len(voxel_downsample(many, 0.5)) <= 27  # cells of the unit cube
