@@ -174,8 +174,8 @@ def kiss_matcher(
     magnify = _KISS_VOXEL / voxel
     magnified_voxel = voxel * magnify
     # It prints warnings about its noise bounds on every call. Its matching's OpenMP threads add
-    # matches in the order they finish, and the answer hangs on that order: one thread gives the
-    # same answer on every call, no slower.
+    # matches in the order they finish, and its answer hangs on that order: one thread, no slower.
+    # (A race between its TBB threads is left: about 1 call in 100 still differs; docs/scans.md.)
     with quiet_c_output("stdout"), threadpool_limits(1, user_api="openmp"):
         config = km.KISSMatcherConfig(magnified_voxel, use_voxel_sampling=False)
         if normal_radius is not None:
