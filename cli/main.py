@@ -1028,6 +1028,8 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common):
     for scans in folders:
         name = scans.name
         click.echo(f"{name}: {len(scans.pairs)} of {len(scans.table)} pairs ({scans.kind})", err=True)
+        for file, count in scans.left_out:
+            click.echo(f"  {file}: {count} points with a non-finite coordinate left out", err=True)
         if not scans.pairs:
             raise UsageError(f"{name}: no scan pair reaches --min-overlap {min_overlap}")
         thresholds = " and ".join(f"{d:g} deg / {t:.3g}" for d, t in scans.recall)

@@ -209,8 +209,9 @@ def _kiss_grid(points: np.ndarray, voxel: float) -> np.ndarray:
 
 def _local(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """(N', 3) the points less their (3,) :func:`~o3dsoft.preprocess.local_origin`, without their
-    :func:`~o3dsoft.preprocess.stray_points`; and that origin."""
+    :func:`~o3dsoft.preprocess.stray_points` and those with a non-finite coordinate; and that origin."""
     points = np.asarray(points, dtype=np.float64)
+    points = points[np.isfinite(points).all(axis=1)]
     origin = local_origin(points)
     return points[~stray_points(points)] - origin, origin
 

@@ -174,7 +174,8 @@ class ScanFolder(NamedTuple):
 
     name: the folder's name. pairs: every pair to run (protocol: the name). kind: a name of
     :data:`o3dsoft.scans.KINDS`. recall: its thresholds in the scans' units. table: every
-    candidate pair, with its ground-truth overlap and whether it was kept.
+    candidate pair, with its ground-truth overlap and whether it was kept. left_out: (file name,
+    count) of the points with a non-finite coordinate each scan had (every method gets the rest).
     """
 
     name: str
@@ -182,6 +183,7 @@ class ScanFolder(NamedTuple):
     kind: str
     recall: Tuple[Tuple[float, float], ...]
     table: List[dict]
+    left_out: Tuple[Tuple[str, int], ...] = ()
 
 
 def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> ScanFolder:
@@ -222,6 +224,14 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> S
                 raise InputError(f"{confs[0]}: scan {scan!r} has no file {path.name} in {folder}")
             clouds[path], names[scan] = read_points(path), path
         candidates = [(names[s], names[t], relative_pose(poses, s, t)) for s in poses for t in poses if s != t]
+    # Organised scans (a depth image's pixels without a return) carry NaN rows; register's clean
+    # stage drops them, and every method here gets the same finite points.
+    finite = {path: np.isfinite(points).all(axis=1) for path, points in clouds.items()}
+    left_out = tuple((path.name, int((~keep).sum())) for path, keep in finite.items() if not keep.all())
+    clouds = {path: points[finite[path]] for path, points in clouds.items()}
+    empty = [path.name for path, points in clouds.items() if len(points) == 0]
+    if empty:
+        raise InputError(f"{folder}: {empty[0]} holds no point with finite coordinates")
     trees = {path: cKDTree(points) for path, points in clouds.items()}
     pairs, table = [], []
     for s, t, T in candidates:
@@ -234,7 +244,7 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> S
             pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{s.stem}->{t.stem}"))
     size = scene_size(next(iter(clouds.values())))  # of the first scan
     kind = guess_kind(size) if kind == "auto" else kind
-    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size), table)
+    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size), table, left_out)
 
 
 def turned_pairs(pairs: Sequence[BenchPair], turns: int, seed: int = 0) -> List[BenchPair]:
