@@ -345,6 +345,8 @@ def import_pairs(path: Path) -> List[BenchPair]:
         raise InputError(f"{path}: a single array, not a pairs file (.npz with named arrays)")
     try:
         return _pairs_from_npz(path, z)
+    except InputError:
+        raise
     except ValueError as e:  # object arrays, which need pickle, and other unreadable entries
         raise InputError(f"{path}: unreadable pairs file ({e})") from None
 
@@ -361,6 +363,13 @@ def _pairs_from_npz(path: Path, z) -> List[BenchPair]:
             raise InputError(f"{path}: {side}_points must be (N, 3), got {pts.shape}")
         if off.shape != (P + 1,) or off[0] != 0 or off[-1] != len(pts) or np.any(np.diff(off) <= 0):
             raise InputError(f"{path}: {side}_offsets must rise from 0 to {len(pts)} in {P + 1} steps")
+    for side in ("source", "target"):
+        bad = ~np.isfinite(z[f"{side}_points"]).all(axis=1)
+        if bad.any():
+            first = int(np.searchsorted(z[f"{side}_offsets"], np.argmax(bad), side="right")) - 1
+            raise InputError(
+                f"{path}: pair {first}'s {side} has points with a non-finite coordinate ({int(bad.sum())} in all); a pairs file holds finite points"
+            )
     if z["transform"].shape != (P, 4, 4) or z["protocol"].shape != (P,) or z["index"].shape != (P,):
         raise InputError(f"{path}: transform must be (P, 4, 4) with one protocol and index per pair")
     category = z["category"] if "category" in z.files else np.array([""] * P)

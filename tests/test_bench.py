@@ -136,6 +136,20 @@ def test_bad_pairs_files(tmp_path):
     )
     with pytest.raises(InputError, match="category must hold one name per pair"):
         bench.import_pairs(tmp_path / "cat.npz")
+    target = np.zeros((6, 3))
+    target[4, 1] = np.nan
+    np.savez(
+        tmp_path / "nan.npz",
+        source_points=np.zeros((6, 3)),
+        source_offsets=np.array([0, 3, 6]),
+        target_points=target,
+        target_offsets=np.array([0, 3, 6]),
+        transform=np.stack([np.eye(4)] * 2),
+        protocol=np.array(["x", "x"]),
+        index=np.array([0, 1]),
+    )
+    with pytest.raises(InputError, match=r"pair 1's target has points with a non-finite coordinate \(1 in all\)"):
+        bench.import_pairs(tmp_path / "nan.npz")
 
 
 def test_parallel_jobs_give_the_rows_of_a_serial_run(modelnet_root, tiny_model_path, tmp_path):
