@@ -441,13 +441,19 @@ def _errors_dict(e) -> dict:
 
 
 def _cleaning_lines(removed: dict, isolated_radius: float) -> list:
-    """The lines saying how many stray far points cleaning dropped and how many isolated grid
-    points were left out (`isolated_radius`: in voxels), where there were any."""
+    """The lines saying how many rows without finite coordinates, repeated points and stray far
+    points cleaning dropped and how many isolated grid points were left out (`isolated_radius`:
+    in voxels), where there were any."""
     from ..preprocess import STRAY_PERCENTILE, STRAY_REACH
 
+    lines = []
+    for key, what in (("non_finite", "rows dropped (a NaN or infinite coordinate)"), ("duplicates", "repeated points dropped (kept once)")):
+        n, m = removed.get(f"source_{key}", 0), removed.get(f"target_{key}", 0)
+        if n or m:
+            lines.append(f"  {key.replace('_', '-')}: source {n}, target {m} {what}")
     n, m = removed.get("source_strays", 0), removed.get("target_strays", 0)
     reach = f"over {STRAY_REACH * 2:,.0f} times farther from the median than {STRAY_PERCENTILE:.0f} % of the cloud"
-    lines = [f"  strays: source {n}, target {m} points dropped ({reach})"] if n or m else []
+    lines += [f"  strays: source {n}, target {m} points dropped ({reach})"] if n or m else []
     n, m = removed.get("source_isolated", 0), removed.get("target_isolated", 0)
     if n or m:
         lines.append(

@@ -98,14 +98,20 @@ def test_register_says_how_many_isolated_points_it_left_out(tmp_path):
     )
 
 
-def test_register_says_how_many_stray_points_it_dropped(pair_files, tiny_model_path):
+def test_register_says_how_many_points_cleaning_dropped_and_why(pair_files, tiny_model_path):
     d, src, T = pair_files
     write_points(d / "glitch.ply", np.vstack([src, [[1e12, -1e12, 5e11]]]))
     r = run("register", d / "glitch.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--icp-distance", "0.5")
     assert r.exit_code == 0, r.output
     assert "strays: source 1, target 0 points dropped (over 2,000 times farther from the median than 90 % of the cloud)" in r.output
     r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--icp-distance", "0.5")
-    assert r.exit_code == 0 and "strays:" not in r.output
+    assert r.exit_code == 0 and "strays:" not in r.output and "non-finite:" not in r.output and "duplicates:" not in r.output
+    holes = np.vstack([src, np.full((3, 3), np.nan), src[:5]])  # an organised scan's empty pixels, and points written twice
+    write_points(d / "holes.ply", holes)
+    r = run("register", d / "holes.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--icp-distance", "0.5")
+    assert r.exit_code == 0, r.output
+    assert "non-finite: source 3, target 0 rows dropped (a NaN or infinite coordinate)" in r.output
+    assert "duplicates: source 5, target 0 repeated points dropped (kept once)" in r.output
 
 
 def test_register_measures_the_errors_of_georeferenced_clouds_about_the_target(tmp_path):
