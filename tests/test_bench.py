@@ -771,19 +771,25 @@ def test_kiss_matcher_answers_in_millimetres_as_in_metres(real_scans_root):
         assert errors.rotation_deg < 5.0 and errors.translation < 0.1  # metres
 
 
-def test_kiss_matcher_leaves_out_points_with_non_finite_coordinates(real_scans_root):
-    # With NaN rows it raised (NaN medians) or, on its grid, answered 29 degrees off.
+def _fragments_for_kiss(root, source: int, target: int):
+    """3DMatch fragments `source` and `target` and the pipeline's KISS-Matcher voxel (1 % of the
+    larger scene); the test is skipped where kiss-matcher is not installed."""
     from o3dsoft import baselines
-    from o3dsoft.preprocess import scene_size
 
     if not baselines.installed("kiss_matcher"):
         pytest.skip("the optional package kiss-matcher is not installed")
-    folder = real_scans_root / "3dmatch_redkitchen"
-    src, tgt = read_points(folder / "cloud_bin_6.ply"), read_points(folder / "cloud_bin_4.ply")
-    voxel = 0.01 * max(scene_size(src), scene_size(tgt))
+    src, tgt = (read_points(root / "3dmatch_redkitchen" / f"cloud_bin_{k}.ply") for k in (source, target))
+    return src, tgt, 0.01 * max(scene_size(src), scene_size(tgt))
+
+
+def test_kiss_matcher_leaves_out_points_with_non_finite_coordinates(real_scans_root):
+    # With NaN rows it raised (NaN medians) or, on its grid, answered 29 degrees off.
+    from o3dsoft import baselines
+
+    src, tgt, voxel = _fragments_for_kiss(real_scans_root, 6, 4)
     holes = src.copy()
     holes[::50] = np.nan
-    errors = pair_errors(baselines.kiss_matcher(holes, tgt, voxel, 2.5, 4.0), read_transform(folder / "gt_6_to_4.txt"))
+    errors = pair_errors(baselines.kiss_matcher(holes, tgt, voxel, 2.5, 4.0), read_transform(real_scans_root / "3dmatch_redkitchen" / "gt_6_to_4.txt"))
     assert errors.rotation_deg < 5.0 and errors.translation < 0.1  # metres
 
 
@@ -793,13 +799,8 @@ def test_kiss_matcher_seldom_gives_another_pose_on_the_same_clouds(real_scans_ro
     # finished). With the grid taken in o3dsoft and one OpenMP thread, about 1 call in 100 still
     # does anywhere (a race in its feature extraction; docs/scans.md), none in 80 here.
     from o3dsoft import baselines
-    from o3dsoft.preprocess import scene_size
 
-    if not baselines.installed("kiss_matcher"):
-        pytest.skip("the optional package kiss-matcher is not installed")
-    folder = real_scans_root / "3dmatch_redkitchen"
-    src, tgt = read_points(folder / "cloud_bin_34.ply"), read_points(folder / "cloud_bin_6.ply")
-    voxel = 0.01 * max(scene_size(src), scene_size(tgt))
+    src, tgt, voxel = _fragments_for_kiss(real_scans_root, 34, 6)
     poses = [tuple(np.round(baselines.kiss_matcher(src, tgt, voxel, 2.5, 4.0)[:3, :3].ravel(), 3)) for _ in range(16)]
     assert max(poses.count(pose) for pose in poses) >= 14
 
