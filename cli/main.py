@@ -446,19 +446,18 @@ def _cleaning_lines(removed: dict, isolated_radius: float) -> list:
     in voxels), where there were any."""
     from ..preprocess import STRAY_PERCENTILE, STRAY_REACH
 
+    reach = f"over {STRAY_REACH * 2:,.0f} times farther from the median than {STRAY_PERCENTILE:.0f} % of the cloud"
+    kinds = (
+        ("non_finite", "rows dropped (a NaN or infinite coordinate)"),
+        ("duplicates", "repeated points dropped (kept once)"),
+        ("strays", f"points dropped ({reach})"),
+        ("isolated", f"grid points left out (fewer than two other points within {isolated_radius:g} voxels: scattered outliers, or the sparsest far returns)"),
+    )
     lines = []
-    for key, what in (("non_finite", "rows dropped (a NaN or infinite coordinate)"), ("duplicates", "repeated points dropped (kept once)")):
+    for key, what in kinds:
         n, m = removed.get(f"source_{key}", 0), removed.get(f"target_{key}", 0)
         if n or m:
             lines.append(f"  {key.replace('_', '-')}: source {n}, target {m} {what}")
-    n, m = removed.get("source_strays", 0), removed.get("target_strays", 0)
-    reach = f"over {STRAY_REACH * 2:,.0f} times farther from the median than {STRAY_PERCENTILE:.0f} % of the cloud"
-    lines += [f"  strays: source {n}, target {m} points dropped ({reach})"] if n or m else []
-    n, m = removed.get("source_isolated", 0), removed.get("target_isolated", 0)
-    if n or m:
-        lines.append(
-            f"  isolated: source {n}, target {m} grid points left out (fewer than two other points within {isolated_radius:g} voxels: scattered outliers, or the sparsest far returns)"
-        )
     return lines
 
 

@@ -363,10 +363,9 @@ def _pairs_from_npz(path: Path, z) -> List[BenchPair]:
             raise InputError(f"{path}: {side}_points must be (N, 3), got {pts.shape}")
         if off.shape != (P + 1,) or off[0] != 0 or off[-1] != len(pts) or np.any(np.diff(off) <= 0):
             raise InputError(f"{path}: {side}_offsets must rise from 0 to {len(pts)} in {P + 1} steps")
-    for side in ("source", "target"):
-        bad = ~np.isfinite(z[f"{side}_points"]).all(axis=1)
+        bad = ~np.isfinite(pts).all(axis=1)
         if bad.any():
-            first = int(np.searchsorted(z[f"{side}_offsets"], np.argmax(bad), side="right")) - 1
+            first = int(np.searchsorted(off, np.argmax(bad), side="right")) - 1
             raise InputError(
                 f"{path}: pair {first}'s {side} has points with a non-finite coordinate ({int(bad.sum())} in all); a pairs file holds finite points"
             )

@@ -581,6 +581,10 @@ def _select(verifier: Verifier) -> Attempt:
     return verifier.refine(identity, identity, refine=False, by="pose as given")._replace(trust=0.0)
 
 
+# The close of a flagged result's reason where the search ran.
+_SEARCHED = "; the global search found nothing clearly better"
+
+
 def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, complete: bool = False, agreeing: Optional[Tuple[int, int]] = None) -> Optional[str]:
     """Why a result is flagged likely failed, in words (None when it is not). `complete`: both
     clouds look complete (:attr:`PreparedPair.complete`), so the share of them near each other
@@ -606,7 +610,7 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, compl
             why += f", and both clouds look complete but those points are only {100 * best.scored.overlap:.0f} % of the smaller one"
         if agreeing is not None:
             why += f", and only {agreeing[0]} of the {agreeing[1]} estimates reached this pose"
-    return why + ("; the global search found nothing clearly better" if searched else "")
+    return why + (_SEARCHED if searched else "")
 
 
 def _result(
@@ -638,7 +642,7 @@ def _result(
             seen = f"of the target's points near the source, {100 * target_side.consistency:.0f} % lie within {target_side.tight_distance:.3g} units of it"
         reason = (
             f"it fits from the source's side only: {seen} (of the source's, {100 * best.scored.consistency:.0f} %), where a right alignment "
-            "of two scans fits from both sides" + ("; the global search found nothing clearly better" if search_reason is not None else "")
+            "of two scans fits from both sides" + (_SEARCHED if search_reason is not None else "")
         )
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
         reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units?); {reason}"
