@@ -352,8 +352,8 @@ def _register(
     # on other partial overlaps, the one of how many attempts reached the pose (the search ran by
     # the strict one).
     best = verifier.reported(best)
-    final_level = "work" if unrefined else "full"
-    target_side = _target_side(pair, best, "full" if pair.config.refine and pair.reduced and not unrefined else "work")  # where best was scored
+    level = _scored_level(pair, unrefined)
+    target_side = _target_side(pair, best, level)
     clock.lap("score")
     geometry = _assess(pair, best)
     clock.lap("degeneracy")
@@ -377,7 +377,14 @@ def _register(
     copy = _probe_symmetry(pair, verifier, best, geometry)
     clock.lap("symmetry")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
-    return _result(best, pair, verifier, network, search_reason, geometry, copy, target_side, clock.timings_ms, final_level), pair.clouds(final_level)
+    return _result(best, pair, verifier, network, search_reason, geometry, copy, target_side, clock.timings_ms, level), pair.clouds(level)
+
+
+def _scored_level(pair: PreparedPair, unrefined: bool) -> str:
+    """The clouds the kept estimate was last refined and scored on: "full" where it was refined
+    again at full resolution (:func:`_refine_full`), "work" otherwise (the same clouds where the
+    work clouds are not reduced)."""
+    return "full" if pair.config.refine and pair.reduced and not unrefined else "work"
 
 
 def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
@@ -623,10 +630,10 @@ def _result(
     copy: symmetry_stage.Symmetry,
     target_side: Optional[confidence_stage.Features],
     timings_ms: Dict[str, float],
-    final_level: str = "full",
+    level: str,
 ) -> RegistrationResult:
     config = pair.config
-    (src, tgt), (src_report, tgt_report) = pair.clouds(final_level), pair.cleaned
+    (src, tgt), (src_report, tgt_report) = pair.clouds(level), pair.cleaned
     trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
     agreeing = verifier.agreeing(best)
     partial = choice_applies(pair) and confidence_stage.partial_confidence(best.scored, agreeing, config.confidence) > 0

@@ -382,6 +382,17 @@ def test_a_flagged_result_is_left_unrefined_when_asked(monkeypatch):
     assert left.points_used["final"] == left.points_used["attempts"] and left.num_source <= 1000
 
 
+def test_without_icp_the_final_points_are_those_the_estimate_was_scored_on():
+    """Without ICP nothing runs on the full clouds: the counts say so (not the full clouds')."""
+    rng = np.random.default_rng(9)
+    src = o3dsoft.read_points(EXAMPLES / "bun000.ply")
+    T = random_transform(rng, 20.0, 0.02)
+    config = RegisterConfig(second_network=NO_SECOND, attempt_points=1000, refine=False, search=SearchConfig(mode="off"))
+    res = register(src, apply(T, src), config, model=NearSightedModel(T[:3, :3]))
+    assert res.points_used["attempts"][0] <= 1000 < len(src)
+    assert res.points_used["final"] == res.points_used["attempts"] == (res.num_source, res.num_target)
+
+
 def test_a_doubtful_result_is_searched_further_when_asked(modelnet_root):
     from o3dsoft.data import get_protocol, load_pairs
 
