@@ -342,8 +342,9 @@ def register(
     t0 = time.perf_counter()
     src = io.read_points(source, mesh_points=mesh_points)
     tgt = io.read_points(target, mesh_points=mesh_points)
-    T_gt = io.read_transform(gt_path) if gt_path is not None else None
-    T_init = io.read_transform(init_path) if init_path is not None else None
+    moved = local_origin(src)  # a rounded rotation, made exact, still moves the source where the file's does
+    T_gt = io.read_transform(gt_path, moved) if gt_path is not None else None
+    T_init = io.read_transform(init_path, moved) if init_path is not None else None
     read_ms = (time.perf_counter() - t0) * 1000.0
     config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
     t0 = time.perf_counter()
@@ -565,6 +566,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     from ..coarse import load_model
     from ..multiway import MultiwayConfig, merged_cloud
     from ..multiway import multiway as run_multiway
+    from ..preprocess import local_origin
 
     seen: dict = {}
     for p in scans:
@@ -583,7 +585,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
             files.append(p if len(found) == 1 else None)  # an E57 of several scans: no colours read here
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
-    init_poses = io.read_poses(init_path, names) if init_path is not None else None
+    init_poses = io.read_poses(init_path, names, [local_origin(c) for c in clouds]) if init_path is not None else None
     without = [n for n, pose in zip(names, init_poses or ()) if pose is None]
     if without:
         click.echo(f"Note: {init_path} gives no initial pose for {len(without)} scan(s), registered without one: {', '.join(without)}", err=True)

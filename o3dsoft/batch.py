@@ -94,14 +94,16 @@ def run_job(job: PairJob, config) -> dict:
     from . import io
     from .metrics import pair_errors
     from .pipeline import register
+    from .preprocess import local_origin
 
     t0 = time.perf_counter()
     row = _named(job)
     try:
         model = model_for(config)
         source, target = io.read_points(job.source), io.read_points(job.target)
-        truth = io.read_transform(job.transform) if job.transform else None
-        guess = io.read_transform(job.init) if job.init else None
+        moved = local_origin(source)  # where a rounded rotation, made exact, still moves the source
+        truth = io.read_transform(job.transform, moved) if job.transform else None
+        guess = io.read_transform(job.init, moved) if job.init else None
         result = register(source, target, config, model=model, source_name=job.source, target_name=job.target, init=guess)
     except O3dsoftError as e:
         return {**row, "status": "failed", "error": str(e), "seconds": time.perf_counter() - t0}
@@ -115,7 +117,7 @@ def run_job(job: PairJob, config) -> dict:
         seconds=time.perf_counter() - t0,
     )
     if truth is not None:
-        errors = pair_errors(result.transformation, truth)
+        errors = pair_errors(result.transformation, truth, local_origin(target))  # as register --gt: about the target (georeferenced scans)
         row.update(rotation_error_deg=errors.rotation_deg, translation_error=errors.translation)
     return row
 

@@ -211,7 +211,7 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> S
             for path in (entry.source, entry.target):
                 if path not in clouds:
                     clouds[path] = read_points(path)
-            candidates.append((entry.source, entry.target, read_transform(entry.transform)))
+            candidates.append((entry.source, entry.target, read_transform(entry.transform, local_origin(clouds[entry.source]))))
     else:
         confs = sorted(folder.glob("*.conf"))
         if len(confs) != 1:

@@ -806,13 +806,16 @@ def _sync(path: Path) -> None:
         os.close(fd)
 
 
-def read_transform(path: PathLike) -> np.ndarray:
+def read_transform(path: PathLike, about: Optional[np.ndarray] = None) -> np.ndarray:
     """Read a rigid 4x4 transform from text (whitespace/comma separated) or .npy.
 
     A 3x4 [R | t] text is accepted too (the last row is implied).
 
     Published ground truths are often rounded (3DMatch's are orthonormal to about 2e-4): a
-    rotation block within 1e-3 of orthonormal is accepted and replaced by the nearest rotation.
+    rotation block within 1e-3 of orthonormal is accepted and replaced by the nearest rotation,
+    with the translation changed so that the transform still moves the point `about` (3,) where
+    the file's does: pass the moved cloud's :func:`~o3dsoft.preprocess.local_origin`. (About the
+    frame's origin, a rotation changed by 4e-7 moves a cloud 5e6 m away, georeferenced, by 2 m.)
 
     Raises:
         UsageError: missing file.
@@ -833,17 +836,20 @@ def read_transform(path: PathLike) -> np.ndarray:
         T = _parse_matrix_text(path)
     if T.shape not in ((3, 4), (4, 4)):
         raise InputError(f"{path}: expected a 4x4 transform (or 3x4 [R|t]), got shape {T.shape}")
-    return _rigid_as_read(T, str(path))
+    return _rigid_as_read(T, str(path), about)
 
 
-def _rigid_as_read(T: np.ndarray, where: str) -> np.ndarray:
+def _rigid_as_read(T: np.ndarray, where: str, about: Optional[np.ndarray] = None) -> np.ndarray:
     """The (4, 4) transform read at `where` ((3, 4) [R | t] or (4, 4)), checked rigid within
     READ_TOLERANCE, with the nearest rotation and an exact last row (so that the stricter checks
-    downstream hold)."""
+    downstream hold); the translation keeps where the point `about` (3,) goes (None: the origin)."""
     T = np.vstack([T[:3], [0.0, 0.0, 0.0, 1.0]]) if T.shape == (3, 4) else T.copy()
     check_rigid(T, where, tol=READ_TOLERANCE)
     U, _, Vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = U @ Vt  # the nearest rotation (det +1, as checked)
+    nearest = U @ Vt  # the nearest rotation (det +1, as checked)
+    if about is not None:
+        T[:3, 3] += (T[:3, :3] - nearest) @ np.asarray(about, dtype=np.float64)
+    T[:3, :3] = nearest
     T[3] = [0.0, 0.0, 0.0, 1.0]
     return T
 
@@ -878,7 +884,7 @@ def _number_lines(path: Path, counts: Tuple[int, ...], expected: str) -> List[Tu
     return rows
 
 
-def read_poses(path: PathLike, names: Sequence[str]) -> List[Optional[np.ndarray]]:
+def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np.ndarray]] = None) -> List[Optional[np.ndarray]]:
     """Initial poses (4, 4) world_T_scan of the scans `names`, None where the file has none.
 
     Two layouts:
@@ -888,7 +894,8 @@ def read_poses(path: PathLike, names: Sequence[str]) -> List[Optional[np.ndarray
         text (any other extension): one pose per line in the scans' order, 12 numbers (a 3x4
             [R | t] row by row, as KITTI's pose files) or 16 (4x4 row by row).
     Rotations within 1e-3 of orthonormal are replaced by the nearest rotation, as
-    :func:`read_transform` does.
+    :func:`read_transform` does, each pose keeping where it moves its scan's point in `about`
+    (one (3,) point per scan, e.g. its :func:`~o3dsoft.preprocess.local_origin`; None: the origin).
 
     Raises:
         UsageError: missing file.
@@ -905,7 +912,7 @@ def read_poses(path: PathLike, names: Sequence[str]) -> List[Optional[np.ndarray
         found = {k: (f"{path}, line {lineno}", np.array(row, dtype=np.float64).reshape(-1, 4)) for k, (lineno, row) in enumerate(lines)}
     poses: List[Optional[np.ndarray]] = [None] * len(names)
     for k, (where, T) in found.items():
-        poses[k] = _rigid_as_read(T, where)
+        poses[k] = _rigid_as_read(T, where, None if about is None else about[k])
     return poses
 
 

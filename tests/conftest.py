@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Tuple
 
 import numpy as np
 import pytest
@@ -63,3 +64,24 @@ apply = apply_transform
 def blob(rng: np.random.Generator, n: int = 300) -> np.ndarray:
     """A non-symmetric random 3-D shape: an anisotropic Gaussian blob."""
     return rng.normal(size=(n, 3)) * np.array([1.0, 0.6, 0.3])
+
+
+UTM = np.array([512_345.0, 4_123_456.0, 231.0])  # a georeferenced frame's offset, cloud units
+
+
+def georeferenced_bunny(folder: Path, digits: int = 6) -> Tuple[Path, Path, Path]:
+    """The example bunny pair moved UTM from its frame's origin, as `folder`'s bun045.ply and
+    bun000.ply, with its truth in gt.txt written as published truths are: the rotation to
+    `digits` decimals, the translation that rotation needs near the source (in full)."""
+    from o3dsoft.io import read_points, read_transform, write_points
+
+    S = np.eye(4)
+    S[:3, 3] = UTM
+    for name in ("bun045", "bun000"):
+        write_points(folder / f"{name}.ply", read_points(EXAMPLES / f"{name}.ply") + UTM)
+    T = S @ read_transform(EXAMPLES / "bun045_to_bun000.txt") @ np.linalg.inv(S)
+    R = np.round(T[:3, :3], digits)
+    T[:3, 3] += (T[:3, :3] - R) @ (read_points(EXAMPLES / "bun045.ply").mean(axis=0) + UTM)
+    T[:3, :3] = R
+    (folder / "gt.txt").write_text("\n".join(" ".join(f"{v:.10f}" for v in row) for row in T) + "\n")
+    return folder / "bun045.ply", folder / "bun000.ply", folder / "gt.txt"

@@ -16,7 +16,7 @@ from o3dsoft.config import RegisterConfig
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.io import write_transform
 
-from .conftest import apply, blob, random_transform
+from .conftest import apply, blob, georeferenced_bunny, random_transform
 
 CONFIG = RegisterConfig()
 
@@ -272,3 +272,12 @@ def test_a_pair_registers_from_its_initial_guess(tmp_path, pairs_file, monkeypat
     (tmp_path / "skew.txt").write_text("1 1 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     row = run_job(PairJob(job.line, job.source, job.target, job.transform, str(tmp_path / "skew.txt")), CONFIG)
     assert row["status"] == "failed" and "skew.txt: not a rigid transform" in row["error"]
+
+
+def test_a_row_measures_georeferenced_errors_as_register_does(tmp_path):
+    """Clouds 4e6 units from their frame's origin, a truth rounded as published truths are: the
+    row's errors are taken about the target, the truth made exact about the source."""
+    source, target, truth = georeferenced_bunny(tmp_path)
+    row = run_job(PairJob(1, str(source), str(target), str(truth)), CONFIG)
+    assert row["status"] == "ok" and not row["likely_failed"]
+    assert row["rotation_error_deg"] < 1.0 and row["translation_error"] < 0.002  # the bunny is 0.2 units across

@@ -19,7 +19,7 @@ from o3dsoft.metrics import pair_errors
 from o3dsoft.preprocess import scene_size
 from o3dsoft.transforms import apply_transform, rotation_angle_deg
 
-from .conftest import EXAMPLES
+from .conftest import EXAMPLES, georeferenced_bunny
 
 
 def _bench(args):
@@ -951,3 +951,15 @@ def test_overlap_only_keeps_the_points_near_the_other_cloud_each_part_centred():
     assert np.allclose(s.mean(0), 0) and np.allclose(t.mean(0), 0)
     whole = overlap_only(source, target + 100.0, T, min_points=4)  # no overlap: the clouds as they are
     assert np.array_equal(whole[0], source) and np.array_equal(whole[1], target + 100.0)
+
+
+def test_a_folders_rounded_truth_moves_its_georeferenced_source_where_the_file_does(tmp_path):
+    from o3dsoft.bench import scan_folder
+    from o3dsoft.preprocess import local_origin
+
+    source, _, truth = georeferenced_bunny(tmp_path)
+    (tmp_path / "pairs.txt").write_text("bun045.ply bun000.ply gt.txt\n")
+    (pair,) = scan_folder(tmp_path).pairs
+    centre = local_origin(pair.source)
+    written = np.loadtxt(truth)
+    assert np.linalg.norm(centre) > 1e6 and np.linalg.norm(apply_transform(pair.transform, centre[None]) - apply_transform(written, centre[None])) < 1e-6

@@ -9,7 +9,7 @@ from click.testing import CliRunner
 from o3dsoft.cli.main import main
 from o3dsoft.io import read_points, read_transform, write_points, write_transform
 
-from .conftest import EXAMPLES, apply, blob, random_transform
+from .conftest import EXAMPLES, apply, blob, georeferenced_bunny, random_transform
 
 
 @pytest.fixture
@@ -116,14 +116,9 @@ def test_register_says_how_many_points_cleaning_dropped_and_why(pair_files, tiny
 
 def test_register_measures_the_errors_of_georeferenced_clouds_about_the_target(tmp_path):
     # About the frame's origin, 4e6 units away, the bunny's 0.07 degrees of rotation error would
-    # move it by 5,000 units: the translation errors are taken about the target, as registered.
-    utm = np.array([512_345.0, 4_123_456.0, 231.0])
-    S = np.eye(4)
-    S[:3, 3] = utm
-    for name in ("bun045", "bun000"):
-        write_points(tmp_path / f"{name}.ply", read_points(EXAMPLES / f"{name}.ply") + utm)
-    write_transform(tmp_path / "gt.txt", S @ read_transform(EXAMPLES / "bun045_to_bun000.txt") @ np.linalg.inv(S))
-    r = run("register", tmp_path / "bun045.ply", tmp_path / "bun000.ply", "--gt", tmp_path / "gt.txt", "--json")
+    # move it by 5,000 units: the translation errors are taken about the target, as registered;
+    # and the truth's rotation, rounded to 6 decimals, is made exact about the source.
+    r = run("register", *georeferenced_bunny(tmp_path)[:2], "--gt", tmp_path / "gt.txt", "--json")
     assert r.exit_code == 0, r.output
     final = json.loads(r.output)["errors"]["final"]
     assert 0.01 < final["rotation_deg"] < 1.0 and final["translation"] < 0.002  # the bunny is 0.2 units across

@@ -4,7 +4,18 @@ import pytest
 import trimesh
 
 from o3dsoft.errors import InputError, UsageError
-from o3dsoft.io import LAS_RESOLUTION, read_attributes, read_points, read_scans, read_transform, sample_mesh, write_moved, write_points, write_transform
+from o3dsoft.io import (
+    LAS_RESOLUTION,
+    read_attributes,
+    read_points,
+    read_poses,
+    read_scans,
+    read_transform,
+    sample_mesh,
+    write_moved,
+    write_points,
+    write_transform,
+)
 from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid
 
 from .conftest import blob
@@ -310,6 +321,37 @@ def test_transform_text_formats(tmp_path):
     write_transform(tmp_path / "t.txt", T)
     assert np.allclose(read_transform(tmp_path / "t.npy"), T)
     assert np.allclose(read_transform(tmp_path / "t.txt"), T)
+
+
+def _rounded_georeferenced_truth(rng, folder, digits=6):
+    """A truth of clouds 5e6 units from their frame's origin, written with `digits` decimals of
+    its rotation (as published truths are) and its translation in full: ((4, 4) as written, the
+    file, a point of the source)."""
+    utm = np.array([500_000.0, 5_000_000.0, 300.0])
+    S = np.eye(4)
+    S[:3, 3] = utm
+    T = S @ rigid(euler_to_matrix(rng.uniform(-40.0, 40.0, 3)), rng.uniform(-5.0, 5.0, 3)) @ np.linalg.inv(S)
+    T[:3, :3] = np.round(T[:3, :3], digits)
+    T[:3, 3] = utm - T[:3, :3] @ utm + rng.uniform(-5.0, 5.0, 3)  # the rounded rotation's own translation
+    path = folder / "gt.txt"
+    path.write_text("\n".join(" ".join(f"{v:.{digits if c < 3 and r < 3 else 10}f}" for c, v in enumerate(row)) for r, row in enumerate(T)) + "\n")
+    return np.loadtxt(path), path, utm + rng.uniform(-20.0, 20.0, 3)
+
+
+def test_a_rounded_rotation_made_exact_still_moves_the_clouds_where_the_file_does(tmp_path):
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        written, path, centre = _rounded_georeferenced_truth(rng, tmp_path)
+        exact = read_transform(path, about=centre)
+        assert np.allclose(exact[:3, :3].T @ exact[:3, :3], np.eye(3), atol=1e-12)
+        assert np.linalg.norm(apply_transform(exact, centre[None]) - apply_transform(written, centre[None])) < 1e-6
+        # Made exact about the frame's origin, the same rotation moves the clouds by metres.
+        assert np.linalg.norm(apply_transform(read_transform(path), centre[None]) - apply_transform(written, centre[None])) > 0.05
+    # A poses file's (KITTI's 3x4 per line), each pose about its own scan.
+    truths = [_rounded_georeferenced_truth(rng, tmp_path) for _ in range(2)]
+    (tmp_path / "poses.txt").write_text("".join(" ".join(f"{v:.10f}" for v in written[:3].ravel()) + "\n" for written, _, _ in truths))
+    for (written, _, centre), pose in zip(truths, read_poses(tmp_path / "poses.txt", ["a", "b"], [c for _, _, c in truths])):
+        assert np.linalg.norm(apply_transform(pose, centre[None]) - apply_transform(written, centre[None])) < 1e-6
 
 
 @pytest.mark.parametrize(
