@@ -377,6 +377,11 @@ def register(
     if out_path is not None:
         io.write_moved(out_path, source, src, result.transformation)  # with the source's colours, normals, LAS dimensions
         click.echo(f"Aligned source: {out_path}", err=as_json)
+        if out_path.suffix.lower() == ".pcd" and io.pcd_needs_doubles(src):
+            click.echo(
+                f"Note: {out_path} holds x, y, z as float64 (float32 would round them this far from the origin); PCL and CloudCompare read it, Open3D 0.20 reads zeros: use .ply for it",
+                err=True,
+            )
     if save_transform is not None:
         io.write_transform(save_transform, result.transformation)
         click.echo(f"Transform: {save_transform}", err=as_json)

@@ -135,9 +135,9 @@ def _least_face_bytes(properties) -> int:
     return least
 
 
-def _check_pcd(path: Path) -> None:
-    """Raise InputError where a PCD file of ascii or binary data ends before its last point:
-    Open3D reads the missing points of an ascii file as zeros."""
+def _pcd_header(path: Path) -> Optional[Tuple[Dict[str, List[str]], int]]:
+    """A PCD file's header lines by keyword (FIELDS, SIZE, TYPE, COUNT, POINTS, DATA, ...) and
+    the offset of the first byte after it; None where no DATA line ends it."""
     with open(path, "rb") as f:
         head = f.read(65536)
     fields, data_start = {}, -1
@@ -147,24 +147,74 @@ def _check_pcd(path: Path) -> None:
         if words and not words[0].startswith("#"):
             fields[words[0].upper()] = words[1:]
         if words[:1] == ["DATA"]:
-            break
-    else:
+            return fields, data_start + 1
+    return None
+
+
+def _pcd_record(fields: Dict[str, List[str]]) -> Optional[np.dtype]:
+    """The numpy record of one point of a binary PCD of these header `fields`; None where the
+    header does not describe one (Open3D then says what is wrong)."""
+    names, sizes, types = fields.get("FIELDS", []), fields.get("SIZE", []), fields.get("TYPE", [])
+    counts = fields.get("COUNT", ["1"] * len(names))
+    kinds = {("F", "4"): "<f4", ("F", "8"): "<f8", ("I", "1"): "i1", ("I", "2"): "<i2", ("I", "4"): "<i4", ("I", "8"): "<i8"}
+    kinds.update({("U", "1"): "u1", ("U", "2"): "<u2", ("U", "4"): "<u4", ("U", "8"): "<u8"})
+    if not names or not len(names) == len(sizes) == len(types) == len(counts) or not all(c.isdigit() and int(c) > 0 for c in counts):
+        return None
+    if any((t.upper(), z) not in kinds for t, z in zip(types, sizes)):
+        return None
+    return np.dtype([(f"{k}_{name}", kinds[t.upper(), z], (int(c),)) for k, (name, z, t, c) in enumerate(zip(names, sizes, types, counts))])
+
+
+def _check_pcd(path: Path) -> None:
+    """Raise InputError where a PCD file of ascii or binary data ends before its last point:
+    Open3D reads the missing points of an ascii file as zeros."""
+    found = _pcd_header(path)
+    if found is None:
         return
+    fields, data_start = found
     form, count = fields["DATA"][:1], fields.get("POINTS", [""])[0]
     if not count.isdigit():
         return
     count = int(count)
     if form == ["ascii"]:
-        have = _lines_from(path, data_start + 1)
+        have = _lines_from(path, data_start)
     elif form == ["binary"]:
         try:
             row = sum(int(size) * int(n) for size, n in zip(fields["SIZE"], fields.get("COUNT", ["1"] * len(fields["SIZE"]))))
         except (KeyError, ValueError):
             return
-        have = (path.stat().st_size - data_start - 1) // row if row > 0 else count
+        have = (path.stat().st_size - data_start) // row if row > 0 else count
     else:  # compressed: Open3D's reader refuses a cut one
         return
     _check_whole(path, count, have, "points")
+
+
+def _read_wide_pcd(path: Path) -> Optional[np.ndarray]:
+    """(N, 3) float64 x, y, z of a PCD file whose coordinates are 8-byte floats, which Open3D's
+    binary reader returns as other numbers (PCL writes them for georeferenced clouds); None for
+    other PCD files (Open3D reads them).
+
+    Raises:
+        InputError: such coordinates in compressed data (not read here).
+    """
+    found = _pcd_header(path)
+    if found is None:
+        return None
+    fields, data_start = found
+    wide = {name for name, size, kind in zip(fields.get("FIELDS", []), fields.get("SIZE", []), fields.get("TYPE", [])) if (size, kind.upper()) == ("8", "F")}
+    if not wide & {"x", "y", "z"} or fields["DATA"][:1] == ["ascii"]:
+        return None
+    if fields["DATA"][:1] != ["binary"]:
+        raise InputError(
+            f"{path}: x, y, z are 8-byte floats in {' '.join(fields['DATA'])} data, which o3dsoft does not read; save it with DATA binary or ascii"
+        )
+    record = _pcd_record(fields)
+    if record is None or not {"x", "y", "z"} <= set(fields["FIELDS"]):
+        raise InputError(f"{path}: PCD header does not describe x, y, z fields (FIELDS, SIZE, TYPE, COUNT)")
+    count = int(fields.get("POINTS", ["0"])[0]) if fields.get("POINTS", ["0"])[0].isdigit() else 0
+    rows = np.fromfile(path, dtype=record, count=count, offset=data_start)
+    column = {name: record.names[k] for k, name in enumerate(fields["FIELDS"])}
+    return np.column_stack([rows[column[c]][:, 0] for c in "xyz"]).astype(np.float64)
 
 
 def _check_off(path: Path) -> None:
@@ -291,6 +341,11 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
     o3d = _o3d()
     if ext in _WHOLE_CHECKS:
         _WHOLE_CHECKS[ext](path)
+    wide = _read_wide_pcd(path) if ext == ".pcd" else None
+    if wide is not None:
+        if len(wide) == 0:
+            raise InputError(f"{path}: parsed to 0 points; is it a valid PCD point cloud?")
+        return wide
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
         with quiet_c_output():
             mesh = o3d.io.read_triangle_mesh(str(path))
@@ -671,6 +726,21 @@ def _umask() -> int:
     return mask
 
 
+PCD_ROUNDING = 1e-6  # the share of a cloud's extent float32 may round its coordinates by in a PCD file
+
+
+def pcd_needs_doubles(points: np.ndarray) -> bool:
+    """Whether float32 would round the (N, 3) points by more than PCD_ROUNDING of their extent
+    (clouds far from their frame's origin: at 5e6 m from it, float32 steps by 0.5 m), so that a
+    PCD file of them holds float64 x, y, z. Open3D 0.20 reads those as zeros; PCL, CloudCompare
+    and o3dsoft read them."""
+    finite = points[np.isfinite(points).all(axis=1)]
+    if len(finite) == 0:
+        return False
+    rounding = float(np.abs(finite.astype(np.float32).astype(np.float64) - finite).max())
+    return rounding > PCD_ROUNDING * float(np.linalg.norm(finite.max(axis=0) - finite.min(axis=0)))
+
+
 def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray] = None, normals: Optional[np.ndarray] = None) -> Path:
     """Write (N, 3) points to any of the point formats (by extension), atomically; with (N, 3)
     `colors` (0-1) and `normals` where the format holds them (colours: .ply, .pcd; normals: .ply,
@@ -679,7 +749,8 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
     The files are written here rather than by Open3D, whose writers report success after a
     failed write (a full disk left a truncated file): binary little-endian PLY of float64
     coordinates (normals float64, colours 8-bit), PCD of float32 (as Open3D writes them: its reader
-    takes no other; colours packed in one 'rgb' field), and text with 10 decimals (.pts: the
+    takes no other; colours packed in one 'rgb' field) unless float32 would move the points
+    (:func:`pcd_needs_doubles`: then x, y, z are float64, as PCL writes them), and text with 10 decimals (.pts: the
     point count first; .xyzn: the normals that format carries, estimated from 30 neighbours where
     none are given), and LAS 1.4 of point format 0 at a 1e-4-unit step (0.1 mm for metres)."""
     path = Path(path)
@@ -713,23 +784,31 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
             )
             f.write(header.encode("ascii") + rows.tobytes())
         elif ext == ".pcd":
-            columns = [points.astype("<f4")] + ([] if normals is None else [np.asarray(normals).astype("<f4")])
-            if rgb is not None:  # PCD's packed colour: 0x00RRGGBB read as a float32
-                packed = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2].astype(np.uint32)
-                columns.append(packed.astype("<u4").view("<f4")[:, None])
-            names = ["x", "y", "z"] + ([] if normals is None else ["normal_x", "normal_y", "normal_z"]) + ([] if rgb is None else ["rgb"])
-            n, k = len(points), len(names)
+            coordinate = "<f8" if pcd_needs_doubles(points) else "<f4"
+            fields = [(c, coordinate) for c in "xyz"] + ([] if normals is None else [(f"normal_{c}", "<f4") for c in "xyz"])
+            fields += [] if rgb is None else [("rgb", "<u4")]  # PCD's packed colour: 0x00RRGGBB read as a float32
+            rows = np.empty(len(points), dtype=fields)
+            for k, c in enumerate("xyz"):
+                rows[c] = points[:, k]
+                if normals is not None:
+                    rows[f"normal_{c}"] = np.asarray(normals)[:, k]
+            if rgb is not None:
+                rows["rgb"] = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2].astype(np.uint32)
+            n, k = len(points), len(fields)
             header = (
-                f"# .PCD v0.7\nVERSION 0.7\nFIELDS {' '.join(names)}\nSIZE {' '.join(['4'] * k)}\nTYPE {' '.join(['F'] * k)}\n"
-                f"COUNT {' '.join(['1'] * k)}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+                f"# .PCD v0.7\nVERSION 0.7\nFIELDS {' '.join(name for name, _ in fields)}\nSIZE {' '.join(t[-1] for _, t in fields)}\n"
+                f"TYPE {' '.join(['F'] * k)}\nCOUNT {' '.join(['1'] * k)}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
             )
-            f.write(header.encode("ascii") + np.hstack(columns).astype("<f4").tobytes())
+            f.write(header.encode("ascii") + rows.tobytes())
         else:
             columns = points
             if ext == ".xyzn":
                 if normals is None:
                     o3d = _o3d()
-                    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+                    finite = points[np.isfinite(points).all(axis=1)]
+                    centre = np.median(finite, axis=0) if len(finite) else np.zeros(3)
+                    centred = points - centre  # far from the origin (georeferenced), Open3D's float sums lose the surface
+                    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centred))
                     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
                     normals = np.asarray(cloud.normals)
                 columns = np.hstack([points, normals])

@@ -5,6 +5,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from click.testing import CliRunner
+from scipy.spatial import cKDTree
 
 from o3dsoft.cli.main import main
 from o3dsoft.io import read_points, read_transform, write_points, write_transform
@@ -118,10 +119,15 @@ def test_register_measures_the_errors_of_georeferenced_clouds_about_the_target(t
     # About the frame's origin, 4e6 units away, the bunny's 0.07 degrees of rotation error would
     # move it by 5,000 units: the translation errors are taken about the target, as registered;
     # and the truth's rotation, rounded to 6 decimals, is made exact about the source.
-    r = run("register", *georeferenced_bunny(tmp_path)[:2], "--gt", tmp_path / "gt.txt", "--json")
+    source, target, _ = georeferenced_bunny(tmp_path)
+    r = CliRunner().invoke(main, ["register", str(source), str(target), "--gt", str(tmp_path / "gt.txt"), "--json", "--out", str(tmp_path / "a.pcd")])
     assert r.exit_code == 0, r.output
-    final = json.loads(r.output)["errors"]["final"]
+    final = json.loads(r.stdout)["errors"]["final"]
     assert 0.01 < final["rotation_deg"] < 1.0 and final["translation"] < 0.002  # the bunny is 0.2 units across
+    # The aligned source in PCD: float32 would round it by up to 0.25 units there.
+    assert "holds x, y, z as float64" in r.stderr
+    aligned, goal = read_points(tmp_path / "a.pcd"), read_points(target)
+    assert np.median(cKDTree(goal).query(aligned)[0]) < 0.001
 
 
 def test_an_error_o3dsoft_does_not_check_for_is_one_line_unless_a_traceback_is_asked(pair_files, tiny_model_path, monkeypatch):

@@ -534,3 +534,41 @@ def test_a_broken_e57_is_refused_in_one_line(tmp_path):
     with pytest.raises(InputError, match="broken.e57: not a readable E57 file") as info:
         read_scans(path)
     assert "\n" not in str(info.value)
+
+
+def test_clouds_far_from_their_origin_keep_their_points_and_normals_in_pcd_and_xyzn(tmp_path, pts):
+    far = pts + [500_000.0, 5_000_000.0, 300.0]  # georeferenced: float32 steps by 0.5 units there
+    for name, cloud, size in (("near.pcd", pts, "SIZE 4 4 4"), ("far.pcd", far, "SIZE 8 8 8")):
+        write_points(tmp_path / name, cloud, colors=np.full(cloud.shape, 0.5))
+        assert size in (tmp_path / name).read_bytes()[:300].decode("ascii", errors="replace")
+        assert np.allclose(read_points(tmp_path / name), cloud, rtol=0, atol=1e-6)
+        assert np.allclose(read_attributes(tmp_path / name, len(cloud)).colors, 128 / 255)
+    write_points(tmp_path / "near.xyzn", pts)
+    write_points(tmp_path / "far.xyzn", far)
+    near, moved = np.loadtxt(tmp_path / "near.xyzn")[:, 3:], np.loadtxt(tmp_path / "far.xyzn")[:, 3:]
+    assert np.all(np.abs(np.sum(near * moved, axis=1)) > 0.999)  # the same surface, the same normals
+
+
+def _pcd(path, fields, rows, data="binary"):
+    """A PCD file of the numpy record `rows`, whose fields are (name, SIZE, TYPE) in `fields`."""
+    header = (
+        f"VERSION 0.7\nFIELDS {' '.join(f[0] for f in fields)}\nSIZE {' '.join(str(f[1]) for f in fields)}\nTYPE {' '.join(f[2] for f in fields)}\n"
+        f"COUNT {' '.join('1' for _ in fields)}\nWIDTH {len(rows)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(rows)}\nDATA {data}\n"
+    )
+    path.write_bytes(header.encode("ascii") + rows.tobytes())
+    return path
+
+
+def test_a_pcd_of_double_coordinates_is_read_as_written(tmp_path, pts):
+    """PCL writes 8-byte x, y, z (georeferenced clouds); Open3D's binary reader gives other numbers."""
+    rows = np.zeros(len(pts), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("intensity", "<f4"), ("ring", "<u2")])
+    far = pts + [500_000.0, 5_000_000.0, 300.0]
+    rows["x"], rows["y"], rows["z"] = far.T
+    fields = [("x", 8, "F"), ("y", 8, "F"), ("z", 8, "F"), ("intensity", 4, "F"), ("ring", 2, "U")]
+    assert np.array_equal(read_points(_pcd(tmp_path / "wide.pcd", fields, rows)), far)
+    with pytest.raises(InputError, match="compressed.pcd: x, y, z are 8-byte floats in binary_compressed data"):
+        read_points(_pcd(tmp_path / "compressed.pcd", fields, rows, data="binary_compressed"))
+    cut = _pcd(tmp_path / "cut.pcd", fields, rows)
+    cut.write_bytes(cut.read_bytes()[: -50 * rows.itemsize])
+    with pytest.raises(InputError, match="cut.pcd: the header declares 200 points, but the file ends after 150"):
+        read_points(cut)
