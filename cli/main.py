@@ -88,6 +88,13 @@ def _apply_options(options, fn):
     return fn
 
 
+def _a_number(ctx, param, value):
+    """A float option's value, refused where it is NaN (click's ranges let it through)."""
+    if value is not None and value != value:
+        raise click.BadParameter("nan is not a number")
+    return value
+
+
 def _pipeline_options(fn):
     """o3dsoft's pipeline settings, declared once for `register` and every bench command (each
     a field of RegisterConfig, see :func:`_register_config`)."""
@@ -160,7 +167,7 @@ def _pipeline_options(fn):
                 show_default=True,
                 help="For clouds that share no point and may be turned by any rotation: where the second network's pose is flagged on two complete-looking clouds, run it from this many of the other 23 rotations of a cube too (4: the measured setting; see docs/incongruent.md); 0: off.",
             ),
-            click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, help=MAX_ROTATION_HELP),
+            click.option("--max-rotation", type=click.FloatRange(min=0, max=180, min_open=True), default=None, callback=_a_number, help=MAX_ROTATION_HELP),
         ],
         fn,
     )
@@ -243,8 +250,8 @@ def _register_config(
 @click.option(
     "--icp-distance",
     type=click.FloatRange(min=0, min_open=True),
-    default=0.1,
-    show_default=True,
+    default=None,
+    show_default="0.1",
     help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute (the confidence measures at 0.1 of the radius whatever this).",
 )
 @click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
@@ -294,7 +301,9 @@ def register(
     scan) or meshes (OFF, OBJ, STL, PLY with faces), sampled on their faces. With --pairs, every
     pair of a file, one CSV row each (a run stopped half-way resumes from its --out file).
     """
-    icp = dict(distance=icp_distance, absolute=icp_absolute, method=icp_method)
+    if icp_absolute and icp_distance is None:
+        raise click.UsageError("--icp-absolute needs --icp-distance, in the clouds' units")
+    icp = dict(distance=0.1 if icp_distance is None else icp_distance, absolute=icp_absolute, method=icp_method)
     if pairs_path is not None:
         given = [
             name
@@ -330,6 +339,10 @@ def register(
     for opt, p in (("--out", out_path), ("--render", render_path)):
         if p is not None and (p.suffix == "" or p.is_dir()):
             raise click.UsageError(f"{opt} {p}: {'is a folder; ' if p.is_dir() else ''}give a file name with an extension")
+    if render_path is not None and render_path.suffix.lower() != ".png":
+        raise click.UsageError(f"--render {render_path}: give a .png file name")
+    if save_transform is not None and save_transform.suffix.lower() in set(io.READ_EXTENSIONS + (".png",)) - {".txt", ".csv", ".npy"}:
+        raise click.UsageError(f"--save-transform {save_transform}: a transform is written as text (.txt) or .npy, not as {save_transform.suffix}")
     if out_path is not None:
         io.check_extension(out_path, io.WRITE_EXTENSIONS, "--out")
     io.check_outputs_apart(
@@ -408,18 +421,21 @@ def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num
     failed to run."""
     from tqdm import tqdm
 
-    from ..batch import done_lines, model_for, read_pair_jobs, reusable_rows, run_jobs
+    from ..batch import check_results_belong, done_lines, model_for, read_pair_jobs, reusable_rows, run_jobs
     from ..refine import ICPConfig
 
     jobs = read_pair_jobs(pairs_path)
     config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
     model_for(config)  # a bad --weights fails here, once, not on every row; a run in this process reuses it
     done = done_lines(out_path)
+    check_results_belong(jobs, done, out_path)
     skipped = len(reusable_rows(jobs, done))
     again = sum(j.line in done for j in jobs) - skipped
-    if skipped or again:
+    dropped = len(set(done) - {j.line for j in jobs})
+    if skipped or again or dropped:
         rerun = f"; {again} run again (their line names other files now, or they failed)" if again else ""
-        click.echo(f"Resuming: {skipped} of {len(jobs)} pairs already in {out_path}{rerun}", err=True)
+        gone = f"; {dropped} rows of lines the pairs file no longer has are dropped" if dropped else ""
+        click.echo(f"Resuming: {skipped} of {len(jobs)} pairs already in {out_path}{rerun}{gone}", err=True)
     bar = tqdm(total=len(jobs) - skipped, unit="pair", disable=True if no_progress else None, dynamic_ncols=True)
     try:
         rows = run_jobs(jobs, config, out_path, workers=workers, ray=ray_address, progress=lambda row: bar.update(1), done=done)

@@ -173,6 +173,25 @@ def reusable_rows(jobs: Sequence[PairJob], rows: Dict[int, dict]) -> Dict[int, d
     return kept
 
 
+def check_results_belong(jobs: Sequence[PairJob], rows: Dict[int, dict], results) -> None:
+    """Refuse to resume a results file none of whose rows (:func:`done_lines`) names the source
+    and target its line names in `jobs`: the results of another pairs file, which the run would
+    replace.
+
+    Raises:
+        InputError: naming the file and how many rows it holds.
+    """
+    lines = {job.line: job for job in jobs}
+    ours = [
+        line for line, row in rows.items() if line in lines and _same_file(row["source"], lines[line].source) and _same_file(row["target"], lines[line].target)
+    ]
+    if rows and not ours:
+        raise InputError(
+            f"{results}: holds the results of other pairs (none of its {len(rows)} rows names the files its line names here); "
+            "choose another --out, or remove it to start again"
+        )
+
+
 def _same_file(a: str, b: str) -> bool:
     """Two file names of a results row ("" for none) name the same file (relative to the
     working folder; the pairs file may have been given by another path)."""
@@ -246,7 +265,9 @@ def run_jobs(
     task = task or run_job
     if len({j.line for j in jobs}) != len(jobs):
         raise InputError("two pairs share a line number")
-    rows = reusable_rows(jobs, done_lines(results) if done is None else done)
+    done = done_lines(results) if done is None else done
+    check_results_belong(jobs, done, results)
+    rows = reusable_rows(jobs, done)
     todo = [j for j in jobs if j.line not in rows]
     ray_module = _ray_connect(ray) if ray is not None else None  # before any file is written
     out = ResultsFile(results, rows)

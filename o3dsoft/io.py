@@ -575,15 +575,13 @@ def _las_xyz(las) -> np.ndarray:
 
 def _write_las(f, points: np.ndarray) -> None:
     """LAS 1.4, point format 0, coordinates stored as integers of LAS_RESOLUTION from the
-    cloud's lowest corner."""
+    cloud's lowest corner (coarser only where the cloud spans more than 2^31 steps)."""
     import laspy
 
     header = laspy.LasHeader(point_format=0, version="1.4")
     header.offsets = np.floor(points.min(axis=0)) if len(points) else np.zeros(3)
-    header.scales = np.full(3, LAS_RESOLUTION)
-    span = (points.max(axis=0) - header.offsets) / LAS_RESOLUTION if len(points) else np.zeros(3)
-    if (span >= 2**31).any():
-        raise InputError(f"the cloud spans {span.max() * LAS_RESOLUTION:.3g} units, more than LAS holds at a {LAS_RESOLUTION:g}-unit step")
+    span = points.max(axis=0) - header.offsets if len(points) else np.zeros(3)
+    header.scales = np.maximum(LAS_RESOLUTION, (span + 1.0) / (2**31 - 1))
     las = laspy.LasData(header)
     las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
     las.write(f)
@@ -752,7 +750,7 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
     takes no other; colours packed in one 'rgb' field) unless float32 would move the points
     (:func:`pcd_needs_doubles`: then x, y, z are float64, as PCL writes them), and text with 10 decimals (.pts: the
     point count first; .xyzn: the normals that format carries, estimated from 30 neighbours where
-    none are given), and LAS 1.4 of point format 0 at a 1e-4-unit step (0.1 mm for metres)."""
+    none are given), and LAS 1.4 of point format 0 at a 1e-4-unit step (0.1 mm for metres; coarser where the cloud spans more than 2^31 steps)."""
     path = Path(path)
     ext = check_extension(path, WRITE_EXTENSIONS, "writing points")
     points = np.ascontiguousarray(points, dtype=np.float64)

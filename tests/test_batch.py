@@ -189,6 +189,23 @@ def test_a_results_file_of_another_kind_is_not_overwritten(tmp_path, pairs_file)
     assert other.read_text() == "name,value\na,1\n"
 
 
+def test_the_results_of_another_pairs_file_are_not_replaced(tmp_path, pairs_file):
+    data = pairs_file.parent
+    results = tmp_path / "r.csv"
+    (tmp_path / "one.txt").write_text(f"{data}/s0.npy {data}/t0.npy\n{data}/s1.npy {data}/t1.npy\n")
+    (tmp_path / "other.txt").write_text(f"{data}/s2.npy {data}/t2.npy\n{data}/s3.npy {data}/t3.npy\n")
+    run_jobs(read_pair_jobs(tmp_path / "one.txt"), CONFIG, results)
+    before = results.read_text()
+    with pytest.raises(InputError, match="r.csv: holds the results of other pairs \\(none of its 2 rows names the files its line names here\\)"):
+        run_jobs(read_pair_jobs(tmp_path / "other.txt"), CONFIG, results)
+    assert results.read_text() == before
+    # The same file with a line left out: the rows of the lines it has are kept, the others dropped, and said so.
+    (tmp_path / "one.txt").write_text(f"{data}/s0.npy {data}/t0.npy\n")
+    r = CliRunner().invoke(main, ["register", "--pairs", str(tmp_path / "one.txt"), "--out", str(results), "--no-progress"])
+    assert r.exit_code == 0 and "Resuming: 1 of 1 pairs already in" in r.stderr and "1 rows of lines the pairs file no longer has are dropped" in r.stderr
+    assert list(_rows(results)) == [1]
+
+
 @pytest.mark.parametrize("ray, died", [(None, "its worker process died twice"), ("local", "its Ray actor died twice")], ids=["pool", "ray"])
 def test_a_crashed_worker_is_retried_once_then_reported(tmp_path, pairs_file, ray, died):
     if ray:

@@ -237,6 +237,10 @@ def test_no_refine(pair_files, tiny_model_path):
         (lambda d: (d / "v.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"), ["v.obj", "tgt.pcd"], 1, "v.obj: mesh has 4 vertices but no faces"),
         (None, ["src.ply", "tgt.pcd", "--device", "tpu9"], 2, "invalid device 'tpu9'"),
         (None, ["src.ply", "tgt.pcd", "--max-rotation", "270"], 2, "Invalid value for '--max-rotation'"),
+        (None, ["src.ply", "tgt.pcd", "--max-rotation", "nan"], 2, "Invalid value for '--max-rotation': nan is not a number"),
+        (None, ["src.ply", "tgt.pcd", "--icp-absolute"], 2, "--icp-absolute needs --icp-distance, in the clouds' units"),
+        (None, ["src.ply", "tgt.pcd", "--render", "fig.txt"], 2, "--render fig.txt: give a .png file name"),
+        (None, ["src.ply", "tgt.pcd", "--save-transform", "T.ply"], 2, "--save-transform T.ply: a transform is written as text (.txt) or .npy, not as .ply"),
         (None, ["src.ply", "tgt.pcd", "--second-turns", "24"], 2, "Invalid value for '--second-turns'"),
     ],
 )

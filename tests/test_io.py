@@ -572,3 +572,12 @@ def test_a_pcd_of_double_coordinates_is_read_as_written(tmp_path, pts):
     cut.write_bytes(cut.read_bytes()[: -50 * rows.itemsize])
     with pytest.raises(InputError, match="cut.pcd: the header declares 200 points, but the file ends after 150"):
         read_points(cut)
+
+
+def test_a_las_of_a_cloud_spanning_more_than_its_integers_hold_at_the_finest_step_is_written_coarser(tmp_path, pts):
+    wide = pts * 1e5  # about 5e5 units across: over 2^31 steps of 1e-4
+    write_points(tmp_path / "wide.las", wide)
+    step = (np.ptp(wide, axis=0) + 1.0) / (2**31 - 1)
+    assert np.all(np.abs(read_points(tmp_path / "wide.las") - wide) <= step)
+    write_points(tmp_path / "small.las", pts)
+    assert np.all(np.abs(read_points(tmp_path / "small.las") - pts) <= LAS_RESOLUTION / 2 + 1e-12)
