@@ -1055,7 +1055,8 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common):
     titles, recall, description = {}, {}, []
     for scans in folders:
         name = scans.name
-        click.echo(f"{name}: {len(scans.pairs)} of {len(scans.table)} pairs ({scans.kind})", err=True)
+        guess = "" if scans.guessed_from is None else f", from its first scan's size, {scans.guessed_from:.3g} units taken as metres: --kind if they are not"
+        click.echo(f"{name}: {len(scans.pairs)} of {len(scans.table)} pairs ({scans.kind}{guess})", err=True)
         for file, count in scans.left_out:
             click.echo(f"  {file}: {count} points with a non-finite coordinate left out", err=True)
         if not scans.pairs:

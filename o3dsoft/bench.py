@@ -184,6 +184,7 @@ class ScanFolder(NamedTuple):
     recall: Tuple[Tuple[float, float], ...]
     table: List[dict]
     left_out: Tuple[Tuple[str, int], ...] = ()
+    guessed_from: Optional[float] = None  # the first scan's size (units) `kind` was guessed from, taken as metres; None: given
 
 
 def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> ScanFolder:
@@ -243,8 +244,9 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> S
         if keep:
             pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{s.stem}->{t.stem}"))
     size = scene_size(next(iter(clouds.values())))  # of the first scan
+    guessed = size if kind == "auto" else None
     kind = guess_kind(size) if kind == "auto" else kind
-    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size), table, left_out)
+    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size), table, left_out, guessed)
 
 
 def turned_pairs(pairs: Sequence[BenchPair], turns: int, seed: int = 0) -> List[BenchPair]:

@@ -112,7 +112,9 @@ def assess(
     scorer = make_scorer() if make_scorer is not None else Scorer(source, target, distance)
     flatness = _flatness(scorer, transformation, moved.mean(axis=0), config.turn_deg)
     reason = None
-    if constraint < config.min_constraint:
+    if matched.sum() < 6:  # a correspondence distance far below the clouds' spacing (set by hand)
+        reason = f"under 6 points lie within {distance:.3g} units of the other cloud (ICP's correspondence distance): whether the surfaces fix the pose is not measured"
+    elif constraint < config.min_constraint:
         reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g})"
     elif flatness >= config.max_flatness:
         reason = f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): points that fill a volume or a ball do not determine the pose"

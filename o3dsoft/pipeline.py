@@ -592,6 +592,23 @@ def _select(verifier: Verifier) -> Attempt:
 _SEARCHED = "; the global search found nothing clearly better"
 
 
+def _apart_reason(best: Attempt, config: RegisterConfig) -> Optional[str]:
+    """Why a flagged pose does not bring the clouds into contact, in words: the rotation prior
+    (``max_rotation``) turned it away or left it as given, or the clouds barely touch; None where
+    it does (or the pose is trusted)."""
+    if best.trust >= config.confidence.likely_failed_below:
+        return None
+    bound = config.max_rotation
+    turn = rotation_angle_deg(best.fine.transformation[:3, :3])
+    if bound is not None and turn > bound:
+        return f"it rotates the source by {turn:.1f} degrees, beyond max_rotation {bound:g}"
+    if bound is not None and best.trust == 0.0 and best.scored.overlap >= config.confidence.min_overlap:
+        return f"ICP leaves max_rotation {bound:g} from every estimate, so the pose as given is returned unrefined"
+    if best.scored.overlap < config.confidence.min_overlap:
+        return f"the clouds barely touch: the points near the other cloud are {100 * best.scored.overlap:.0f} % of the smaller one"
+    return None
+
+
 def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, complete: bool = False, agreeing: Optional[Tuple[int, int]] = None) -> Optional[str]:
     """Why a result is flagged likely failed, in words (None when it is not). `complete`: both
     clouds look complete (:attr:`PreparedPair.complete`), so the share of them near each other
@@ -599,15 +616,8 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, compl
     confidence weighed it."""
     if best.trust >= config.confidence.likely_failed_below:
         return None
-    bound = config.max_rotation
-    turn = rotation_angle_deg(best.fine.transformation[:3, :3])
-    if bound is not None and turn > bound:
-        why = f"it rotates the source by {turn:.1f} degrees, beyond max_rotation {bound:g}"
-    elif bound is not None and best.trust == 0.0 and best.scored.overlap >= config.confidence.min_overlap:
-        why = f"ICP leaves max_rotation {bound:g} from every estimate, so the pose as given is returned unrefined"
-    elif best.scored.overlap < config.confidence.min_overlap:
-        why = f"the clouds barely touch: the points near the other cloud are {100 * best.scored.overlap:.0f} % of the smaller one"
-    else:
+    why = _apart_reason(best, config)
+    if why is None:
         why = f"of the points near the other cloud, only {100 * best.scored.consistency:.0f} % lie within {best.scored.tight_distance:.3g} units of it"
         if best.scored.planar >= 0:  # measured (scans)
             on = config.confidence.planar_tolerance * best.scored.tight_distance
@@ -637,7 +647,9 @@ def _result(
     trust = 0.0 if geometry.reason else best.trust  # however well it fits, the pose is not determined
     agreeing = verifier.agreeing(best)
     partial = choice_applies(pair) and confidence_stage.partial_confidence(best.scored, agreeing, config.confidence) > 0
-    reason = geometry.reason or _failure_reason(best, config, search_reason is not None, pair.complete, (agreeing, len(verifier.attempts)) if partial else None)
+    fit = _failure_reason(best, config, search_reason is not None, pair.complete, (agreeing, len(verifier.attempts)) if partial else None)
+    # The geometry's test says how firmly a pose that fits is held: not why one apart fails.
+    reason = fit if _apart_reason(best, config) else geometry.reason or fit
     if copy.reason:  # two poses fit as closely: the confidence is shared between them
         trust, reason = best.trust / 2, copy.reason
     back = 1.0 if target_side is None else confidence_stage.confidence(target_side, config.confidence)

@@ -283,6 +283,7 @@ def test_scan_pairs_from_a_conf(two_scans):
     assert scans.pairs[0].initial_angle == pytest.approx(scans.pairs[1].initial_angle)
     # A 20 cm object: 1 deg / 1 % of its size, and 5 deg / 5 %.
     assert scans.kind == "object" and scans.recall[0][0] == 1.0 and 0.0015 < scans.recall[0][1] < 0.003
+    assert 0.15 < scans.guessed_from < 0.3 and bench.scan_folder(two_scans, 0.3, kind="object").guessed_from is None  # guessed, or given
     assert bench.scan_folder(two_scans, 1.0).pairs == []
     (two_scans / "bun045.ply").unlink()
     with pytest.raises(InputError, match="scan 'bun045.ply' has no file"):
@@ -392,6 +393,7 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     assert r.exit_code == 0, r.output
     assert "room (rgbd: success within 2 deg / 0.05 and 15 deg / 0.3)" in r.output and "recall 15d/0.3" in r.output
     assert "scans (object: success within 1 deg / 0.0022" in r.output
+    assert "room: 1 of 1 pairs (rgbd, from its first scan's size, 4" in r.output and "units taken as metres: --kind if they are not)" in r.output
     summary = json.loads((tmp_path / "s" / "summary.json").read_text())
     assert summary["recall_thresholds"]["room"] == [{"rotation_deg": 2.0, "translation": 0.05}, {"rotation_deg": 15.0, "translation": 0.3}]
     rows = {(s["protocol"], s["method"]): s for s in summary["summaries"]}
@@ -456,7 +458,7 @@ def test_bench_bunny_command(two_scans, tmp_path):
     assert (
         register_config["voxel"] == 0.002 and register_config["search"]["restart"]["enabled"] is True and register_config["search"]["features"]["stop"] == 0.9
     )
-    assert "scans: 2 of 2 pairs (object)" in r.output and "recall 1d/0.002" in r.output
+    assert "scans: 2 of 2 pairs (object)" in r.output and "recall 1d/0.002" in r.output  # bench bunny: objects, not guessed
     summary = json.loads((tmp_path / "b" / "summary.json").read_text())
     o3d_row = [s for s in summary["summaries"] if s["method"] == "o3dsoft"][0]
     assert o3d_row["rotation_deg_median"] < 2.0  # the shipped model + ICP on real scans 45 degrees apart

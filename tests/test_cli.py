@@ -458,6 +458,15 @@ def test_register_help_lists_only_the_formats_it_writes():
     assert listed == {"ply", "pcd", "xyz", "xyzn", "pts", "npy"}
 
 
+def test_a_result_the_fit_does_not_trust_is_flagged_for_the_fit_not_the_geometry():
+    # The bunny pair lies 34 degrees apart: a prior of 10 leaves the pose as given, which also
+    # fits about as well turned (the geometry's test, meaningless at a pose that does not fit).
+    r = CliRunner().invoke(main, ["register", str(EXAMPLES / "bun045.ply"), str(EXAMPLES / "bun000.ply"), "--max-rotation", "10", "--json"])
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.stdout)
+    assert result["likely_failed"] and result["failure_reason"].startswith("ICP leaves max_rotation 10 from every estimate")
+
+
 def test_register_from_an_initial_guess(tmp_path):
     import shutil
 

@@ -88,3 +88,11 @@ def test_clouds_that_share_their_points_are_fixed_by_them_not_by_the_surface():
     box = box_surface(rng, 1000)
     r = o3dsoft.register(box, apply_transform(TURN, box))
     assert not r.likely_failed and r.constraint is None and r.flatness is None
+
+
+def test_without_partners_within_the_distance_the_geometry_is_not_measured():
+    rng = np.random.default_rng(3)
+    a, b = box_surface(rng, 800), box_surface(rng, 800)
+    far_below_the_spacing = degeneracy.assess(a, b, np.eye(4), 1e-9, 1.2)
+    assert "not measured" in far_below_the_spacing.reason and "slide" not in far_below_the_spacing.reason
+    assert degeneracy.assess(a, b, np.eye(4), 0.1, 1.2).reason is None  # a box holds the pose
