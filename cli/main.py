@@ -18,7 +18,7 @@ from typing import Optional
 import click
 
 from .. import __version__
-from ..errors import O3dsoftError, terminate_as_interrupt
+from ..errors import InputError, O3dsoftError, terminate_as_interrupt
 
 # The values of RegisterConfig.search.mode (o3dsoft.config.SEARCH_MODES) and the bench's methods
 # (o3dsoft.bench.METHODS), not imported here: that would load torch and Open3D before --help;
@@ -767,7 +767,7 @@ _TRAIN_FIELDS = (
     default=None,
     help="Start from these weights (fine-tuning): a run's checkpoint.pt, a model file, or a shipped model by name (default, paper).",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda (under torchrun: one GPU per process).")
 @click.option(
     "--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config."
@@ -854,7 +854,7 @@ def _bench_options(fn):
         ),
         click.option(
             "--seed",
-            type=int,
+            type=click.IntRange(min=0),
             default=0,
             show_default=True,
             help="Seed of the pairs and of RANSAC (o3dsoft's search repeats exactly; Open3D's multi-threaded RANSAC, in the FPFH baselines, can vary between runs).",
@@ -904,6 +904,8 @@ def _run_bench(name, pairs, count, description, recall=None, titles=None, *, met
     )
     click.echo(result.table)
     click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
+    if not result.summaries and not result.interrupted:
+        raise InputError("no pair could run (each one's reason is above; summary.json lists them)")
     if result.interrupted:
         click.echo("Interrupted: the table covers the pairs finished before Ctrl-C (or SIGTERM).", err=True)
         sys.exit(130)
@@ -938,7 +940,7 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
         count, iterator = len(pairs), iter(pairs)
         description = {"benchmark": "pairs file", "pairs_file": str(import_pairs)}
     else:
-        protocols = protocols or BENCH_PROTOCOLS
+        protocols = tuple(dict.fromkeys(protocols)) or BENCH_PROTOCOLS  # a protocol given twice runs once
         for name in protocols:
             get_protocol(name)
         count, iterator = modelnet_pairs(data, protocols, limit, seed, points_per_shape)

@@ -96,10 +96,13 @@ def _check_archive(path: Path) -> None:
     try:
         with zipfile.ZipFile(path) as archive:
             bad = archive.testzip()
+            names = archive.namelist()
     except (zipfile.BadZipFile, OSError) as e:
         raise InputError(f"{path}: not a readable TorchScript model file ({e})") from None
     if bad is not None:
         raise InputError(f"{path}: the model file is corrupted ({bad} fails its checksum)")
+    if not any("/code/" in name for name in names):  # torch.save's archive: tensors, no program
+        raise InputError(f"{path}: a training checkpoint (o3dsoft train's checkpoint.pt), not a model file: use the model.pt train exports beside it")
 
 
 def non_finite_weight(weights: Dict[str, Any]) -> Optional[str]:
@@ -299,8 +302,8 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
         raise UsageError(f"invalid device {device!r}: {e}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UsageError("device 'cuda' was asked for but this torch build sees no CUDA GPU")
+    _check_archive(path)  # first: a file that is no model gets no warning about what it would run
     _check_origin(path)
-    _check_archive(path)
     extra = {META_NAME: ""}
     try:
         with _quiet_jit():

@@ -6,8 +6,10 @@ values a stage cannot run with (:class:`o3dsoft.errors.InputError`).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
-from typing import Optional, Tuple
+import numbers
+import typing
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from typing import Optional, Tuple, Union
 
 from .confidence import ConfidenceConfig
 from .degeneracy import DegeneracyConfig
@@ -330,6 +332,7 @@ class RegisterConfig:
 
     def validate(self, k: int) -> None:
         """Raise InputError for settings the network (neighbourhood size `k`) cannot run with."""
+        _check_numbers(self, "")
         search = self.search
         if search.mode not in SEARCH_MODES:
             raise InputError(f"search.mode={search.mode!r}; valid: {', '.join(SEARCH_MODES)}")
@@ -349,8 +352,14 @@ class RegisterConfig:
         if self.max_rotation is not None and not 0 < self.max_rotation <= 180:
             raise InputError(f"max_rotation must be in (0, 180] degrees, got {self.max_rotation}")
         threshold = self.confidence.likely_failed_below
+        if not 0 <= threshold <= 1:
+            raise InputError(f"confidence.likely_failed_below must be in [0, 1], got {threshold}")
+        if not 0 < self.icp.distance < math.inf:
+            raise InputError(f"icp.distance must be positive and finite, got {self.icp.distance}")
         if not threshold <= search.features.stop <= 1:
-            raise InputError(f"search.features.stop must be in [{threshold}, 1], got {search.features.stop}")
+            raise InputError(
+                f"search.features.stop must be in [confidence.likely_failed_below, 1] = [{threshold}, 1] (the feature match would stop at an estimate it flags), got {search.features.stop}"
+            )
         for name in ("replace_odds", "independent_odds", "undetermined_gain"):
             if not getattr(search, name) >= 1:
                 raise InputError(f"search.{name} must be at least 1, got {getattr(search, name)}")
@@ -370,7 +379,7 @@ class RegisterConfig:
             raise InputError(f"second_network.iterations must be at least 1, got {self.second_network.iterations}")
         ends = self.second_network.ends_search
         if ends is not None and not threshold <= ends <= 1:
-            raise InputError(f"second_network.ends_search must be None or in [{threshold}, 1], got {ends}")
+            raise InputError(f"second_network.ends_search must be None or in [confidence.likely_failed_below, 1] = [{threshold}, 1], got {ends}")
         if self.second_network.shared_check < 0:
             raise InputError(f"second_network.shared_check must not be negative, got {self.second_network.shared_check}")
         if not 0 <= self.second_network.turns <= 23:
@@ -401,3 +410,19 @@ class RegisterConfig:
                 "degeneracy: min_constraint must be in [0, 1), neighbours at least 3, shared_below not negative and max_flatness positive; "
                 f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.shared_below}, {degeneracy.max_flatness}"
             )
+
+
+def _check_numbers(settings, prefix: str) -> None:
+    """Raise InputError naming the first field of the frozen dataclass `settings` (and of those
+    nested in it) declared a number (int, float, Optional of one) that holds something else."""
+    hints = typing.get_type_hints(type(settings))
+    for f in fields(settings):
+        value, hint, name = getattr(settings, f.name), hints.get(f.name), f"{prefix}{f.name}"
+        if is_dataclass(value):
+            _check_numbers(value, f"{name}.")
+            continue
+        kinds = tuple(k for k in typing.get_args(hint) if k is not type(None)) if typing.get_origin(hint) is Union else (hint,)
+        if value is None or not kinds or not all(k in (int, float) for k in kinds):
+            continue
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise InputError(f"{name} must be a number, got {value!r} ({type(value).__name__})")

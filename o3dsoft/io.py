@@ -724,6 +724,20 @@ def _umask() -> int:
     return mask
 
 
+def _colour_bytes(colors: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 of colours in 0-1 (floats) or 0-255 (uint8, as images store them).
+
+    Raises:
+        ValueError: float colours above 1 (0-255 values given as floats: divide them by 255).
+    """
+    if colors.dtype == np.uint8:
+        return colors
+    colors = colors.astype(np.float64)
+    if colors.size and np.nanmax(colors) > 1.0:
+        raise ValueError(f"colors must be in 0-1 (or uint8 in 0-255), got values up to {np.nanmax(colors):g}: divide 0-255 colours by 255")
+    return np.round(np.clip(colors, 0.0, 1.0) * 255).astype(np.uint8)
+
+
 PCD_ROUNDING = 1e-6  # the share of a cloud's extent float32 may round its coordinates by in a PCD file
 
 
@@ -754,10 +768,12 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
     path = Path(path)
     ext = check_extension(path, WRITE_EXTENSIONS, "writing points")
     points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
     for name, values in (("colors", colors), ("normals", normals)):
         if values is not None and np.shape(values) != points.shape:
             raise ValueError(f"{name} must be (N, 3) as the points {points.shape}, got {np.shape(values)}")
-    rgb = None if colors is None else np.round(np.clip(np.asarray(colors, dtype=np.float64), 0.0, 1.0) * 255).astype(np.uint8)
+    rgb = None if colors is None else _colour_bytes(np.asarray(colors))
     with atomic_output(path) as tmp, open(tmp, "wb") as f:
         if ext == ".npy":
             np.save(f, points)
@@ -1056,7 +1072,12 @@ def _is_float(v: str) -> bool:
 def as_rigid(T, name: str) -> np.ndarray:
     """`T` as a (4, 4) float64 array; InputError naming `name` unless it is a finite rigid 4x4
     transform (:func:`check_rigid`)."""
-    T = np.asarray(T, dtype=np.float64)
+    if isinstance(T, (str, os.PathLike)):
+        raise InputError(f"{name}: expected a 4x4 transform, got the file name {str(T)!r} (read it with o3dsoft.read_transform)")
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected a 4x4 transform of numbers, got {type(T).__name__}") from None
     if T.shape != (4, 4):
         raise InputError(f"{name}: expected a 4x4 transform, got shape {T.shape}")
     check_rigid(T, name)

@@ -24,7 +24,7 @@ from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 
 from .config import RegisterConfig
-from .errors import InputError
+from .errors import InputError, UsageError
 from .io import as_rigid
 from .pair import CloudLike, as_points
 from .pipeline import RegistrationResult, register
@@ -229,8 +229,13 @@ def multiway(
     """
     from .coarse import load_model
 
+    if not isinstance(config, MultiwayConfig):
+        raise UsageError(f"config must be an o3dsoft.MultiwayConfig (its register field holds a RegisterConfig), got {type(config).__name__}")
     config.validate()
+    clouds = list(clouds)  # any iterable of scans
     names = tuple(names) if names is not None else tuple(f"scan{i}" for i in range(len(clouds)))
+    if len(set(names)) != len(names):
+        raise InputError(f"two scans share the name {next(n for n in names if names.count(n) > 1)!r}; give each its own")
     if len(clouds) < 2:
         raise InputError(f"multiway needs at least two scans, got {len(clouds)}")
     if len(names) != len(clouds):

@@ -27,6 +27,7 @@ are :class:`o3dsoft.config.RegisterConfig`, one nested config per stage.
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable, Dict, Optional, Tuple
 
@@ -39,6 +40,7 @@ from . import refine as refine_stage
 from . import symmetry as symmetry_stage
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
+from .errors import UsageError
 from .io import as_rigid
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
@@ -239,6 +241,13 @@ def register(
             weights file is unusable, `init` is not a rigid 4x4 transform, or a setting of
             `config` is invalid (see its ``validate``).
     """
+    if not isinstance(config, RegisterConfig):
+        raise UsageError(f"config must be an o3dsoft.RegisterConfig, got {type(config).__name__}")
+    for name, given in (("model", model), ("search_model", search_model)):
+        if isinstance(given, (str, os.PathLike)):
+            raise UsageError(
+                f"{name} is a loaded network (o3dsoft.coarse.load_model), got the name {str(given)!r}: name a model in RegisterConfig(weights=...)"
+            )
     src, tgt = as_points(source, source_name), as_points(target, target_name)
     if init is not None:
         init = as_rigid(init, "init")

@@ -10,7 +10,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
 import traceback
 import warnings
@@ -629,66 +631,74 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             raise O3dsoftError(f"{ckpt_path}: could not write the checkpoint ({e}); {kept}; free space and run again with --resume") from None
 
     dataset = _TrainingPairs([train_pairs])
+    stop = _StopBetweenSteps(world == 1)
     last_ckpt = started = time.monotonic()
     done = config.max_steps is not None and state["global_step"] >= config.max_steps
-    while state["epoch"] < config.epochs and not done:
-        epoch = state["epoch"]
-        # Pairs of epoch e differ from those of other epochs (seeded by epoch) but repeat on resume.
-        dataset.parts = [PairDataset(part.shapes, part.protocol, seed=config.seed * 1000 + epoch) for part in parts]
-        sampler = torch.utils.data.DistributedSampler(dataset, num_replicas=world, rank=rank, shuffle=True, seed=config.seed, drop_last=True)
-        sampler.set_epoch(epoch)
-        order = list(sampler)[state["step_in_epoch"] * config.batch_size : steps_per_epoch * config.batch_size]
-        batches = _batches(order, state["step_in_epoch"], config.batch_size, [part.weight for part in parts], config.seed + 1000 * rank, epoch)
-        loader = torch.utils.data.DataLoader(dataset, batch_sampler=batches, num_workers=config.workers)
-        losses: List[float] = state.get("epoch_losses", [])
-        progress = _Progress(lead, epoch, config, steps_per_epoch, state["step_in_epoch"], world, log)
-        _training_mode(model, config.only_overlap)
-        for src, tgt, R_gt, t_gt in loader:
-            src, tgt, R_gt, t_gt = (x.to(device, non_blocking=True) for x in (src, tgt, R_gt, t_gt))
-            R, t, _ = net(src, tgt)
-            loss = registration_loss(R, t, R_gt, t_gt)
-            if config.point_loss > 0:
-                loss = loss + config.point_loss * virtual_point_loss(src, tgt, model.virtual_points, R_gt, t_gt)
-            if config.match_loss > 0:
-                loss = loss + config.match_loss * match_loss(src, tgt, model.soft_partners, R_gt, t_gt)
-            if config.overlap_loss > 0:
-                loss = loss + config.overlap_loss * overlap_loss(model.overlap_logits, overlap_labels(src, tgt, R_gt, t_gt))
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            if config.grad_clip is not None:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            optimiser.step()
-            scheduler.step()
-            losses.append(loss.item())
-            state["step_in_epoch"] += 1
-            state["global_step"] += 1
-            state["epoch_losses"] = losses
-            progress.update(losses, scheduler.get_last_lr()[0])
-            if time.monotonic() - last_ckpt > config.checkpoint_minutes * 60:
-                state["seconds"] += time.monotonic() - last_ckpt
-                last_ckpt = time.monotonic()
-                checkpoint()
-            out_of_steps = config.max_steps is not None and state["global_step"] >= config.max_steps
-            if out_of_steps or (config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60):
-                done = True
-                break
-        progress.close()
-        record = {"epoch": epoch + 1, "steps": len(losses), "train_loss": float(np.mean(losses)) if losses else math.nan}
-        if test_pairs is not None:
-            record["test"] = evaluate(model, test_pairs, config.eval_pairs, device)
-            log(_evaluation_line(epoch, record["test"]))
-        if state["step_in_epoch"] >= steps_per_epoch:
-            state["history"].append(record)
-            state["epoch"] += 1
-            state["step_in_epoch"] = 0
-            state["epoch_losses"] = []
-            state.pop("partial", None)
-        else:
-            state["partial"] = record
-        state["seconds"] += time.monotonic() - last_ckpt
-        last_ckpt = time.monotonic()
-        checkpoint()
+    try:
+        while state["epoch"] < config.epochs and not done:
+            epoch = state["epoch"]
+            # Pairs of epoch e differ from those of other epochs (seeded by epoch) but repeat on resume.
+            dataset.parts = [PairDataset(part.shapes, part.protocol, seed=config.seed * 1000 + epoch) for part in parts]
+            sampler = torch.utils.data.DistributedSampler(dataset, num_replicas=world, rank=rank, shuffle=True, seed=config.seed, drop_last=True)
+            sampler.set_epoch(epoch)
+            order = list(sampler)[state["step_in_epoch"] * config.batch_size : steps_per_epoch * config.batch_size]
+            batches = _batches(order, state["step_in_epoch"], config.batch_size, [part.weight for part in parts], config.seed + 1000 * rank, epoch)
+            loader = torch.utils.data.DataLoader(dataset, batch_sampler=batches, num_workers=config.workers)
+            losses: List[float] = state.get("epoch_losses", [])
+            progress = _Progress(lead, epoch, config, steps_per_epoch, state["step_in_epoch"], world, log)
+            _training_mode(model, config.only_overlap)
+            for src, tgt, R_gt, t_gt in loader:
+                src, tgt, R_gt, t_gt = (x.to(device, non_blocking=True) for x in (src, tgt, R_gt, t_gt))
+                R, t, _ = net(src, tgt)
+                loss = registration_loss(R, t, R_gt, t_gt)
+                if config.point_loss > 0:
+                    loss = loss + config.point_loss * virtual_point_loss(src, tgt, model.virtual_points, R_gt, t_gt)
+                if config.match_loss > 0:
+                    loss = loss + config.match_loss * match_loss(src, tgt, model.soft_partners, R_gt, t_gt)
+                if config.overlap_loss > 0:
+                    loss = loss + config.overlap_loss * overlap_loss(model.overlap_logits, overlap_labels(src, tgt, R_gt, t_gt))
+                optimiser.zero_grad(set_to_none=True)
+                loss.backward()
+                if config.grad_clip is not None:
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+                optimiser.step()
+                scheduler.step()
+                losses.append(loss.item())
+                state["step_in_epoch"] += 1
+                state["global_step"] += 1
+                state["epoch_losses"] = losses
+                progress.update(losses, scheduler.get_last_lr()[0])
+                if stop.asked or time.monotonic() - last_ckpt > config.checkpoint_minutes * 60:
+                    state["seconds"] += time.monotonic() - last_ckpt
+                    last_ckpt = time.monotonic()
+                    checkpoint()
+                if stop.asked:
+                    stop.restore()
+                    log(f"interrupted: checkpoint after step {state['global_step']} in {ckpt_path} (--resume goes on from there)")
+                    raise KeyboardInterrupt
+                out_of_steps = config.max_steps is not None and state["global_step"] >= config.max_steps
+                if out_of_steps or (config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60):
+                    done = True
+                    break
+            progress.close()
+            record = {"epoch": epoch + 1, "steps": len(losses), "train_loss": float(np.mean(losses)) if losses else math.nan}
+            if test_pairs is not None:
+                record["test"] = evaluate(model, test_pairs, config.eval_pairs, device)
+                log(_evaluation_line(epoch, record["test"]))
+            if state["step_in_epoch"] >= steps_per_epoch:
+                state["history"].append(record)
+                state["epoch"] += 1
+                state["step_in_epoch"] = 0
+                state["epoch_losses"] = []
+                state.pop("partial", None)
+            else:
+                state["partial"] = record
+            state["seconds"] += time.monotonic() - last_ckpt
+            last_ckpt = time.monotonic()
+            checkpoint()
 
+    finally:
+        stop.restore()
     identical = None
     if world > 1:
         identical = _replicas_identical(model)
@@ -715,6 +725,30 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
 
         dist.barrier()  # the other ranks return only once rank 0 has written the model
     return out / "model.pt"
+
+
+class _StopBetweenSteps:
+    """While training in one process: Ctrl-C or SIGTERM asks the run to stop after the step under
+    way, so that a checkpoint of a whole step is written first (a second one stops at once).
+    Several processes (torchrun) keep the signals' own handlers: they must stop at the same step."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.asked = False
+        self._before: Dict[int, Any] = {}
+        if enabled and threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._before[signum] = signal.signal(signum, self._ask)
+
+    def _ask(self, signum, frame) -> None:
+        if self.asked:
+            raise KeyboardInterrupt
+        self.asked = True
+
+    def restore(self) -> None:
+        """The handlers from before, back in place."""
+        for signum, handler in self._before.items():
+            signal.signal(signum, handler)
+        self._before = {}
 
 
 class _Progress:

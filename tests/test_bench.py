@@ -965,3 +965,14 @@ def test_a_folders_rounded_truth_moves_its_georeferenced_source_where_the_file_d
     centre = local_origin(pair.source)
     written = np.loadtxt(truth)
     assert np.linalg.norm(centre) > 1e6 and np.linalg.norm(apply_transform(pair.transform, centre[None]) - apply_transform(written, centre[None])) < 1e-6
+
+
+def test_modelnet40_runs_a_protocol_given_twice_once_and_fails_where_no_pair_runs(modelnet_root, tmp_path):
+    twice = ["modelnet40", "--data", str(modelnet_root), "--protocol", "paper", "--protocol", "paper", "--limit", "2", "--method", "icp"]
+    r = _bench([*twice, "--out", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "a" / "summary.json").read_text())["pairs_completed"] == 2
+    r = _bench([*twice, "--method", "o3dsoft", "--points-per-shape", "10", "--out", str(tmp_path / "b")])  # too few points for the network
+    assert r.exit_code == 1 and "skipped" in r.output and "Error: no pair could run" in r.output
+    r = _bench([*twice, "--seed", "-1", "--out", str(tmp_path / "c")])
+    assert r.exit_code == 2 and "Invalid value for '--seed'" in r.output

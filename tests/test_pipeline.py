@@ -449,6 +449,35 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         as_points(o3d.geometry.TriangleMesh.create_sphere(), "source")
 
 
+@pytest.mark.parametrize(
+    "call, error, message",
+    [
+        (lambda s, t: register(s, t, {"voxel": 0.01}), UsageError, "config must be an o3dsoft.RegisterConfig, got dict"),
+        (lambda s, t: register(s, t, model="default"), UsageError, "model is a loaded network .* got the name 'default'"),
+        (lambda s, t: register(s, t, init="T.txt"), InputError, "init: expected a 4x4 transform, got the file name 'T.txt'"),
+        (lambda s, t: register(s, t, RegisterConfig(voxel="0.5")), InputError, "voxel must be a number, got '0.5' \\(str\\)"),
+        (lambda s, t: register(s, t, RegisterConfig(icp=ICPConfig(distance=0.0))), InputError, "icp.distance must be positive and finite, got 0.0"),
+        (
+            lambda s, t: register(s, t, RegisterConfig(confidence=ConfidenceConfig(likely_failed_below=1.5))),
+            InputError,
+            "likely_failed_below must be in \\[0, 1\\], got 1.5",
+        ),
+        (
+            lambda s, t: register(s, t, RegisterConfig(confidence=ConfidenceConfig(likely_failed_below=0.9))),
+            InputError,
+            "search.features.stop must be in \\[confidence.likely_failed_below, 1\\] = \\[0.9, 1\\]",
+        ),
+        (lambda s, t: o3dsoft.multiway([s, t], RegisterConfig()), UsageError, "config must be an o3dsoft.MultiwayConfig"),
+        (lambda s, t: o3dsoft.multiway([s, t], names=["a", "a"]), InputError, "two scans share the name 'a'"),
+    ],
+    ids=["config-dict", "model-name", "init-path", "voxel-str", "icp-distance-0", "threshold-1.5", "threshold-0.9", "multiway-config", "multiway-names"],
+)
+def test_library_misuse_is_one_clear_o3dsoft_error(call, error, message):
+    src, tgt, _ = blob_pair(seed=4)
+    with pytest.raises(error, match=message):
+        call(src, tgt)
+
+
 def test_a_result_the_full_clouds_reject_sends_the_pair_to_the_search(monkeypatch):
     from o3dsoft import pipeline
 

@@ -49,6 +49,37 @@ def test_resume_continues_exactly(modelnet_root, tmp_path, extra):
     assert a["scheduler"]["_last_lr"] == b["scheduler"]["_last_lr"]
 
 
+def test_ctrl_c_keeps_the_steps_done_and_resume_goes_on_exactly(modelnet_root, tmp_path, monkeypatch):
+    import os
+    import signal
+
+    import o3dsoft.train as train_module
+
+    train(_config(modelnet_root, tmp_path / "a", max_steps=4, eval_pairs=0), log=lambda m: None)
+    loss, calls = train_module.registration_loss, []
+
+    def interrupted_in_step_2(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of a step
+        return loss(*args)
+
+    monkeypatch.setattr(train_module, "registration_loss", interrupted_in_step_2)
+    logged = []
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(KeyboardInterrupt):
+        train(_config(modelnet_root, tmp_path / "b", max_steps=4, eval_pairs=0), log=logged.append)  # checkpoints every 5 minutes
+    assert signal.getsignal(signal.SIGINT) is before
+    assert torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)["state"]["global_step"] == 2  # the step under way ended
+    assert any("interrupted: checkpoint after step 2" in line for line in logged)
+    monkeypatch.setattr(train_module, "registration_loss", loss)
+    train(_config(modelnet_root, tmp_path / "b", max_steps=4, eval_pairs=0), resume=True, log=lambda m: None)
+    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    for k, v in a["model"].items():
+        assert torch.allclose(v.float(), b["model"][k].float(), atol=1e-6), k
+
+
 def test_cosine_schedule_ends_at_lr_min(modelnet_root, tmp_path):
     train(_config(modelnet_root, tmp_path, eval_pairs=0, limit_train=8, epochs=2, lr_schedule="cosine", lr_min=1e-5), log=lambda m: None)
     ckpt = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
@@ -426,3 +457,11 @@ def test_a_second_dataset_must_match_on_resume(modelnet_root, tmp_path):
         _config(modelnet_root, tmp_path / "bad", extra_share=1.0).validate()
     with pytest.raises(InputError, match="second dataset.*4096"):
         train(_config(modelnet_root, tmp_path / "big", extra_data=str(shapes), extra_points_per_shape=4096, max_steps=1), log=lambda m: None)
+
+
+def test_a_checkpoint_given_as_weights_is_named_for_what_it_is(modelnet_root, tmp_path):
+    train(_config(modelnet_root, tmp_path, max_steps=1, eval_pairs=0), log=lambda m: None)
+    with pytest.raises(InputError, match="checkpoint.pt: a training checkpoint .* use the model.pt train exports beside it"):
+        load_model(tmp_path / "checkpoint.pt")
+    r = CliRunner().invoke(main, ["train", "--data", str(modelnet_root), "--seed", "-1", "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "Invalid value for '--seed'" in r.output
