@@ -1078,8 +1078,10 @@ def as_rigid(T, name: str) -> np.ndarray:
         T = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected a 4x4 transform of numbers, got {type(T).__name__}") from None
+    if T.shape == (3, 4):  # [R | t], as transform files may hold it
+        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
     if T.shape != (4, 4):
-        raise InputError(f"{name}: expected a 4x4 transform, got shape {T.shape}")
+        raise InputError(f"{name}: expected a 4x4 transform (or 3x4 [R | t]), got shape {T.shape}")
     check_rigid(T, name)
     return T
 
@@ -1099,8 +1101,17 @@ def check_rigid(T: np.ndarray, name: str = "transform", tol: float = 1e-4) -> No
 
 
 def write_transform(path: PathLike, T: np.ndarray) -> Path:
-    """Write a 4x4 transform as text (any extension but .npy) or .npy, atomically."""
+    """Write a rigid 4x4 transform as text (any extension but .npy) or .npy, atomically.
+
+    Raises:
+        InputError: `T` is not a finite rigid 4x4 transform (within :data:`READ_TOLERANCE`, what
+            :func:`read_transform` reads back).
+    """
     path = Path(path)
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"{path}: a transform to write must be 4x4, got shape {T.shape}")
+    check_rigid(T, str(path), tol=READ_TOLERANCE)
     with atomic_output(path) as tmp:
         if path.suffix.lower() == ".npy":
             with open(tmp, "wb") as f:

@@ -17,7 +17,9 @@ relative to the nearest joined scan (unverified); otherwise they have no pose.
 
 from __future__ import annotations
 
+import sys
 import time
+import types
 from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
@@ -504,3 +506,15 @@ def merged_cloud(
 
         return Merged(mean(points), label[first], None if color is None else mean(color))
     return Merged(points, label, color)
+
+
+class _CallableModule(types.ModuleType):
+    """This module, callable as :func:`multiway`: importing ``o3dsoft.multiway`` (for
+    :class:`MultiwayConfig`) binds the package's ``multiway`` to the module, and
+    ``o3dsoft.multiway(clouds)`` must still register them."""
+
+    def __call__(self, *args, **kwargs) -> MultiwayResult:
+        return multiway(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import o3dsoft
 from o3dsoft.cli.main import main
 from o3dsoft.coarse import load_model
 from o3dsoft.config import RegisterConfig, SearchConfig
@@ -405,3 +406,12 @@ def test_scans_that_join_none_leave_the_first_as_the_world(tmp_path, scans):
     assert result.exit_code == 3 and "Traceback" not in result.output
     assert "b.ply: not joined" in result.output
     assert len(read_points(tmp_path / "out" / "merged.ply")) <= len(scans[0][0])  # the first scan alone
+
+
+def test_the_module_is_callable_as_its_function():
+    # Importing o3dsoft.multiway (for MultiwayConfig) binds the package's name to the module.
+    import o3dsoft.multiway as module
+
+    assert o3dsoft.multiway is module or o3dsoft.multiway is module.multiway
+    with pytest.raises(InputError, match="multiway needs at least two scans, got 1"):
+        module([np.random.default_rng(0).random((50, 3))])

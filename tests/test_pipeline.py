@@ -1025,7 +1025,7 @@ def test_a_wrong_initial_guess_does_not_stop_the_pipeline():
 @pytest.mark.parametrize(
     "init, match",
     [
-        (np.eye(3), r"init: expected a 4x4 transform, got shape \(3, 3\)"),
+        (np.eye(3), r"init: expected a 4x4 transform \(or 3x4 \[R \| t\]\), got shape \(3, 3\)"),
         (np.diag([2.0, 1.0, 1.0, 1.0]), "init: not a rigid transform"),
         (np.full((4, 4), np.nan), "init: contains NaN"),
     ],
@@ -1033,3 +1033,15 @@ def test_a_wrong_initial_guess_does_not_stop_the_pipeline():
 def test_an_initial_guess_must_be_a_rigid_transform(init, match):
     with pytest.raises(InputError, match=match):
         register(blob(np.random.default_rng(0)), blob(np.random.default_rng(1)), init=init)
+
+
+def test_an_initial_guess_may_be_3x4_as_its_files_may(tmp_path):
+    from o3dsoft.io import as_rigid
+
+    T = rigid(euler_to_matrix([10.0, -20.0, 30.0]), np.array([1.0, 2.0, 3.0]))
+    assert np.array_equal(as_rigid(T[:3], "init"), T)
+    with pytest.raises(InputError, match="T.txt: not a rigid transform"):
+        o3dsoft.write_transform(tmp_path / "T.txt", np.diag([2.0, 1.0, 1.0, 1.0]))  # what read_transform would refuse
+    with pytest.raises(InputError, match="T.txt: contains NaN"):
+        o3dsoft.write_transform(tmp_path / "T.txt", np.full((4, 4), np.nan))
+    assert not (tmp_path / "T.txt").exists()
