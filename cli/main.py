@@ -229,7 +229,7 @@ def _register_config(
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="--pairs: pairs registered at once, each in its own process.")
 @click.option("--ray", "ray_address", help="--pairs: run on a Ray cluster: local (start one here), auto (the one `ray start` set up) or its address.")
 @click.option("--no-progress", is_flag=True, help="--pairs: no progress bar.")
-@click.option("--gt", "gt_path", type=click.Path(path_type=Path), help="Ground-truth T_target_source (4x4 text or .npy): print the errors against it.")
+@click.option("--gt", "gt_path", type=click.Path(path_type=Path), help="Ground-truth T_target_source (4x4 or 3x4 text, or .npy): print the errors against it.")
 @click.option(
     "--init",
     "init_path",
@@ -241,8 +241,9 @@ def _register_config(
     "--out",
     "out_path",
     type=click.Path(path_type=Path),
-    help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las); a PLY, PCD, XYZN, XYZRGB or LAS source's colours "
-    "and normals go with it (into .ply, .pcd; normals into .xyzn too), and a LAS/LAZ source's every dimension into .las.",
+    help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las); the colours and normals of a point-cloud source "
+    "(PLY, PCD, XYZN, XYZRGB, PTS, LAS, E57; not a mesh's sampled points) go with it (into .ply, .pcd; normals into .xyzn too), "
+    "and a LAS/LAZ source's every dimension into .las.",
 )
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
@@ -298,7 +299,8 @@ def register(
     """Register SOURCE onto TARGET; print T_target_source and how well it fits.
 
     SOURCE and TARGET are point clouds (PLY, PCD, XYZ, XYZN, XYZRGB, PTS, NPY, LAS, LAZ, E57 of one
-    scan) or meshes (OFF, OBJ, STL, PLY with faces), sampled on their faces. With --pairs, every
+    scan, CSV/TXT with x, y, z columns) or meshes (OFF, OBJ, STL, GLB, GLTF, FBX, PLY with faces),
+    sampled on their faces. With --pairs, every
     pair of a file, one CSV row each (a run stopped half-way resumes from its --out file).
     """
     if icp_absolute and icp_distance is None:
@@ -600,10 +602,11 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     names, clouds, files = [], [], []
     for p in scans:
         found = io.read_scans(p)
+        first = len(files)
         for name, points in found:
             names.append(name)
             clouds.append(points)
-            files.append(p if len(found) == 1 else None)  # an E57 of several scans: no colours read here
+            files.append((p, None if len(found) == 1 else len(files) - first))  # the file, and the scan's index in an E57 of several
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
     init_poses = io.read_poses(init_path, names, [local_origin(c) for c in clouds]) if init_path is not None else None
@@ -633,7 +636,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     payload = result.to_dict()
     with io.atomic_output(out_dir / "poses.json") as tmp:
         tmp.write_text(json.dumps(payload, indent=2))
-    colors = [io.read_attributes(f, len(c)).colors if f is not None and joined else None for f, c, joined in zip(files, clouds, result.joined)]
+    colors = [io.read_attributes(f, len(c), scan).colors if joined else None for (f, scan), c, joined in zip(files, clouds, result.joined)]
     merged = merged_cloud(clouds, result, result.voxel, colors)
     io.write_points(out_dir / "merged.ply", merged.points, merged.colors)
     if as_json:

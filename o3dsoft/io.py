@@ -235,6 +235,27 @@ def _check_off(path: Path) -> None:
     _check_whole(path, faces, body - vertices, "faces")
 
 
+def _declared_triangles(path: Path, ext: str) -> Optional[int]:
+    """How many triangles the faces of a text OBJ or OFF mesh make (a face of n corners: n - 2);
+    None for other files, binary ones and headers not understood."""
+    if ext not in (".obj", ".off"):
+        return None
+    lines = [line.split("#", 1)[0].split() for line in path.read_bytes().decode("ascii", errors="replace").splitlines()]
+    lines = [words for words in lines if words]
+    if ext == ".obj":
+        return sum(len(words) - 3 for words in lines if words[0] == "f" and len(words) >= 4)
+    keyword = re.fullmatch(r"([A-Z4]*OFF)(\d*)", lines[0][0]) if lines else None
+    if keyword is None or "BINARY" in lines[0]:
+        return None
+    inline = ([keyword.group(2)] if keyword.group(2) else []) + lines[0][1:]
+    counts = inline or (lines[1] if len(lines) > 1 else [])
+    if len(counts) < 2 or not (counts[0].isdigit() and counts[1].isdigit()):
+        return None
+    first = (1 if inline else 2) + int(counts[0])  # the first face line
+    faces = lines[first : first + int(counts[1])]
+    return sum(int(words[0]) - 2 for words in faces if words[0].isdigit() and int(words[0]) >= 3)
+
+
 def _check_stl(path: Path) -> None:
     """Raise InputError where a binary STL ends before the triangles its header counts, or an
     ascii STL before its closing 'endsolid' line."""
@@ -351,6 +372,11 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
             mesh = o3d.io.read_triangle_mesh(str(path))
         vertices = np.asarray(mesh.vertices)
         faces = np.asarray(mesh.triangles)
+        declared = _declared_triangles(path, ext)
+        if 0 < len(faces) < (declared or 0):  # Open3D skips an OBJ's quads beside triangles, and an OFF's faces from one it cannot split
+            vertices, faces = _trimesh_mesh(path)
+            if len(faces) < declared:
+                raise InputError(f"{path}: its faces make {declared} triangles, but only {len(faces)} could be read; save it with triangles only")
         if len(faces) > 0:
             return _sampled(path, vertices, faces, mesh_points, seed)
         if ext in MESH_ONLY_EXTENSIONS:
@@ -364,7 +390,8 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         cloud = o3d.io.read_point_cloud(str(path), format="auto")
     points = np.asarray(cloud.points, dtype=np.float64)
     if len(points) == 0:
-        raise InputError(f"{path}: parsed to 0 points; is it a valid {ext[1:].upper()} point cloud?{_bad_text_line(path, ext, 0)}")
+        first = " (its first line must be the point count)" if ext == ".pts" else ""
+        raise InputError(f"{path}: parsed to 0 points; is it a valid {ext[1:].upper()} point cloud{first}?{_bad_text_line(path, ext, 0)}")
     bad = _bad_text_line(path, ext, len(points))
     if bad:  # a line Open3D skipped: the cloud would be read in part
         raise InputError(f"{path}: {len(points)} points read, but not every line.{bad}")
@@ -839,16 +866,19 @@ class PointAttributes(NamedTuple):
     normals: Optional[np.ndarray] = None
 
 
-def read_attributes(path: PathLike, count: int) -> PointAttributes:
+def read_attributes(path: PathLike, count: int, scan: Optional[int] = None) -> PointAttributes:
     """The colours and normals of a point-cloud file Open3D reads (.ply without faces, .pcd,
-    .xyzn, .xyzrgb), and the colours of a LAS/LAZ file of a colour point format, where it holds
-    `count` points as :func:`read_points` read them; none for other files (a mesh's points are
-    sampled; tables, E57 and .pts carry none here)."""
+    .xyzn, .xyzrgb, and Leica's .pts of "x y z intensity r g b"), and the colours of a LAS/LAZ file
+    of a colour point format and of an E57 scan (`scan`: its index; None: the file's only one),
+    where it holds `count` points as :func:`read_points` / :func:`read_scans` read them; none for
+    other files (a mesh's points are sampled; tables carry none here)."""
     path = Path(path)
     ext = path.suffix.lower()
     if ext in (".las", ".laz"):
         return _las_colours(path, count)
-    if ext not in (".ply", ".pcd", ".xyzn", ".xyzrgb"):
+    if ext == ".e57":
+        return _e57_colours(path, count, scan)
+    if ext not in (".ply", ".pcd", ".xyzn", ".xyzrgb", ".pts"):
         return PointAttributes()
     o3d = _o3d()
     with quiet_c_output():
@@ -861,6 +891,33 @@ def read_attributes(path: PathLike, count: int) -> PointAttributes:
         np.asarray(cloud.colors, dtype=np.float64) if cloud.has_colors() else None,
         np.asarray(cloud.normals, dtype=np.float64) if cloud.has_normals() else None,
     )
+
+
+def _e57_colours(path: Path, count: int, scan: Optional[int]) -> PointAttributes:
+    """An E57 scan's colorRed, colorGreen and blue as (N, 3) colours in 0-1, over the file's
+    colour limits (255 where it gives none and no value exceeds it, else 65535)."""
+    import pye57
+
+    try:
+        e57 = pye57.E57(str(path))
+        try:
+            if scan is None and e57.scan_count != 1:
+                return PointAttributes()
+            index = 0 if scan is None else scan
+            data = e57.read_scan(index, colors=True, ignore_missing_fields=True)
+            try:
+                limit = float(e57.get_header(index).node["colorLimits"]["colorRedMaximum"].value())
+            except Exception:  # no colour limits written
+                limit = 0.0
+        finally:
+            e57.close()
+    except Exception:  # unreadable here: read_scans says why where it matters
+        return PointAttributes()
+    if not {"colorRed", "colorGreen", "colorBlue"} <= set(data) or len(data["colorRed"]) != count:
+        return PointAttributes()
+    rgb = np.column_stack([data["colorRed"], data["colorGreen"], data["colorBlue"]]).astype(np.float64)
+    limit = limit if limit > 0 else 255.0 if rgb.max(initial=0.0) <= 255.0 else 65535.0
+    return PointAttributes(np.clip(rgb / limit, 0.0, 1.0))
 
 
 def _las_colours(path: Path, count: int) -> PointAttributes:

@@ -501,12 +501,16 @@ def test_las_of_an_unknown_point_format_is_refused(tmp_path, pts):
         read_points(path)
 
 
-def _write_e57(path, clouds, translations):
+def _write_e57(path, clouds, translations, colours=None):
+    """An E57 file of the (N, 3) `clouds`, each at its translation, with (N, 3) uint8 `colours`
+    per cloud where given."""
     import pye57
 
     e57 = pye57.E57(str(path), mode="w")
     for k, (points, shift) in enumerate(zip(clouds, translations)):
         data = {"cartesianX": points[:, 0], "cartesianY": points[:, 1], "cartesianZ": points[:, 2]}
+        if colours is not None:
+            data.update(colorRed=colours[k][:, 0], colorGreen=colours[k][:, 1], colorBlue=colours[k][:, 2])
         e57.write_scan_raw(data, name=f"station {k}", rotation=np.array([1.0, 0.0, 0.0, 0.0]), translation=np.asarray(shift, dtype=float))
     e57.close()
     return path
@@ -591,3 +595,42 @@ def test_colours_are_written_from_0_1_or_bytes_and_other_ranges_are_refused(tmp_
     with pytest.raises(ValueError, match="points must be \\(N, 3\\), got \\(200, 2\\)"):
         write_points(tmp_path / "flat.ply", pts[:, :2])
     assert not (tmp_path / "floats.ply").exists() and not (tmp_path / "flat.ply").exists()
+
+
+def _cube_faces(points):
+    """How many of the (N, 3) points lie on each of the six faces of the cube [-1, 1]^3."""
+    return [int((np.abs(points[:, k] - side) < 1e-9).sum()) for k in range(3) for side in (-1.0, 1.0)]
+
+
+def test_meshes_of_quads_open3d_reads_in_part_are_read_whole(tmp_path):
+    corners = [(-1, -1, -1), (1, -1, -1), (1, 1, -1), (-1, 1, -1), (-1, -1, 1), (1, -1, 1), (1, 1, 1), (-1, 1, 1)]
+    quads = [(0, 3, 2, 1), (4, 5, 6, 7), (0, 1, 5, 4), (2, 3, 7, 6), (1, 2, 6, 5), (3, 0, 4, 7)]
+    vertices = "".join(f"v {x} {y} {z}\n" for x, y, z in corners)
+    a, b, c, d = (i + 1 for i in quads[0])
+    # An OBJ of triangles and quads (as Blender exports): Open3D keeps the triangles only.
+    (tmp_path / "mixed.obj").write_text(
+        vertices + f"f {a} {b} {c}\nf {a} {c} {d}\n" + "".join("f " + " ".join(str(i + 1) for i in q) + "\n" for q in quads[1:])
+    )
+    # An OFF whose second face, a quad with a repeated corner, Open3D cannot split: it keeps the first.
+    body = "".join(f"{x} {y} {z}\n" for x, y, z in corners)
+    faces = ["4 " + " ".join(map(str, quads[0])), "4 1 2 2 6"] + ["4 " + " ".join(map(str, q)) for q in quads[1:]]
+    (tmp_path / "stops.off").write_text(f"OFF\n8 {len(faces)} 0\n{body}" + "\n".join(faces) + "\n")
+    for name in ("mixed.obj", "stops.off"):
+        assert min(_cube_faces(read_points(tmp_path / name, mesh_points=3000))) > 300, name  # every face, about 500 points each
+
+
+def test_the_colours_of_e57_scans_and_leica_pts_files_are_read(tmp_path, pts):
+    rng = np.random.default_rng(5)
+    colours = [rng.integers(0, 256, (len(pts), 3)).astype(np.uint8), rng.integers(0, 256, (150, 3)).astype(np.uint8)]
+    one = _write_e57(tmp_path / "one.e57", [pts], [(0, 0, 0)], colours[:1])
+    assert np.allclose(read_attributes(one, len(pts)).colors, colours[0] / 255)
+    survey = _write_e57(tmp_path / "survey.e57", [pts, pts[:150]], [(0, 0, 0), (5, 0, 0)], colours)
+    assert np.allclose(read_attributes(survey, 150, scan=1).colors, colours[1] / 255)
+    assert read_attributes(survey, 150).colors is None  # which of its scans: not said
+    rows = "".join(f"{x:.6f} {y:.6f} {z:.6f} -100 {r} {g} {b}\n" for (x, y, z), (r, g, b) in zip(pts, colours[0]))
+    (tmp_path / "leica.pts").write_text(f"{len(pts)}\n{rows}")  # x y z intensity r g b
+    assert np.allclose(read_points(tmp_path / "leica.pts"), pts, atol=1e-6)
+    assert np.allclose(read_attributes(tmp_path / "leica.pts", len(pts)).colors, colours[0] / 255)
+    (tmp_path / "nocount.pts").write_text(rows)
+    with pytest.raises(InputError, match="nocount.pts: parsed to 0 points; is it a valid PTS point cloud \\(its first line must be the point count\\)"):
+        read_points(tmp_path / "nocount.pts")

@@ -384,11 +384,13 @@ def test_cli_takes_every_scan_of_an_e57(tmp_path, scans):
 
     clouds, poses = scans
     survey = pye57.E57(str(tmp_path / "survey.e57"), mode="w")
+    shades = {0: (0, 0, 255), 1: (255, 0, 0), 2: (0, 255, 0)}  # a colour per scan
     for k in (1, 2):
         c = clouds[k]
-        survey.write_scan_raw({"cartesianX": c[:, 0], "cartesianY": c[:, 1], "cartesianZ": c[:, 2]}, name=f"station {k}")
+        colour = {name: np.full(len(c), value, dtype=np.uint8) for name, value in zip(("colorRed", "colorGreen", "colorBlue"), shades[k])}
+        survey.write_scan_raw({"cartesianX": c[:, 0], "cartesianY": c[:, 1], "cartesianZ": c[:, 2], **colour}, name=f"station {k}")
     survey.close()
-    first = write_points(tmp_path / "view0.ply", clouds[0])
+    first = write_points(tmp_path / "view0.ply", clouds[0], colors=np.tile(np.array(shades[0]) / 255, (len(clouds[0]), 1)))
     out = tmp_path / "out"
     result = CliRunner().invoke(main, ["multiway", str(first), str(tmp_path / "survey.e57"), "--out", str(out), "--no-progress"])
     assert result.exit_code == 0, result.output
@@ -396,6 +398,8 @@ def test_cli_takes_every_scan_of_an_e57(tmp_path, scans):
     assert [s["name"] for s in record["scans"]] == [str(first), f"{tmp_path / 'survey.e57'}#0", f"{tmp_path / 'survey.e57'}#1"]
     for scan, pose in zip(record["scans"], poses[:3]):
         assert pair_errors(np.array(scan["world_T_scan"]), pose).rotation_deg < 1.0
+    merged = o3d.io.read_point_cloud(str(out / "merged.ply"))
+    assert {tuple(c) for c in np.round(np.asarray(merged.colors) * 255).astype(int)} == set(shades.values())  # each scan's own
 
 
 def test_scans_that_join_none_leave_the_first_as_the_world(tmp_path, scans):
