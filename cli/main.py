@@ -383,7 +383,7 @@ def register(
             payload["errors"] = {k: _errors_dict(e) for k, e in errors.items()}
         click.echo(json.dumps(payload, indent=2))
     else:
-        click.echo(_format_result(source, target, result, errors, model_info, config))
+        click.echo(_format_result(source, target, result, errors, model_info, config, (len(src), len(tgt))))
     if result.likely_failed:
         click.echo(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: {result.failure_reason}). Check it visually (--render).", err=True
@@ -485,7 +485,13 @@ def _cleaning_lines(removed: dict, isolated_radius: float) -> list:
     return lines
 
 
-def _format_result(source, target, result, errors, model_info, config) -> str:
+def _tidy(value: float) -> float:
+    """0 for a value within float rounding of it (the world scan's pose is the identity up to 1e-20)."""
+    return 0.0 if abs(value) < 1e-12 else value
+
+
+def _format_result(source, target, result, errors, model_info, config, read=None) -> str:
+    """register's text output; `read`: (source, target) points read from the files."""
     from ..coarse import weights_file
 
     refined = config.refine
@@ -494,7 +500,9 @@ def _format_result(source, target, result, errors, model_info, config) -> str:
     T = result.transformation
     lines = [
         f"o3dsoft register  {source} -> {target}",
-        f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}{without}); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
+        f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}{without}"
+        + ("" if read is None else f"; {read[0]} and {read[1]} read")
+        + f"); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
         *_cleaning_lines(result.removed, config.isolated_radius),
         f"  model:  {model_info['path']}"
@@ -676,7 +684,9 @@ def _format_multiway(result, out_dir: Path, merged_points: int, frame_file: Opti
         elif by == "initial pose":
             lines.append(f"  {name}: not joined (no trusted alignment reaches {world}); placed by the initial poses, unverified")
         else:
-            lines.append(f"  {name}: joined; world_T_scan turns {rotation_angle_deg(pose[:3, :3]):.2f} deg and moves {np.linalg.norm(pose[:3, 3]):.4g} units")
+            lines.append(
+                f"  {name}: joined; world_T_scan turns {rotation_angle_deg(pose[:3, :3]):.2f} deg and moves {_tidy(np.linalg.norm(pose[:3, 3])):.4g} units"
+            )
     used = [e for e in result.edges if e.used]
     lines += [
         "",
@@ -1083,8 +1093,9 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common):
             description.append({**{k: v for k, v in entry.items() if k != "pairs"}, "folder": name, **setting})
 
     if turns:
-        variant(turned_protocol, f"the source turned {turns} times", {"turns": turns})
-        click.echo(f"and every pair again with the source turned {turns} times ({turns * len(pairs)} pairs)", err=True)
+        times = "once" if turns == 1 else f"{turns} times"
+        variant(turned_protocol, f"the source turned {times}", {"turns": turns})
+        click.echo(f"and every pair again with the source turned {times} ({turns * len(pairs)} pairs)", err=True)
     if noise:
         variant(lambda name: noise_protocol(name, noise), f"noise {noise:g} x the scene's size on both clouds", {"noise": noise})
         click.echo(f"and every pair again with noise of {noise:g} x the scene's size ({len(pairs)} pairs)", err=True)

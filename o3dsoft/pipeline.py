@@ -380,7 +380,10 @@ def _register(
         _search(pair, verifier, model, search_model, features_done=False)
         found = verifier.reported(_refine_full(pair, verifier, _select(verifier)))
         if _fits_closer(pair, found, best, search.undetermined_gain):
-            best, geometry = found, _assess(pair, found)
+            held = _assess(pair, found)
+            # From the caller's guess, a pose the geometry does not fix either is no better answer: the guess's stays.
+            if not (guess and held.reason):
+                best, geometry = found, held
         clock.lap("degeneracy")
     # Whether a symmetric copy fits as closely: nothing measured on the clouds tells the two apart.
     copy = _probe_symmetry(pair, verifier, best, geometry)

@@ -1045,3 +1045,19 @@ def test_an_initial_guess_may_be_3x4_as_its_files_may(tmp_path):
     with pytest.raises(InputError, match="T.txt: contains NaN"):
         o3dsoft.write_transform(tmp_path / "T.txt", np.full((4, 4), np.nan))
     assert not (tmp_path / "T.txt").exists()
+
+
+def test_from_a_guess_on_geometry_that_cannot_fix_the_pose_the_guess_is_kept(monkeypatch):
+    from o3dsoft import pipeline
+
+    def floor_and_wall(rng, n=1500):  # two planes: free to slide along the line where they meet
+        return np.vstack([np.c_[rng.uniform(0, 2, n), rng.uniform(0, 2, n), np.zeros(n)], np.c_[np.zeros(n), rng.uniform(0, 2, n), rng.uniform(0, 1, n)]])
+
+    rng = np.random.default_rng(0)
+    T = rigid(euler_to_matrix([5.0, -8.0, 20.0]), np.array([0.3, -0.2, 0.1]))
+    src, tgt = floor_and_wall(rng), apply(T, floor_and_wall(rng))
+    # Whatever the search finds fits closer (as a feature-match pose 86 degrees off did on a real floor and wall).
+    monkeypatch.setattr(pipeline, "_fits_closer", lambda *args: True)
+    res = register(src, tgt, init=T)
+    assert res.likely_failed and "can slide" in res.failure_reason and res.search_reason is not None
+    assert res.estimate_from == "initial guess" and pair_errors(res.transformation, T).rotation_deg < 1.0
