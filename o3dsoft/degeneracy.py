@@ -20,7 +20,7 @@ their points fix the pose where the surface alone does not, so neither is measur
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional, Tuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -44,6 +44,9 @@ class DegeneracyConfig:
             for identical points, about 1 for two samplings of one surface.
         neighbours: points of a local plane (its normal).
         max_points: the clouds are voxel-downsampled to about this many points first.
+        held_from: from a caller's guess, on a flagged result (``constraint`` below
+            ``min_constraint``), the directions of motion whose eigenvalue is below this share of
+            the largest are left at the guess (:func:`held_motion`); 0: off.
     """
 
     min_constraint: float = 2e-3
@@ -52,6 +55,7 @@ class DegeneracyConfig:
     shared_below: float = 0.5
     neighbours: int = 20
     max_points: int = 5000
+    held_from: float = 0.1
 
 
 class Degeneracy(NamedTuple):
@@ -98,27 +102,79 @@ def assess(
         return SHARED_POINTS
     source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
     target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
-    target_normals = refine_stage.normals(target, config.neighbours)
-    moved = apply_transform(transformation, source)
-    dist, j = cKDTree(target).query(moved, distance_upper_bound=distance)
-    matched = np.isfinite(dist)
+    equations = _normal_equations(source, target, transformation, distance, scale, config)
     constraint = 0.0
-    if matched.sum() >= 6:
-        c = (moved[matched] - moved[matched].mean(axis=0)) / scale
-        n = target_normals[j[matched]]
-        J = np.hstack([np.cross(c, n), n])  # (K, 6): d(residual) / d(rotation, translation)
-        eigenvalues = np.linalg.eigvalsh(J.T @ J / len(J))
+    if equations is not None:
+        eigenvalues = np.linalg.eigvalsh(equations[0])
         constraint = float(max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300))
     scorer = make_scorer() if make_scorer is not None else Scorer(source, target, distance)
-    flatness = _flatness(scorer, transformation, moved.mean(axis=0), config.turn_deg)
+    flatness = _flatness(scorer, transformation, apply_transform(transformation, source).mean(axis=0), config.turn_deg)
     reason = None
-    if matched.sum() < 6:  # a correspondence distance far below the clouds' spacing (set by hand)
+    if equations is None:  # a correspondence distance far below the clouds' spacing (set by hand)
         reason = f"under 6 points lie within {distance:.3g} units of the other cloud (ICP's correspondence distance): whether the surfaces fix the pose is not measured"
     elif constraint < config.min_constraint:
         reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g})"
     elif flatness >= config.max_flatness:
         reason = f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): points that fill a volume or a ball do not determine the pose"
     return Degeneracy(constraint, flatness, reason)
+
+
+def _normal_equations(
+    source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, scale: Optional[float], config: DegeneracyConfig
+) -> Optional[Tuple[np.ndarray, np.ndarray, float]]:
+    """The point-to-plane normal equations of the (N, 3) source moved by the (4, 4)
+    `transformation` onto the (M, 3) target, over its points within `distance` of it: ((6, 6) H,
+    (3,) the centre of those moved points, in the target's frame, and the length rotations are
+    scaled by); None under 6 such points. H's parameters: rotation (radians) times that length,
+    `scale` (None: the RMS distance of those points from their centre, so that a rotation and a
+    translation that move them as far weigh the same), then translation (cloud units)."""
+    moved = apply_transform(transformation, source)
+    dist, j = cKDTree(target).query(moved, distance_upper_bound=distance)
+    matched = np.isfinite(dist)
+    if matched.sum() < 6:
+        return None
+    centre = moved[matched].mean(axis=0)
+    if scale is None:
+        scale = max(float(np.sqrt(np.mean(np.sum((moved[matched] - centre) ** 2, axis=1)))), 1e-300)
+    c = (moved[matched] - centre) / scale
+    n = refine_stage.normals(target, config.neighbours)[j[matched]]
+    J = np.hstack([np.cross(c, n), n])  # (K, 6): d(residual) / d(rotation, translation)
+    return J.T @ J / len(J), centre, scale
+
+
+def held_motion(
+    source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, config: DegeneracyConfig = DegeneracyConfig()
+) -> np.ndarray:
+    """The part of the motion `transformation` (4, 4) (from the identity: where a caller's guess
+    put the source) that the surfaces hold: its motion along the directions of the normal
+    equations whose eigenvalue is below ``held_from`` of the largest is undone, so that the
+    guess stands there (degeneracy-aware solution remapping, Zhang, Kaess and Singh, ICRA 2016).
+    A corridor's walls hold the motion across it, not along it.
+
+    Args:
+        source: (N, 3), as the guess placed it; target: (M, 3); distance: cloud units.
+    Returns:
+        (4, 4) float64; the identity where under 6 points lie within `distance`; `transformation`
+        itself where ``held_from`` is 0.
+    """
+    from scipy.spatial.transform import Rotation
+
+    T = np.asarray(transformation, dtype=np.float64)
+    if config.held_from <= 0:
+        return T.copy()
+    source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
+    target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
+    equations = _normal_equations(source, target, T, distance, None, config)
+    if equations is None:
+        return np.eye(4)
+    H, centre, scale = equations
+    eigenvalues, vectors = np.linalg.eigh(H)
+    held = vectors[:, eigenvalues >= config.held_from * max(eigenvalues[-1], 1e-300)]
+    start = np.linalg.solve(T[:3, :3], centre - T[:3, 3])  # the source point T moves to the centre
+    motion = np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec() * scale, centre - start])  # about that point
+    kept = held @ (held.T @ motion)
+    R = Rotation.from_rotvec(kept[:3] / scale).as_matrix()
+    return rigid(R, start + kept[3:] - R @ start)
 
 
 def _flatness(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, centre: np.ndarray, turn_deg: float) -> float:

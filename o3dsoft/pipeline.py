@@ -385,11 +385,26 @@ def _register(
             if not (guess and held.reason):
                 best, geometry = found, held
         clock.lap("degeneracy")
+    settings = pair.config.degeneracy
+    if guess and settings.held_from > 0 and geometry.constraint is not None and geometry.constraint < settings.min_constraint:
+        # Along what the surfaces leave free (a corridor's length), ICP slides on noise: the guess is the better answer there.
+        best = _held_by_surfaces(pair, best, level)
+        geometry = geometry._replace(reason=f"{geometry.reason}; along the motions the surfaces leave free, the initial guess is kept")
+        clock.lap("degeneracy")
     # Whether a symmetric copy fits as closely: nothing measured on the clouds tells the two apart.
     copy = _probe_symmetry(pair, verifier, best, geometry)
     clock.lap("symmetry")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
     return _result(best, pair, verifier, network, search_reason, geometry, copy, target_side, clock.timings_ms, level), pair.clouds(level)
+
+
+def _held_by_surfaces(pair: PreparedPair, best: Attempt, level: str) -> Attempt:
+    """`best` with its motion from the caller's guess (the identity here) kept only along the
+    directions the surfaces hold (:func:`o3dsoft.degeneracy.held_motion`), scored again on the
+    clouds at `level`."""
+    src, tgt = pair.clouds(level)
+    T = degeneracy_stage.held_motion(src, tgt, best.fine.transformation, pair.distance, pair.config.degeneracy)
+    return best._replace(fine=refine_stage.evaluate(src, tgt, T, pair.distance))
 
 
 def _scored_level(pair: PreparedPair, unrefined: bool) -> str:

@@ -1061,3 +1061,21 @@ def test_from_a_guess_on_geometry_that_cannot_fix_the_pose_the_guess_is_kept(mon
     res = register(src, tgt, init=T)
     assert res.likely_failed and "can slide" in res.failure_reason and res.search_reason is not None
     assert res.estimate_from == "initial guess" and pair_errors(res.transformation, T).rotation_deg < 1.0
+
+
+def test_from_a_guess_the_motions_the_surfaces_leave_free_stay_at_the_guess():
+    from o3dsoft.degeneracy import DegeneracyConfig
+
+    def corridor(rng, start, end, n=1500):  # two walls 1.5 apart: nothing holds the motion along them
+        return np.vstack(
+            [np.c_[np.zeros(n), rng.uniform(start, end, n), rng.uniform(0, 2, n)], np.c_[np.full(n, 1.5), rng.uniform(start, end, n), rng.uniform(0, 2, n)]]
+        )
+
+    rng = np.random.default_rng(0)
+    T = rigid(euler_to_matrix([3.0, -4.0, 10.0]), np.array([0.3, -0.2, 0.1]))
+    src, tgt = corridor(rng, 0, 3), apply(T, corridor(rng, 1, 4))  # views of overlapping stretches
+    kept = register(src, tgt, init=T)
+    assert kept.likely_failed and "the initial guess is kept" in kept.failure_reason
+    assert pair_errors(kept.transformation, T).translation < 0.01
+    slid = register(src, tgt, RegisterConfig(degeneracy=DegeneracyConfig(held_from=0.0)), init=T)  # every motion ICP made
+    assert pair_errors(slid.transformation, T).translation > 0.3 and "kept" not in slid.failure_reason
