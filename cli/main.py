@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import math
 import os
 import re
 import shlex
@@ -89,9 +90,9 @@ def _apply_options(options, fn):
 
 
 def _a_number(ctx, param, value):
-    """A float option's value, refused where it is NaN (click's ranges let it through)."""
-    if value is not None and value != value:
-        raise click.BadParameter("nan is not a number")
+    """A float option's value, refused where it is NaN or infinite (click's ranges let them through)."""
+    if value is not None and not math.isfinite(value):
+        raise click.BadParameter(f"{value} is not a finite number")
     return value
 
 
@@ -106,6 +107,7 @@ def _pipeline_options(fn):
                 "--voxel",
                 type=click.FloatRange(min=0),
                 default=None,
+                callback=_a_number,
                 help="Register both clouds on a voxel grid of this size (their units); default: 1 % of the scene's size for clouds of over 10,000 points denser than half of that; 0: every point.",
             ),
             click.option(
