@@ -102,13 +102,14 @@ def assess(
         return SHARED_POINTS
     source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
     target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
-    equations = _normal_equations(source, target, transformation, distance, scale, config)
+    moved = apply_transform(transformation, source)
+    equations = _normal_equations(moved, target, distance, scale, config)
     constraint = 0.0
     if equations is not None:
         eigenvalues = np.linalg.eigvalsh(equations[0])
         constraint = float(max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300))
     scorer = make_scorer() if make_scorer is not None else Scorer(source, target, distance)
-    flatness = _flatness(scorer, transformation, apply_transform(transformation, source).mean(axis=0), config.turn_deg)
+    flatness = _flatness(scorer, transformation, moved.mean(axis=0), config.turn_deg)
     reason = None
     if equations is None:  # a correspondence distance far below the clouds' spacing (set by hand)
         reason = f"under 6 points lie within {distance:.3g} units of the other cloud (ICP's correspondence distance): whether the surfaces fix the pose is not measured"
@@ -120,15 +121,14 @@ def assess(
 
 
 def _normal_equations(
-    source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, scale: Optional[float], config: DegeneracyConfig
+    moved: np.ndarray, target: np.ndarray, distance: float, scale: Optional[float], config: DegeneracyConfig
 ) -> Optional[Tuple[np.ndarray, np.ndarray, float]]:
-    """The point-to-plane normal equations of the (N, 3) source moved by the (4, 4)
-    `transformation` onto the (M, 3) target, over its points within `distance` of it: ((6, 6) H,
+    """The point-to-plane normal equations of the (N, 3) source `moved` by the result onto the
+    (M, 3) target, over its points within `distance` of it: ((6, 6) H,
     (3,) the centre of those moved points, in the target's frame, and the length rotations are
     scaled by); None under 6 such points. H's parameters: rotation (radians) times that length,
     `scale` (None: the RMS distance of those points from their centre, so that a rotation and a
     translation that move them as far weigh the same), then translation (cloud units)."""
-    moved = apply_transform(transformation, source)
     dist, j = cKDTree(target).query(moved, distance_upper_bound=distance)
     matched = np.isfinite(dist)
     if matched.sum() < 6:
@@ -164,7 +164,7 @@ def held_motion(
         return T.copy()
     source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
     target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
-    equations = _normal_equations(source, target, T, distance, None, config)
+    equations = _normal_equations(apply_transform(T, source), target, distance, None, config)
     if equations is None:
         return np.eye(4)
     H, centre, scale = equations

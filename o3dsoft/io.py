@@ -217,20 +217,34 @@ def _read_wide_pcd(path: Path) -> Optional[np.ndarray]:
     return np.column_stack([rows[column[c]][:, 0] for c in "xyz"]).astype(np.float64)
 
 
+def _text_words(path: Path) -> List[List[str]]:
+    """The words of a text mesh file's lines that hold any ('#' starts a comment)."""
+    lines = [line.split("#", 1)[0].split() for line in path.read_bytes().decode("ascii", errors="replace").splitlines()]
+    return [words for words in lines if words]
+
+
+def _off_counts(lines: List[List[str]]) -> Optional[Tuple[int, int, int]]:
+    """(vertices, faces, index of the first vertex line) a text OFF mesh's header declares, from
+    its :func:`_text_words`; None for a binary OFF or a header not understood."""
+    keyword = re.fullmatch(r"([A-Z4]*OFF)(\d*)", lines[0][0]) if lines else None
+    if keyword is None or "BINARY" in lines[0]:
+        return None
+    inline = ([keyword.group(2)] if keyword.group(2) else []) + lines[0][1:]  # ModelNet40's "OFF490 518 0" too
+    counts = inline or (lines[1] if len(lines) > 1 else [])  # the counts: on the keyword's line or the next
+    if len(counts) < 2 or not (counts[0].isdigit() and counts[1].isdigit()):
+        return None
+    return int(counts[0]), int(counts[1]), 1 if inline else 2
+
+
 def _check_off(path: Path) -> None:
     """Raise InputError where a text OFF mesh ends before the vertices and faces its counts line
     declares: Open3D samples the faces it read, a part of the surface."""
-    lines = [line.split("#", 1)[0].split() for line in path.read_bytes().decode("ascii", errors="replace").splitlines()]
-    lines = [words for words in lines if words]
-    keyword = re.fullmatch(r"([A-Z4]*OFF)(\d*)", lines[0][0]) if lines else None
-    if keyword is None or "BINARY" in lines[0]:
+    lines = _text_words(path)
+    declared = _off_counts(lines)
+    if declared is None:
         return
-    inline = ([keyword.group(2)] if keyword.group(2) else []) + lines[0][1:]  # ModelNet40's "OFF490 518 0" too
-    rest = inline or (lines[1] if len(lines) > 1 else [])  # the counts: on the keyword's line or the next
-    body = len(lines) - (1 if inline else 2)
-    if len(rest) < 2 or not (rest[0].isdigit() and rest[1].isdigit()):
-        return
-    vertices, faces = int(rest[0]), int(rest[1])
+    vertices, faces, first = declared
+    body = len(lines) - first
     _check_whole(path, vertices, body, "vertices")
     _check_whole(path, faces, body - vertices, "faces")
 
@@ -240,20 +254,14 @@ def _declared_triangles(path: Path, ext: str) -> Optional[int]:
     None for other files, binary ones and headers not understood."""
     if ext not in (".obj", ".off"):
         return None
-    lines = [line.split("#", 1)[0].split() for line in path.read_bytes().decode("ascii", errors="replace").splitlines()]
-    lines = [words for words in lines if words]
+    lines = _text_words(path)
     if ext == ".obj":
         return sum(len(words) - 3 for words in lines if words[0] == "f" and len(words) >= 4)
-    keyword = re.fullmatch(r"([A-Z4]*OFF)(\d*)", lines[0][0]) if lines else None
-    if keyword is None or "BINARY" in lines[0]:
+    declared = _off_counts(lines)
+    if declared is None:
         return None
-    inline = ([keyword.group(2)] if keyword.group(2) else []) + lines[0][1:]
-    counts = inline or (lines[1] if len(lines) > 1 else [])
-    if len(counts) < 2 or not (counts[0].isdigit() and counts[1].isdigit()):
-        return None
-    first = (1 if inline else 2) + int(counts[0])  # the first face line
-    faces = lines[first : first + int(counts[1])]
-    return sum(int(words[0]) - 2 for words in faces if words[0].isdigit() and int(words[0]) >= 3)
+    vertices, faces, first = declared
+    return sum(int(words[0]) - 2 for words in lines[first + vertices : first + vertices + faces] if words[0].isdigit() and int(words[0]) >= 3)
 
 
 def _check_stl(path: Path) -> None:
@@ -845,10 +853,10 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
             columns = points
             if ext == ".xyzn":
                 if normals is None:
+                    from .preprocess import local_origin
+
                     o3d = _o3d()
-                    finite = points[np.isfinite(points).all(axis=1)]
-                    centre = np.median(finite, axis=0) if len(finite) else np.zeros(3)
-                    centred = points - centre  # far from the origin (georeferenced), Open3D's float sums lose the surface
+                    centred = points - local_origin(points)  # far from the origin (georeferenced), Open3D's float sums lose the surface
                     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(centred))
                     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
                     normals = np.asarray(cloud.normals)
@@ -894,8 +902,8 @@ def read_attributes(path: PathLike, count: int, scan: Optional[int] = None) -> P
 
 
 def _e57_colours(path: Path, count: int, scan: Optional[int]) -> PointAttributes:
-    """An E57 scan's colorRed, colorGreen and blue as (N, 3) colours in 0-1, over the file's
-    colour limits (255 where it gives none and no value exceeds it, else 65535)."""
+    """An E57 scan's colorRed, colorGreen and colorBlue as (N, 3) colours in 0-1, over the file's
+    colour limits (:func:`_unit_colours`)."""
     import pye57
 
     try:
@@ -915,9 +923,7 @@ def _e57_colours(path: Path, count: int, scan: Optional[int]) -> PointAttributes
         return PointAttributes()
     if not {"colorRed", "colorGreen", "colorBlue"} <= set(data) or len(data["colorRed"]) != count:
         return PointAttributes()
-    rgb = np.column_stack([data["colorRed"], data["colorGreen"], data["colorBlue"]]).astype(np.float64)
-    limit = limit if limit > 0 else 255.0 if rgb.max(initial=0.0) <= 255.0 else 65535.0
-    return PointAttributes(np.clip(rgb / limit, 0.0, 1.0))
+    return PointAttributes(_unit_colours(np.column_stack([data["colorRed"], data["colorGreen"], data["colorBlue"]]), limit))
 
 
 def _las_colours(path: Path, count: int) -> PointAttributes:
@@ -928,8 +934,17 @@ def _las_colours(path: Path, count: int) -> PointAttributes:
     las = laspy.read(str(path))
     if len(las.points) != count or not {"red", "green", "blue"} <= set(las.point_format.dimension_names):
         return PointAttributes()
-    rgb = np.column_stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)]).astype(np.float64)
-    return PointAttributes(rgb / (255.0 if rgb.max(initial=0.0) <= 255.0 else 65535.0))
+    return PointAttributes(_unit_colours(np.column_stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)])))
+
+
+def _unit_colours(rgb: np.ndarray, limit: float = 0.0) -> np.ndarray:
+    """(N, 3) integer colours as floats in 0-1, over `limit` (the file's largest value), or where
+    it gives none, over 255 if no value exceeds it (8-bit, as some writers store 16-bit fields)
+    and 65535 otherwise."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    if not limit > 0:
+        limit = 255.0 if rgb.max(initial=0.0) <= 255.0 else 65535.0
+    return np.clip(rgb / limit, 0.0, 1.0)
 
 
 def write_moved(path: PathLike, source: PathLike, points: np.ndarray, T: np.ndarray) -> Path:
@@ -989,11 +1004,17 @@ def read_transform(path: PathLike, about: Optional[np.ndarray] = None) -> np.nda
     return _rigid_as_read(T, str(path), about)
 
 
+def _with_last_row(T: np.ndarray) -> np.ndarray:
+    """A (3, 4) [R | t] as a (4, 4) transform with the last row 0 0 0 1; other shapes copied as
+    they are."""
+    return np.vstack([T[:3], [0.0, 0.0, 0.0, 1.0]]) if T.shape == (3, 4) else T.copy()
+
+
 def _rigid_as_read(T: np.ndarray, where: str, about: Optional[np.ndarray] = None) -> np.ndarray:
     """The (4, 4) transform read at `where` ((3, 4) [R | t] or (4, 4)), checked rigid within
     READ_TOLERANCE, with the nearest rotation and an exact last row (so that the stricter checks
     downstream hold); the translation keeps where the point `about` (3,) goes (None: the origin)."""
-    T = np.vstack([T[:3], [0.0, 0.0, 0.0, 1.0]]) if T.shape == (3, 4) else T.copy()
+    T = _with_last_row(T)
     check_rigid(T, where, tol=READ_TOLERANCE)
     U, _, Vt = np.linalg.svd(T[:3, :3])
     nearest = U @ Vt  # the nearest rotation (det +1, as checked)
@@ -1135,8 +1156,7 @@ def as_rigid(T, name: str) -> np.ndarray:
         T = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected a 4x4 transform of numbers, got {type(T).__name__}") from None
-    if T.shape == (3, 4):  # [R | t], as transform files may hold it
-        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+    T = _with_last_row(T)  # a 3x4 [R | t], as transform files may hold it
     if T.shape != (4, 4):
         raise InputError(f"{name}: expected a 4x4 transform (or 3x4 [R | t]), got shape {T.shape}")
     check_rigid(T, name)

@@ -673,7 +673,6 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                     last_ckpt = time.monotonic()
                     checkpoint()
                 if stop.asked:
-                    stop.restore()
                     log(f"interrupted: checkpoint after step {state['global_step']} in {ckpt_path} (--resume goes on from there)")
                     raise KeyboardInterrupt
                 out_of_steps = config.max_steps is not None and state["global_step"] >= config.max_steps
@@ -696,7 +695,6 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             state["seconds"] += time.monotonic() - last_ckpt
             last_ckpt = time.monotonic()
             checkpoint()
-
     finally:
         stop.restore()
     identical = None
