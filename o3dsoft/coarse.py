@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import warnings
 import zipfile
 from contextlib import contextmanager, nullcontext
@@ -31,6 +32,17 @@ FORMAT_VERSION = 1
 META_NAME = "o3dsoft.json"
 CPU_BATCH = 2  # clouds per network call on the CPU (see CoarseModel.aligner)
 MAX_WEIGHT = 1e8  # larger parameter values are taken for a corrupted file: trained ones stay far below
+
+
+def _one_thread_after_fork() -> None:
+    torch.set_num_threads(1)
+
+
+# A forked child inherits torch's OpenMP thread pool without its threads: its first parallel
+# operation waits for them forever (Linux's default "fork" start method, after the parent has run
+# a network). With one thread the child runs every operation itself, as torch's DataLoader
+# workers do.
+os.register_at_fork(after_in_child=_one_thread_after_fork)
 
 
 class UntrustedModelWarning(UserWarning):

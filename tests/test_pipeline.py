@@ -139,6 +139,32 @@ def test_a_hundred_points_against_a_scan_with_the_search_on(tiny_model_path):
     assert run.stdout.decode().split() == ["True", "100"]
 
 
+def test_a_process_forked_after_a_registration_registers_too():
+    # Linux's default multiprocessing start method forks; a child of a process whose torch
+    # threads had run waited forever on its first parallel operation. In a subprocess, with a
+    # time limit, so that a hang fails this test only.
+    import subprocess
+    import sys
+
+    code = (
+        "import multiprocessing, numpy as np, torch, o3dsoft\n"
+        "from o3dsoft.transforms import euler_to_matrix\n"
+        "torch.set_num_threads(2)\n"
+        "rng = np.random.default_rng(0)\n"
+        "src = rng.normal(size=(400, 3)) * [1.0, 0.6, 0.3]\n"
+        "tgt = src @ euler_to_matrix(np.array([10.0, -5.0, 20.0])).T + [0.1, 0.0, -0.2]\n"
+        "def run(i):\n"
+        "    return o3dsoft.register(src, tgt).transformation\n"
+        "first = run(0)\n"
+        "with multiprocessing.get_context('fork').Pool(2) as pool:\n"
+        "    again = pool.map_async(run, range(2)).get(timeout=120)\n"
+        "print(max(float(np.abs(T - first).max()) for T in again))\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=300)
+    assert run.returncode == 0, run.stderr.decode()[-2000:]
+    assert float(run.stdout.decode()) < 1e-6  # the same pose, computed on one thread
+
+
 def test_large_clouds_are_downsampled_for_icp_and_still_exact(tiny_model_path):
     rng = np.random.default_rng(7)
     d = rng.normal(size=(300_000, 3))
