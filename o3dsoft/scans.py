@@ -135,7 +135,7 @@ def read_pairs_file(path: Union[str, Path]) -> List[PairEntry]:
     for lineno, files, _ in pair_lines(path):
         for f in files:
             if not f.is_file():
-                raise InputError(f"{path}, line {lineno}: no file {f.name} in {path.parent}")
+                raise InputError(f"{path}, line {lineno}: no file {f}")
         entries.append(PairEntry(*files, lineno))
     return entries
 
