@@ -86,6 +86,10 @@ class ConfidenceConfig:
             their distance lies beyond the other cloud's edge, and is not counted.
         min_overlap: alignments whose counted points are fewer than this share of the smaller
             cloud get confidence 0 (too few to measure).
+        min_points: on clouds the smaller of which holds fewer points, the pipeline caps the
+            reported confidence at likely_failed_below x points / min_points (flagged): there the
+            tight distance (1.5 point spacings) is so wide that wrong alignments fit as closely
+            as the right one and score as high (docs/scans.md, "Clouds of a few hundred points").
         ratio_cap: the spacing ratio enters the logistic capped at this value.
         wide_spacings: the spacing ratio looks for partners within this many point spacings when
             that reaches beyond d.
@@ -113,6 +117,7 @@ class ConfidenceConfig:
     spacings: float = 1.5
     claimed: float = 0.3
     min_overlap: float = 0.1
+    min_points: int = 200
     ratio_cap: float = 5.0
     wide_spacings: float = 3.0
     complete_coefficients: Tuple[float, ...] = (-20.95, 12.52, 18.19, -5.11)
@@ -136,6 +141,8 @@ class ConfidenceConfig:
             raise ValueError(f"distance must be positive, got {self.distance}")
         if not 0 < self.planar_tolerance <= 1:
             raise ValueError(f"planar_tolerance must be in (0, 1], got {self.planar_tolerance}")
+        if not self.min_points >= 0:
+            raise ValueError(f"min_points must be at least 0, got {self.min_points}")
         if not self.independent_from >= 0:
             raise ValueError(f"independent_from must be at least 0, got {self.independent_from}")
         if not (self.agree_deg > 0 and self.agree_shift > 0):

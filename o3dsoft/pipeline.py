@@ -690,6 +690,10 @@ def _result(
             f"it fits from the source's side only: {seen} (of the source's, {100 * best.scored.consistency:.0f} %), where a right alignment "
             "of two scans fits from both sides" + (_SEARCHED if search_reason is not None else "")
         )
+    fewest, enough = min(len(src), len(tgt)), config.confidence.min_points
+    if fewest < enough and trust >= config.confidence.likely_failed_below * fewest / enough:
+        trust = config.confidence.likely_failed_below * fewest / enough
+        reason = f"the smaller cloud has only {fewest} points: under {enough}, a wrong alignment fits as closely as the right one and scores as high"
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
         reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units?); {reason}"
     return RegistrationResult(

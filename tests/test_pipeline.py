@@ -139,6 +139,23 @@ def test_a_hundred_points_against_a_scan_with_the_search_on(tiny_model_path):
     assert run.stdout.decode().split() == ["True", "100"]
 
 
+@pytest.mark.parametrize("points", [120, 260])
+def test_clouds_of_under_min_points_are_flagged_however_well_they_fit(points):
+    # With a few dozen points the tight distance (1.5 spacings) is so wide that wrong poses of
+    # real scans scored 0.996; below ConfidenceConfig.min_points the confidence is capped.
+    rng = np.random.default_rng(3)
+    src = blob(rng, points)
+    T = random_transform(rng, 30.0, 0.2)
+    res = register(src, apply(T, src))
+    assert rotation_error_deg(res.transformation[:3, :3], T[:3, :3]) < 1.0
+    floor = ConfidenceConfig().min_points
+    if points < floor:
+        assert res.likely_failed and res.confidence <= 0.5 * points / floor
+        assert f"the smaller cloud has only {points} points" in res.failure_reason
+    else:
+        assert not res.likely_failed and res.failure_reason is None
+
+
 def test_a_process_forked_after_a_registration_registers_too():
     # Linux's default multiprocessing start method forks; a child of a process whose torch
     # threads had run waited forever on its first parallel operation. In a subprocess, with a
