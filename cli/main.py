@@ -585,7 +585,8 @@ def _format_result(source, target, result, errors, model_info, config, read=None
 @_pipeline_options
 @_friendly_errors
 def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, render_path, as_json, no_progress, **pipeline):
-    """Register SCANS (two or more files; every scan of an E57) into the frame of the first.
+    """Register SCANS (two or more files; every scan of an E57) into the frame of the first (of
+    the largest group of scans that trusted alignments join, where they do not all join).
 
     Writes OUT/poses.json (world_T_scan per scan, each edge's transform, confidence and whether it
     was pruned) and OUT/merged.ply. With --init, pairs start from their initial poses and the
@@ -597,7 +598,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
 
     from .. import io
     from ..coarse import load_model
-    from ..multiway import MultiwayConfig, merged_cloud
+    from ..multiway import MultiwayConfig, merged_cloud, units_note
     from ..multiway import multiway as run_multiway
     from ..preprocess import local_origin
 
@@ -619,6 +620,9 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
             files.append((p, None if len(found) == 1 else len(files) - first))  # the file, and the scan's index in an E57 of several
     if len(clouds) < 2:
         raise click.UsageError(f"{scans[0]}: one scan; multiway needs at least two")
+    units = units_note(clouds, names)
+    if units:
+        click.echo(f"Warning: {units}.", err=True)
     init_poses = io.read_poses(init_path, names, [local_origin(c) for c in clouds]) if init_path is not None else None
     without = [n for n, pose in zip(names, init_poses or ()) if pose is None]
     if without:

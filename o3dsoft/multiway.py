@@ -29,8 +29,8 @@ from .config import RegisterConfig
 from .errors import InputError, UsageError
 from .io import as_rigid
 from .pair import CloudLike, as_points
-from .pipeline import RegistrationResult, register
-from .preprocess import clean_points, voxel_downsample
+from .pipeline import SIZE_RATIO_NOTE, RegistrationResult, register
+from .preprocess import clean_points, scene_size, voxel_downsample
 from .transforms import apply_transform
 
 NEIGHBOUR_RULES = ("auto", "all", "sequence", "near")
@@ -406,12 +406,29 @@ def _group_of(n: int, edges: Sequence[Edge]) -> List[int]:
     return [find(k) for k in range(n)]
 
 
+def units_note(clouds: Sequence[np.ndarray], names: Sequence[str]) -> Optional[str]:
+    """A warning, where the largest of the (N_i, 3) scans is over ``SIZE_RATIO_NOTE`` times the
+    size of the smallest (:func:`~o3dsoft.preprocess.scene_size` of the finite points): scans
+    in different units, whose pairs are never trusted; else None."""
+    sizes = [scene_size(c[np.isfinite(c).all(axis=1)]) for c in clouds]
+    big, small = int(np.argmax(sizes)), int(np.argmin(sizes))
+    if not sizes[big] > SIZE_RATIO_NOTE * max(sizes[small], 1e-300):
+        return None
+    return (
+        f"{names[big]} is {sizes[big] / max(sizes[small], 1e-300):.0f} times the size of {names[small]} "
+        f"({sizes[big]:.4g} against {sizes[small]:.4g} units): are the scans in the same units? "
+        "Scans in different units are not joined"
+    )
+
+
 def _merge_grid(config: MultiwayConfig, results: Sequence[RegistrationResult]) -> Optional[float]:
     """The merged cloud's (and the information matrices') grid: the config's, else the finest
-    grid the pairs were registered on; None: every point."""
+    grid the trusted pairs were registered on (any pairs where none is trusted: a scan that joins
+    none, registered on a finer grid of its own, does not set it); None: every point."""
     if config.voxel is not None:
         return config.voxel
-    grids = [r.voxel for r in results if r.voxel is not None]
+    trusted = [r for r in results if not r.likely_failed] or results
+    grids = [r.voxel for r in trusted if r.voxel is not None]
     return min(grids) if grids else None
 
 

@@ -236,6 +236,34 @@ def test_a_scan_that_overlaps_none_is_left_out(scans, model):
     assert not any(e.used for e in result.edges if 1 in (e.source, e.target))
 
 
+def test_scans_in_different_units_are_named_before_they_are_registered(tmp_path, scans):
+    from o3dsoft.multiway import units_note
+
+    clouds, _ = scans
+    assert units_note(clouds[:2], ["a", "b"]) is None
+    note = units_note([clouds[0], clouds[1] * 1000.0], ["m.ply", "mm.ply"])
+    assert note.startswith("mm.ply is ") and " times the size of m.ply" in note and 500 < float(note.split()[2]) < 2000
+    a = write_points(tmp_path / "a.ply", clouds[0])
+    mm = write_points(tmp_path / "mm.ply", clouds[1] * 1000.0)
+    r = CliRunner().invoke(main, ["multiway", str(a), str(mm), "--out", str(tmp_path / "o"), "--search", "off", "--no-progress"])
+    assert r.exit_code == 3 and "are the scans in the same units?" in r.output
+
+
+def test_the_merged_grid_is_the_finest_of_the_trusted_pairs():
+    from types import SimpleNamespace
+
+    from o3dsoft.multiway import _merge_grid
+
+    def pair(voxel, failed):
+        return SimpleNamespace(voxel=voxel, likely_failed=failed)
+
+    # A scan of another scene, finer, joins none: its pairs' grid does not set the merged cloud's.
+    assert _merge_grid(MultiwayConfig(), [pair(0.04, False), pair(0.002, True), pair(0.05, False)]) == 0.04
+    assert _merge_grid(MultiwayConfig(), [pair(0.04, True), pair(0.002, True)]) == 0.002  # none trusted: every pair's
+    assert _merge_grid(MultiwayConfig(), [pair(None, False), pair(0.002, True)]) is None
+    assert _merge_grid(MultiwayConfig(voxel=0.01), [pair(0.04, False)]) == 0.01
+
+
 def test_a_scan_that_overlaps_none_keeps_its_initial_pose(scans, model):
     clouds, poses = scans
     stray = blob(np.random.default_rng(1), 3000) * 0.05
