@@ -1012,20 +1012,27 @@ _NOISE = click.option(
     default="auto",
     show_default=True,
     help="What the scans are, which sets the success thresholds: rgbd 2 deg / 5 cm and 15 deg / 30 cm; lidar 1 deg / 30 cm and 5 deg / 2 m; "
-    "object 1 deg / 1 % and 5 deg / 5 % of the size. auto: per folder from the size of its first scan (in metres: under 1 m an object, under 30 m RGB-D).",
+    "object 1 deg / 1 % and 5 deg / 5 % of the size. auto: per folder from the size of its first scan (under 1 m an object, under 30 m RGB-D).",
+)
+@click.option(
+    "--unit",
+    type=click.Choice(["m", "cm", "mm"]),
+    default="m",
+    show_default=True,
+    help="The scans' unit: the kind's guess and the RGB-D and LiDAR tests (in metres) follow it.",
 )
 @_MIN_OVERLAP
 @_TURNS
 @_NOISE
 @_bench_options
 @_friendly_errors
-def bench_scans(folders, kind, min_overlap, turns, noise, **common):
+def bench_scans(folders, kind, unit, min_overlap, turns, noise, **common):
     """Every method on the pairs of each folder of real scans: those its pairs.txt lists, or every
     overlapping pair of a Stanford .conf. Table, CSV, JSON, plots; the peers KISS-Matcher +
     small_gicp too when installed (pip install 'o3dsoft[peers]')."""
     from ..bench import scan_folder
 
-    _run_scan_bench([scan_folder(folder, min_overlap, kind) for folder in folders], min_overlap, turns, noise, common)
+    _run_scan_bench([scan_folder(folder, min_overlap, kind, unit) for folder in folders], min_overlap, turns, noise, common, unit)
 
 
 @bench.command("bunny")
@@ -1059,10 +1066,10 @@ def bench_bunny(data, min_overlap, recall_translation, turns, noise, **common):
     _run_scan_bench([scans], min_overlap, turns, noise, common)
 
 
-def _run_scan_bench(folders, min_overlap, turns, noise, common):
+def _run_scan_bench(folders, min_overlap, turns, noise, common, unit="m"):
     """Run the bench on the pairs of every folder (each folder a protocol with its own thresholds),
     then on their turned copies (each folder's a protocol "FOLDER turned") and their noisy ones
-    ("FOLDER noise P %")."""
+    ("FOLDER noise P %"); `unit`: the scans' (--unit)."""
     from ..bench import check_methods, noise_protocol, noisy_pairs, peers_installed, turned_pairs, turned_protocol
     from ..errors import UsageError
 
@@ -1076,7 +1083,7 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common):
     titles, recall, description = {}, {}, []
     for scans in folders:
         name = scans.name
-        guess = "" if scans.guessed_from is None else f", from its first scan's size, {scans.guessed_from:.3g} units taken as metres: --kind if they are not"
+        guess = "" if scans.guessed_from is None else f", from its first scan's size, {scans.guessed_from:.3g} {unit}: --unit or --kind if that is not so"
         click.echo(f"{name}: {len(scans.pairs)} of {len(scans.table)} pairs ({scans.kind}{guess})", err=True)
         for file, count in scans.left_out:
             click.echo(f"  {file}: {count} points with a non-finite coordinate left out", err=True)

@@ -184,23 +184,26 @@ class ScanFolder(NamedTuple):
     recall: Tuple[Tuple[float, float], ...]
     table: List[dict]
     left_out: Tuple[Tuple[str, int], ...] = ()
-    guessed_from: Optional[float] = None  # the first scan's size (units) `kind` was guessed from, taken as metres; None: given
+    guessed_from: Optional[float] = None  # the first scan's size (units) `kind` was guessed from; None: given
 
 
-def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> ScanFolder:
+def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto", unit: str = "m") -> ScanFolder:
     """The pairs of a folder of real scans: those its ``pairs.txt`` lists, or, with a Stanford
     ``.conf`` instead, every ordered pair whose ground-truth overlap is at least `min_overlap`.
 
     Overlap = share of the source's points within 0.01 x scale (1 mm on the bunny) of a target
     point once placed by the ground truth. `kind` "auto": from the size of the first scan
-    (:func:`o3dsoft.scans.guess_kind`).
+    (:func:`o3dsoft.scans.guess_kind`). `unit`: the scans' unit, a name of
+    :data:`o3dsoft.scans.UNITS` (the RGB-D and LiDAR tests are in metres).
     """
     from scipy.spatial import cKDTree
 
     from .io import read_points, read_transform
-    from .scans import guess_kind, read_conf, read_pairs_file, recall_thresholds, relative_pose
+    from .scans import UNITS, guess_kind, read_conf, read_pairs_file, recall_thresholds, relative_pose
 
     folder = Path(folder)
+    if unit not in UNITS:
+        raise UsageError(f"unknown unit {unit!r}; valid: {', '.join(UNITS)}")
     if not folder.is_dir():
         raise UsageError(f"{folder}: no such folder of scans")
     name = folder.resolve().name
@@ -245,8 +248,8 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto") -> S
             pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{s.stem}->{t.stem}"))
     size = scene_size(next(iter(clouds.values())))  # of the first scan
     guessed = size if kind == "auto" else None
-    kind = guess_kind(size) if kind == "auto" else kind
-    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size), table, left_out, guessed)
+    kind = guess_kind(size * UNITS[unit]) if kind == "auto" else kind
+    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size, UNITS[unit]), table, left_out, guessed)
 
 
 def turned_pairs(pairs: Sequence[BenchPair], turns: int, seed: int = 0) -> List[BenchPair]:

@@ -47,18 +47,23 @@ KINDS: Dict[str, Kind] = {
 }
 
 
+# Metres per scan unit, by the unit's name (``bench scans --unit``).
+UNITS: Dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
+
 def guess_kind(size: float) -> str:
-    """The kind of a scan in metres from its :func:`~o3dsoft.preprocess.scene_size`: under 1 m an
+    """The kind of a scan from its :func:`~o3dsoft.preprocess.scene_size` in metres: under 1 m an
     object, under 30 m an indoor RGB-D scene, else an outdoor LiDAR scene."""
     return "object" if size < 1.0 else "rgbd" if size < 30.0 else "lidar"
 
 
-def recall_thresholds(kind: str, size: float) -> Tuple[Tuple[float, float], ...]:
-    """(degrees, distance in cloud units) of `kind`'s tests, for scans of the given size."""
+def recall_thresholds(kind: str, size: float, metres: float = 1.0) -> Tuple[Tuple[float, float], ...]:
+    """(degrees, distance in cloud units) of `kind`'s tests, for scans of the given size (cloud
+    units) whose unit is `metres` metres (the kinds' distances in metres become cloud units)."""
     if kind not in KINDS:
         raise UsageError(f"unknown scan kind {kind!r}; valid: {', '.join(KINDS)}")
     k = KINDS[kind]
-    return tuple((deg, dist * size if k.relative else dist) for deg, dist in k.recall)
+    return tuple((deg, dist * size if k.relative else dist / metres) for deg, dist in k.recall)
 
 
 class PairEntry(NamedTuple):

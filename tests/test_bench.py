@@ -306,6 +306,26 @@ def listed_scans(tmp_path):
     return folder
 
 
+def test_scans_in_millimetres_are_judged_in_metres(listed_scans):
+    # The room is 4.4 units across: an RGB-D scene in metres, an object in millimetres.
+    assert bench.scan_folder(listed_scans, 0.3).kind == "rgbd"
+    assert bench.scan_folder(listed_scans, 0.3, unit="mm").kind == "object"  # 4.4 mm across
+    from o3dsoft.io import read_points, write_points
+
+    for name in ("bun000", "bun045"):
+        write_points(listed_scans / f"{name}.ply", 1000.0 * read_points(listed_scans / f"{name}.ply"))
+    T = np.loadtxt(listed_scans / "gt.txt")
+    T[:3, 3] *= 1000.0
+    np.savetxt(listed_scans / "gt.txt", T)
+    assert bench.scan_folder(listed_scans, 0.3).kind == "lidar"  # 4,400 units taken as metres
+    in_mm = bench.scan_folder(listed_scans, 0.3, unit="mm")
+    assert in_mm.kind == "rgbd" and in_mm.recall == ((2.0, 50.0), (15.0, 300.0))  # 5 cm and 30 cm, in millimetres
+    r = _bench(["scans", str(listed_scans), "--unit", "mm", "--method", "icp", "--out", str(listed_scans.parent / "b"), "--no-progress"])
+    assert r.exit_code == 0 and "room (rgbd: success within 2 deg / 50 and 15 deg / 300)" in r.output, r.output
+    with pytest.raises(UsageError, match="unknown unit 'ft'"):
+        bench.scan_folder(listed_scans, 0.3, unit="ft")
+
+
 def test_turned_pairs_keep_their_truth(two_scans):
     pairs = bench.scan_folder(two_scans, 0.3).pairs
     turned = bench.turned_pairs(pairs, 3, seed=5)
@@ -395,7 +415,7 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     assert r.exit_code == 0, r.output
     assert "room (rgbd: success within 2 deg / 0.05 and 15 deg / 0.3)" in r.output and "recall 15d/0.3" in r.output
     assert "scans (object: success within 1 deg / 0.0022" in r.output
-    assert "room: 1 of 1 pairs (rgbd, from its first scan's size, 4" in r.output and "units taken as metres: --kind if they are not)" in r.output
+    assert "room: 1 of 1 pairs (rgbd, from its first scan's size, 4" in r.output and " m: --unit or --kind if that is not so)" in r.output
     summary = json.loads((tmp_path / "s" / "summary.json").read_text())
     assert summary["recall_thresholds"]["room"] == [{"rotation_deg": 2.0, "translation": 0.05}, {"rotation_deg": 15.0, "translation": 0.3}]
     rows = {(s["protocol"], s["method"]): s for s in summary["summaries"]}
