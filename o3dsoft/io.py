@@ -376,7 +376,7 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
             raise InputError(f"{path}: parsed to 0 points; is it a valid PCD point cloud?")
         return wide
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
-        with quiet_c_output():
+        with _open3d_quietly():
             mesh = o3d.io.read_triangle_mesh(str(path))
         vertices = np.asarray(mesh.vertices)
         faces = np.asarray(mesh.triangles)
@@ -394,7 +394,7 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
             if len(vertices) == 0:
                 raise InputError(f"{path}: could not read any vertex or face; is it a valid {ext[1:].upper()} file?")
             raise InputError(f"{path}: mesh has {len(vertices)} vertices but no faces; points are sampled on faces, so a mesh needs at least one")
-    with quiet_c_output():
+    with _open3d_quietly():
         cloud = o3d.io.read_point_cloud(str(path), format="auto")
     points = np.asarray(cloud.points, dtype=np.float64)
     if len(points) == 0:
@@ -527,6 +527,16 @@ def quiet_c_output(name: str = "stderr") -> Iterator[None]:
     finally:
         os.dup2(saved, fd)
         os.close(saved)
+
+
+@contextmanager
+def _open3d_quietly() -> Iterator[None]:
+    """What Open3D prints while it reads a file, off: its C code's stderr (RPly's lines) and its
+    warnings, for this block only."""
+    from ._open3d import quiet
+
+    with quiet_c_output(), quiet():
+        yield
 
 
 def _trimesh_mesh(path: Path) -> Tuple[np.ndarray, np.ndarray]:
@@ -889,7 +899,7 @@ def read_attributes(path: PathLike, count: int, scan: Optional[int] = None) -> P
     if ext not in (".ply", ".pcd", ".xyzn", ".xyzrgb", ".pts"):
         return PointAttributes()
     o3d = _o3d()
-    with quiet_c_output():
+    with _open3d_quietly():
         if ext == ".ply" and len(o3d.io.read_triangle_mesh(str(path)).triangles) > 0:
             return PointAttributes()
         cloud = o3d.io.read_point_cloud(str(path), format="auto")

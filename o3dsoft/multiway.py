@@ -25,6 +25,7 @@ from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ._open3d import quietly
 from .config import RegisterConfig
 from .errors import InputError, UsageError
 from .io import as_rigid
@@ -200,6 +201,7 @@ def choose_pairs(clouds: Sequence[np.ndarray], config: MultiwayConfig, init_pose
     return sorted(pairs)
 
 
+@quietly
 def multiway(
     clouds: Sequence[CloudLike],
     config: MultiwayConfig = MultiwayConfig(),

@@ -38,6 +38,7 @@ from . import confidence as confidence_stage
 from . import degeneracy as degeneracy_stage
 from . import refine as refine_stage
 from . import symmetry as symmetry_stage
+from ._open3d import quietly
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
 from .errors import UsageError
@@ -207,6 +208,7 @@ def _each_transform(result: RegistrationResult, change: Callable[[np.ndarray], n
     return replace(result, **changed)
 
 
+@quietly
 def register(
     source: CloudLike,
     target: CloudLike,

@@ -156,6 +156,22 @@ def test_clouds_of_under_min_points_are_flagged_however_well_they_fit(points):
         assert not res.likely_failed and res.failure_reason is None
 
 
+def test_open3d_warnings_are_off_within_o3dsoft_only(capfd):
+    import open3d as o3d
+
+    before = o3d.utility.get_verbosity_level()
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Info)
+    try:
+        points = o3dsoft.read_points(EXAMPLES / "bun045.ply")  # Open3D warns that a PLY without faces holds no mesh
+        register(points, o3dsoft.read_points(EXAMPLES / "bun000.ply"))
+        assert "[Open3D WARNING]" not in capfd.readouterr().out
+        assert o3d.utility.get_verbosity_level() == o3d.utility.VerbosityLevel.Info  # the caller's, as set
+        o3d.io.read_point_cloud(str(EXAMPLES / "no_such_file.ply"))
+        assert "[Open3D WARNING] Read PLY failed" in capfd.readouterr().out  # the caller's own calls still warn
+    finally:
+        o3d.utility.set_verbosity_level(before)
+
+
 def test_a_process_forked_after_a_registration_registers_too():
     # Linux's default multiprocessing start method forks; a child of a process whose torch
     # threads had run waited forever on its first parallel operation. In a subprocess, with a
