@@ -307,7 +307,7 @@ def register(
     """
     if icp_absolute and icp_distance is None:
         raise click.UsageError("--icp-absolute needs --icp-distance, in the clouds' units")
-    icp = dict(distance=0.1 if icp_distance is None else icp_distance, absolute=icp_absolute, method=icp_method)
+    icp = dict(distance=icp_distance, absolute=icp_absolute, method=icp_method)
     if pairs_path is not None:
         given = [
             name

@@ -354,7 +354,9 @@ class RegisterConfig:
         threshold = self.confidence.likely_failed_below
         if not 0 <= threshold <= 1:
             raise InputError(f"confidence.likely_failed_below must be in [0, 1], got {threshold}")
-        if not 0 < self.icp.distance < math.inf:
+        if self.icp.absolute and self.icp.distance is None:
+            raise InputError("icp.absolute needs icp.distance, in the clouds' units")
+        if self.icp.distance is not None and not 0 < self.icp.distance < math.inf:
             raise InputError(f"icp.distance must be positive and finite, got {self.icp.distance}")
         if not threshold <= search.features.stop <= 1:
             raise InputError(

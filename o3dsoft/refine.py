@@ -24,6 +24,8 @@ from .preprocess import robust_extent
 from .procrustes import rigid_fit
 from .transforms import apply_transform, rigid
 
+RELATIVE_DISTANCE = 0.1  # ICP's default correspondence distance, a share of the pair's scale
+
 
 @dataclass(frozen=True)
 class ICPConfig:
@@ -31,7 +33,9 @@ class ICPConfig:
 
     Attributes:
         distance: max correspondence distance, relative to the pair's scale (the larger radius
-            of the two clouds) unless `absolute` is set. Fitness and inlier RMSE are reported at it.
+            of the two clouds) unless `absolute` is set; None: :data:`RELATIVE_DISTANCE` of the
+            scale (with `absolute`, a distance must be given). Fitness and inlier RMSE are
+            reported at it.
         schedule: ICP runs once per entry, at distance * entry, in this order.
         absolute: `distance` is in the clouds' own units.
         max_iterations, relative_fitness, relative_rmse: Open3D's convergence criteria (of the
@@ -62,7 +66,7 @@ class ICPConfig:
             (:class:`o3dsoft.pair.PreparedPair` decides).
     """
 
-    distance: float = 0.1
+    distance: Optional[float] = None
     schedule: Tuple[float, ...] = (1.0, 0.3, 0.1)
     absolute: bool = False
     max_iterations: int = 100
@@ -80,6 +84,10 @@ class ICPConfig:
 
     def distance_for(self, scale: float) -> float:
         """The correspondence distance in cloud units for a pair of this scale."""
+        if self.distance is None:
+            if self.absolute:
+                raise ValueError("ICPConfig(absolute=True) needs a distance, in the clouds' units")
+            return RELATIVE_DISTANCE * scale
         return self.distance if self.absolute else self.distance * scale
 
     def starting_at(self, factor: float) -> "ICPConfig":

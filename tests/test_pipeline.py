@@ -516,6 +516,7 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         (lambda s, t: register(s, t, init="T.txt"), InputError, "init: expected a 4x4 transform, got the file name 'T.txt'"),
         (lambda s, t: register(s, t, RegisterConfig(voxel="0.5")), InputError, "voxel must be a number, got '0.5' \\(str\\)"),
         (lambda s, t: register(s, t, RegisterConfig(icp=ICPConfig(distance=0.0))), InputError, "icp.distance must be positive and finite, got 0.0"),
+        (lambda s, t: register(s, t, RegisterConfig(icp=ICPConfig(absolute=True))), InputError, "icp.absolute needs icp.distance, in the clouds' units"),
         (
             lambda s, t: register(s, t, RegisterConfig(confidence=ConfidenceConfig(likely_failed_below=1.5))),
             InputError,
@@ -529,7 +530,18 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         (lambda s, t: o3dsoft.multiway([s, t], RegisterConfig()), UsageError, "config must be an o3dsoft.MultiwayConfig"),
         (lambda s, t: o3dsoft.multiway([s, t], names=["a", "a"]), InputError, "two scans share the name 'a'"),
     ],
-    ids=["config-dict", "model-name", "init-path", "voxel-str", "icp-distance-0", "threshold-1.5", "threshold-0.9", "multiway-config", "multiway-names"],
+    ids=[
+        "config-dict",
+        "model-name",
+        "init-path",
+        "voxel-str",
+        "icp-distance-0",
+        "icp-absolute-alone",
+        "threshold-1.5",
+        "threshold-0.9",
+        "multiway-config",
+        "multiway-names",
+    ],
 )
 def test_library_misuse_is_one_clear_o3dsoft_error(call, error, message):
     src, tgt, _ = blob_pair(seed=4)
