@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from . import refine as refine_stage
 from .confidence import Features, Scorer
+from .preprocess import flat_normal
 from .transforms import apply_transform, euler_to_matrix, rigid
 
 
@@ -43,6 +44,8 @@ class DegeneracyConfig:
             (median distance to the nearest partner over the point spacing) is below this: 0
             for identical points, about 1 for two samplings of one surface.
         neighbours: points of a local plane (its normal).
+        line_neighbours: points of a local line of a flat cloud's outline (its normal within
+            the plane): fewer, so that two walls of a corridor a few spacings apart stay apart.
         max_points: the clouds are voxel-downsampled to about this many points first.
         held_from: from a caller's guess, on a flagged result (``constraint`` below
             ``min_constraint``), the directions of motion whose eigenvalue is below this share of
@@ -54,6 +57,7 @@ class DegeneracyConfig:
     turn_deg: float = 30.0
     shared_below: float = 0.5
     neighbours: int = 20
+    line_neighbours: int = 6
     max_points: int = 5000
     held_from: float = 0.1
 
@@ -103,10 +107,12 @@ def assess(
     source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
     target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
     moved = apply_transform(transformation, source)
-    equations = _normal_equations(moved, target, distance, scale, config)
+    plane = flat_normal(target)
+    equations = _normal_equations(moved, target, distance, scale, config, plane)
     constraint = 0.0
     if equations is not None:
-        eigenvalues = np.linalg.eigvalsh(equations[0])
+        H = equations[0] if plane is None else _within(plane).T @ equations[0] @ _within(plane)
+        eigenvalues = np.linalg.eigvalsh(H)
         constraint = float(max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300))
     scorer = make_scorer() if make_scorer is not None else Scorer(source, target, distance)
     flatness = _flatness(scorer, transformation, moved.mean(axis=0), config.turn_deg)
@@ -120,15 +126,48 @@ def assess(
     return Degeneracy(constraint, flatness, reason)
 
 
+LINE_SPREAD = 0.25  # a flat cloud's points follow a line where their spread across it is at most this share of along it (variances)
+
+
+def _within(plane: np.ndarray) -> np.ndarray:
+    """(6, 3) the motions within the plane of unit normal `plane` (3,), as columns of the normal
+    equations' parameters (rotation, translation): the turn about its normal and two shifts along
+    it. On two flat clouds (2D scans) the motions out of the plane are held by both lying in it."""
+    u = np.cross(plane, [1.0, 0.0, 0.0] if abs(plane[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    basis = np.zeros((6, 3))
+    basis[:3, 0], basis[3:, 1], basis[3:, 2] = plane, u, np.cross(plane, u)
+    return basis
+
+
+def _in_plane_normals(points: np.ndarray, plane: np.ndarray, neighbours: int) -> np.ndarray:
+    """(N, 3) unit normals within the plane of normal `plane` of the (N, 3) flat points: across the
+    line their `neighbours` nearest points follow (a 2D scan's outline); zero where those points
+    do not follow a line (within LINE_SPREAD: the inside of a filled flat shape), which then
+    holds no motion."""
+    _, j = cKDTree(points).query(points, k=min(neighbours, len(points)))
+    local = points[j] - points[j].mean(axis=1, keepdims=True)
+    values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    across = np.cross(plane, vectors[:, :, -1])  # the line's direction is the largest eigenvector
+    across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-300)
+    return across * (values[:, 1] <= LINE_SPREAD * values[:, 2])[:, None]  # values[:, 0]: across the plane, 0
+
+
 def _normal_equations(
-    moved: np.ndarray, target: np.ndarray, distance: float, scale: Optional[float], config: DegeneracyConfig
+    moved: np.ndarray,
+    target: np.ndarray,
+    distance: float,
+    scale: Optional[float],
+    config: DegeneracyConfig,
+    plane: Optional[np.ndarray] = None,
 ) -> Optional[Tuple[np.ndarray, np.ndarray, float]]:
     """The point-to-plane normal equations of the (N, 3) source `moved` by the result onto the
     (M, 3) target, over its points within `distance` of it: ((6, 6) H,
     (3,) the centre of those moved points, in the target's frame, and the length rotations are
     scaled by); None under 6 such points. H's parameters: rotation (radians) times that length,
     `scale` (None: the RMS distance of those points from their centre, so that a rotation and a
-    translation that move them as far weigh the same), then translation (cloud units)."""
+    translation that move them as far weigh the same), then translation (cloud units). `plane`:
+    the unit normal of a flat target's plane, whose normals are then taken within it."""
     dist, j = cKDTree(target).query(moved, distance_upper_bound=distance)
     matched = np.isfinite(dist)
     if matched.sum() < 6:
@@ -137,7 +176,7 @@ def _normal_equations(
     if scale is None:
         scale = max(float(np.sqrt(np.mean(np.sum((moved[matched] - centre) ** 2, axis=1)))), 1e-300)
     c = (moved[matched] - centre) / scale
-    n = refine_stage.normals(target, config.neighbours)[j[matched]]
+    n = (refine_stage.normals(target, config.neighbours) if plane is None else _in_plane_normals(target, plane, config.line_neighbours))[j[matched]]
     J = np.hstack([np.cross(c, n), n])  # (K, 6): d(residual) / d(rotation, translation)
     return J.T @ J / len(J), centre, scale
 

@@ -18,6 +18,7 @@ from .errors import InputError
 from .preprocess import (
     clean_points,
     data_grid,
+    flat_normal,
     isolated_points,
     normalisation_for,
     normalise_pair,
@@ -136,7 +137,9 @@ class PreparedPair:
         # downsampled already: the data's grid leaves them as they are).
         self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
         if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest
-            config = replace(config, icp=replace(config.icp, method="plane" if self.scans else "point"))
+            # and on a flat target (a 2D scan), whose normals all leave its plane: they hold no motion within it
+            plane = self.scans and flat_normal(self.full[1]) is None
+            config = replace(config, icp=replace(config.icp, method="plane" if plane else "point"))
         self.config = config
         clock.lap("clean")
         # The network's samples, normalised together (own centroids, one common scale).

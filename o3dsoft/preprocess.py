@@ -185,6 +185,30 @@ def robust_extent(points: np.ndarray) -> np.ndarray:
     return hi - lo
 
 
+def principal_extents(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """(3,) sides of the box holding the central 98 % of the (N, 3) finite points along each of
+    their principal axes, longest first (cloud units), and (3, 3) those axes as columns, in the
+    same order: a pipe 100 long and 0.1 across has sides (100, 0.1, 0.1) whichever way it lies."""
+    sample = _every_kth(points)
+    sample = sample[np.isfinite(sample).all(axis=1)]
+    centred = sample - sample.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)
+    axes = axes[:, ::-1]
+    lo, hi = np.percentile(centred @ axes, [1, 99], axis=0)
+    return hi - lo, axes
+
+
+FLAT = 1e-5  # a cloud whose thinnest principal side is at most this share of its size lies in a plane
+
+
+def flat_normal(points: np.ndarray) -> Optional[np.ndarray]:
+    """(3,) unit normal of the plane the (N, 3) points lie in, where their thinnest
+    :func:`principal_extents` side is at most ``FLAT`` of the longest (a 2D laser scan saved with
+    z = 0); None for clouds with a third dimension."""
+    sides, axes = principal_extents(points)
+    return axes[:, 2] if sides[2] <= FLAT * sides[0] else None
+
+
 def scene_size(points: np.ndarray) -> float:
     """Diagonal of the :func:`robust_extent` box of the (N, 3) points (cloud units)."""
     return float(np.linalg.norm(robust_extent(points)))
@@ -213,8 +237,14 @@ def point_spacing(points: np.ndarray, sample: int = SPACING_SAMPLE, seed: int = 
     return _median_spacing(points, sample_points(points, sample, seed))
 
 
+# The grid is at least this many cells across a cloud's second-longest principal side: a pipe 100
+# m long and 10 cm across, on 1 % of its length, came down to 100 points along its axis.
+CELLS_ACROSS = 10
+
+
 def data_grid(source: np.ndarray, target: np.ndarray, share: float) -> Optional[float]:
-    """A voxel grid of `share` of the smaller scene's size (:func:`scene_size`; cloud units) where
+    """A voxel grid of `share` of the smaller scene's size (:func:`scene_size`; cloud units), or
+    finer, 1 / ``CELLS_ACROSS`` of a cloud's second-longest :func:`principal_extents` side, where
     one of the clouds is denser than half of it (its :func:`point_spacing`); None where both are
     sparser: they are registered as they are.
 
@@ -225,7 +255,8 @@ def data_grid(source: np.ndarray, target: np.ndarray, share: float) -> Optional[
     if share <= 0:
         return None
     size = min(scene_size(source), scene_size(target))  # clouds in different units: the grid leaves both whole
-    voxel = share * size
+    across = min(principal_extents(source)[0][1], principal_extents(target)[0][1])
+    voxel = min(share * size, across / CELLS_ACROSS)  # a pipe or a wire keeps its cross-section
     return voxel if spaced_closer_than(source, 0.5 * voxel) or spaced_closer_than(target, 0.5 * voxel) else None
 
 

@@ -13,8 +13,9 @@ from .conftest import EXAMPLES, random_transform
 TURN = rigid(euler_to_matrix(np.array([0.0, 0.0, 15.0])), np.array([0.05, 0.0, 0.0]))
 
 
-def square(rng, n=1500):
-    return np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
+def square(rng, n=1500, thickness=1e-3):
+    """A scanned square plate: its noise (`thickness`) leaves it a 3D cloud; 0: a flat 2D one."""
+    return np.c_[rng.uniform(-1, 1, (n, 2)), rng.normal(0, thickness, n) if thickness else np.zeros(n)]
 
 
 def sphere(rng, n=3000):  # below about 2,000 points, normal noise lifts a sphere's constraint above the threshold
@@ -48,6 +49,14 @@ def test_shapes_that_slide_on_themselves_come_back_flagged(shape, moved):
         assert "fit about as well turned" in r.failure_reason and r.flatness >= limits.max_flatness
     else:
         assert "can slide on each other" in r.failure_reason and r.constraint < limits.min_constraint
+
+
+def test_a_filled_flat_shape_comes_back_flagged():
+    # Flat clouds are judged within their plane (2D scans' outlines fix the pose there); a filled
+    # square's inside follows no line, and it fits about as well turned.
+    rng = np.random.default_rng(0)
+    r = o3dsoft.register(square(rng, thickness=0), apply_transform(TURN, square(rng, thickness=0)), o3dsoft.RegisterConfig(search=SearchConfig(mode="off")))
+    assert r.likely_failed and r.confidence == 0.0 and r.flatness >= o3dsoft.RegisterConfig().degeneracy.max_flatness
 
 
 @pytest.mark.parametrize("cloud", ["volume", "sparse sphere"])

@@ -172,6 +172,39 @@ def test_open3d_warnings_are_off_within_o3dsoft_only(capfd):
         o3d.utility.set_verbosity_level(before)
 
 
+def _outline(rng, n, corridor=False):
+    """A 2D laser scan (z = 0) of an 8 x 5 m room's walls with a round pillar, or of a 20 m
+    corridor's two walls, with 5 mm noise in the plane."""
+    t, side = rng.uniform(0, 1, n), rng.integers(0, 2 if corridor else 5, n)
+    walls = (
+        [np.c_[20 * t, 0 * t], np.c_[20 * t, 2 + 0 * t]]
+        if corridor
+        else [
+            np.c_[8 * t, 0 * t],
+            np.c_[8 + 0 * t, 3 * t],
+            np.c_[8 - 4 * t, 3 + 0 * t],
+            np.c_[4 + 0 * t, 3 + 2 * t],
+            np.c_[2 + 0.3 * np.cos(2 * np.pi * t), 1.5 + 0.3 * np.sin(2 * np.pi * t)],
+        ]
+    )
+    xy = np.choose(side[:, None], walls) + rng.normal(0, 0.005, (n, 2))
+    return np.c_[xy, np.zeros(n)]
+
+
+def test_2d_scans_register_within_their_plane():
+    # A flat target's normals all leave its plane: point-to-plane ICP held no motion within it, and
+    # the degeneracy test read every 2D scan as sliding (constraint 0). Now ICP is point-to-point
+    # there, and the test weighs the motions within the plane, with the outline's normals.
+    rng = np.random.default_rng(0)
+    T = rigid(euler_to_matrix(np.array([0.0, 0.0, 12.0])), np.array([0.4, -0.3, 0.0]))
+    room = register(_outline(rng, 5000), apply(T, _outline(rng, 5000)))
+    assert room.icp_method == "point" and not room.likely_failed and room.constraint > 0.05
+    e = pair_errors(room.transformation, T)
+    assert e.rotation_deg < 0.1 and e.translation < 0.01
+    corridor = register(_outline(rng, 5000, corridor=True), apply(T, _outline(rng, 5000, corridor=True)))
+    assert corridor.likely_failed and "can slide" in corridor.failure_reason and corridor.constraint < 1e-3
+
+
 def test_a_process_forked_after_a_registration_registers_too():
     # Linux's default multiprocessing start method forks; a child of a process whose torch
     # threads had run waited forever on its first parallel operation. In a subprocess, with a

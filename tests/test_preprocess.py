@@ -8,11 +8,13 @@ from o3dsoft.preprocess import (
     clean_points,
     data_grid,
     denormalise_transform,
+    flat_normal,
     isolated_points,
     normalisation_for,
     normalise_pair,
     normalise_transform,
     point_spacing,
+    principal_extents,
     same_profile_pvalue,
     sample_points,
     scene_size,
@@ -207,3 +209,31 @@ def test_first_of_each_row_falls_back_on_a_hash_collision(monkeypatch):
     monkeypatch.setattr(preprocess, "_row_hashes", lambda rows: np.zeros(len(rows), dtype=np.uint64))
     np.testing.assert_array_equal(preprocess.first_of_each_row(pts), [0, 1])
     np.testing.assert_array_equal(preprocess.first_of_each_row(pts[:2]), [0, 1])  # two rows, one hash, both kept
+
+
+def _pipe(rng, n=20_000, length=100.0, radius=0.05):
+    """Points on a thin cylinder along a random direction: a pipe or a power line."""
+    a, along = rng.uniform(0, 2 * np.pi, n), rng.uniform(0, length, n)
+    local = np.c_[along, radius * np.cos(a), radius * np.sin(a)]
+    from scipy.spatial.transform import Rotation
+
+    return local @ Rotation.random(random_state=3).as_matrix().T
+
+
+def test_a_thin_structure_keeps_its_cross_section_on_the_grid():
+    pipe = _pipe(np.random.default_rng(0))
+    sides, axes = principal_extents(pipe)
+    assert sides[0] == pytest.approx(98.0, rel=0.01) and sides[1] == pytest.approx(0.1, rel=0.02) and sides[2] == pytest.approx(0.1, rel=0.02)
+    assert abs(axes[:, 0] @ (pipe[-1] - pipe[0])) == pytest.approx(np.linalg.norm(pipe[-1] - pipe[0]), rel=0.01)  # the pipe's axis
+    # 1 % of its 98-unit length would be a 1-unit grid, ten times its diameter: a line of ~100 points.
+    assert data_grid(pipe, pipe, 0.01) is None  # 1 / 10 of its diameter: finer than its 4 cm spacing, so no grid
+    dense = _pipe(np.random.default_rng(1), n=60_000, length=10.0)  # spaced 3 mm: on 1 % of its length, 0.1
+    assert data_grid(dense, dense, 0.01) == pytest.approx(0.01, rel=0.03)
+
+
+def test_a_flat_cloud_is_told_from_a_thin_one():
+    rng = np.random.default_rng(2)
+    flat = np.c_[rng.uniform(0, 8, (500, 2)), np.zeros(500)]
+    assert abs(flat_normal(flat) @ [0, 0, 1]) == pytest.approx(1.0)
+    assert flat_normal(flat + [0.0, 0.0, 1e6]) is not None  # far from the origin, still flat
+    assert flat_normal(np.c_[flat[:, :2], rng.normal(0, 1e-3, 500)]) is None  # a 1 mm thick sheet is a 3D cloud
