@@ -697,7 +697,7 @@ def _result(
         trust = config.confidence.likely_failed_below * fewest / enough
         reason = f"the smaller cloud has only {fewest} points: under {enough}, a wrong alignment fits as closely as the right one and scores as high"
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
-        reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units?); {reason}"
+        reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units? o3dsoft does not search a large scene for a small part of it); {reason}"
     return RegistrationResult(
         transformation=best.fine.transformation,
         fitness=best.fine.fitness,

@@ -217,6 +217,12 @@ def icp(
     if config.polish and not plane:  # the polish is a point-to-point step
         T = polish(src_points, tgt_points, T, distances[-1], tree)
     scored = reg.evaluate_registration(src, tgt, distance, T)
+    if scored.fitness == 0:
+        # No point within d at the end: ICP ran off its few partners (point-to-plane steps on a
+        # handful of points can go thousands of scene sizes away); where the start had some, it stands.
+        start = reg.evaluate_registration(src, tgt, distance, np.asarray(init, dtype=np.float64))
+        if start.fitness > 0:
+            return ICPResult(np.asarray(init, dtype=np.float64).copy(), float(start.fitness), float(start.inlier_rmse))
     return ICPResult(T, float(scored.fitness), float(scored.inlier_rmse))
 
 

@@ -1,7 +1,10 @@
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 import o3dsoft
+from o3dsoft import refine
 from o3dsoft.config import RegisterConfig
 from o3dsoft.metrics import rotation_error_deg
 from o3dsoft.pipeline import register
@@ -175,3 +178,18 @@ def test_point_to_plane_with_the_normals_given_once_is_the_same_icp():
     given = icp(src, tgt, np.eye(4), 0.3, config, normals(tgt, config.normal_neighbours))
     assert np.allclose(inside.transformation, given.transformation, rtol=0, atol=1e-12)
     assert rotation_error_deg(given.transformation[:3, :3], T[:3, :3]) < 0.01
+
+
+@pytest.mark.parametrize("method", ["point", "plane"])
+def test_icp_that_runs_off_every_partner_keeps_its_start(monkeypatch, method):
+    # Point-to-plane steps on a handful of matched points once went thousands of scene sizes away
+    # (a small object onto a large scene: a pose 16 km from a 50 m scene).
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(300, 3))
+    start = np.eye(4)
+    start[:3, 3] = [0.05, 0.0, 0.0]
+    away = np.eye(4)
+    away[:3, 3] = [1e4, 0.0, 0.0]
+    monkeypatch.setattr(refine.o3d.pipelines.registration, "registration_icp", lambda *args, **kwargs: SimpleNamespace(transformation=away))
+    result = refine.icp(source, source, start, 0.5, refine.ICPConfig(method=method))
+    assert np.array_equal(result.transformation, start) and result.fitness == 1.0
