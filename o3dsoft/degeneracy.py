@@ -109,24 +109,37 @@ def assess(
     moved = apply_transform(transformation, source)
     plane = flat_normal(target)
     equations = _normal_equations(moved, target, distance, scale, config, plane)
-    constraint = 0.0
+    constraint, free = 0.0, ""
     if equations is not None:
-        H = equations[0] if plane is None else _within(plane).T @ equations[0] @ _within(plane)
-        eigenvalues = np.linalg.eigvalsh(H)
+        basis = np.eye(6) if plane is None else _within(plane)
+        eigenvalues, vectors = np.linalg.eigh(basis.T @ equations[0] @ basis)
         constraint = float(max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300))
+        loose = eigenvalues < config.min_constraint * max(eigenvalues[-1], 1e-300)
+        free = ", ".join(_motion_in_words(basis @ v) for v in vectors[:, loose].T)
+        free = f"; the surfaces hold no {free} (target frame)" if free else ""
     scorer = make_scorer() if make_scorer is not None else Scorer(source, target, distance)
     flatness = _flatness(scorer, transformation, moved.mean(axis=0), config.turn_deg)
     reason = None
     if equations is None:  # a correspondence distance far below the clouds' spacing (set by hand)
         reason = f"under 6 points lie within {distance:.3g} units of the other cloud (ICP's correspondence distance): whether the surfaces fix the pose is not measured"
     elif constraint < config.min_constraint:
-        reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g})"
+        reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g}){free}"
     elif flatness >= config.max_flatness:
         reason = f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): points that fill a volume or a ball do not determine the pose"
     return Degeneracy(constraint, flatness, reason)
 
 
 LINE_SPREAD = 0.25  # a flat cloud's points follow a line where their spread across it is at most this share of along it (variances)
+
+
+def _motion_in_words(motion: np.ndarray) -> str:
+    """The (6,) motion of the normal equations' parameters (rotation times the length it is scaled
+    by, translation) in words, by its larger part: "shift along (x, y, z)" or "turn about (x, y,
+    z)", its axis in the target's frame (sign arbitrary)."""
+    turn, shift = np.linalg.norm(motion[:3]), np.linalg.norm(motion[3:])
+    kind, axis = ("shift along", motion[3:] / shift) if shift >= turn else ("turn about", motion[:3] / turn)
+    axis = np.round(axis if axis[np.argmax(np.abs(axis))] > 0 else -axis, 2) + 0.0  # no "-0.00"
+    return f"{kind} ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})"
 
 
 def _within(plane: np.ndarray) -> np.ndarray:

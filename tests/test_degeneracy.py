@@ -35,6 +35,14 @@ def box_surface(rng, n=2000, half=(1.0, 0.6, 0.3)):
     return p
 
 
+def _free_motions(reason):
+    """The (kind, (3,) axis) of each motion a reason says the surfaces hold not."""
+    import re
+
+    named = reason.split("the surfaces hold no ")[1]
+    return [(kind, np.array([float(v) for v in axis.split(",")])) for kind, axis in re.findall(r"(shift along|turn about) \(([^)]*)\)", named)]
+
+
 @pytest.mark.parametrize("shape", [square, sphere, cylinder])
 @pytest.mark.parametrize("moved", [False, True])
 def test_shapes_that_slide_on_themselves_come_back_flagged(shape, moved):
@@ -49,6 +57,12 @@ def test_shapes_that_slide_on_themselves_come_back_flagged(shape, moved):
         assert "fit about as well turned" in r.failure_reason and r.flatness >= limits.max_flatness
     else:
         assert "can slide on each other" in r.failure_reason and r.constraint < limits.min_constraint
+        free = _free_motions(r.failure_reason)  # named in the target's frame
+        if shape is cylinder:  # along and about its axis, z
+            assert sorted(kind for kind, _ in free) == ["shift along", "turn about"] and all(abs(axis[2]) > 0.98 for _, axis in free)
+        else:  # a plate: a turn about its normal, z, and the shifts within its plane
+            assert sorted(kind for kind, _ in free) == ["shift along", "shift along", "turn about"]
+            assert all(abs(axis[2]) > 0.98 if kind == "turn about" else abs(axis[2]) < 0.02 for kind, axis in free)
 
 
 def test_a_filled_flat_shape_comes_back_flagged():
