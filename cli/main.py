@@ -577,7 +577,8 @@ def _format_result(source, target, result, errors, model_info, config, read=None
     "--init",
     "init_path",
     type=click.Path(path_type=Path),
-    help="Initial poses world_T_scan (odometry, an earlier run): a poses.json as multiway writes, or text with one pose per scan, in order, 12 numbers (KITTI's 3x4) or 16.",
+    help="Initial poses world_T_scan (odometry, an earlier run): a poses.json as multiway writes, or text with one pose per scan, in order, 12 numbers (KITTI's 3x4) or 16. "
+    "Each pair is then held within 45 degrees of the turn between its poses (--max-rotation sets another bound).",
 )
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the merged cloud, one colour per scan.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result (poses, edges) as JSON instead of a table.")

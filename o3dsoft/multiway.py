@@ -56,6 +56,10 @@ class MultiwayConfig:
             optimisation (Open3D's ``preference_loop_closure``, default 1.0).
         voxel: grid of the merged cloud (scan units); None: the pairs' registration grid, or
             every point where they had none.
+        init_max_rotation: a pair registered from the scans' initial poses is held within this
+            many degrees of the turn between them (``RegisterConfig.max_rotation``, where
+            `register` sets none): odometry is seldom that far off, and on scans that overlap
+            little the search otherwise found and trusted turns of 56-129 degrees; None: no bound.
         register: settings of every pairwise registration.
     """
 
@@ -66,6 +70,7 @@ class MultiwayConfig:
     prune_below: float = 0.25
     loop_closure_preference: float = 1.0
     voxel: Optional[float] = None
+    init_max_rotation: Optional[float] = 45.0
     register: RegisterConfig = field(default_factory=RegisterConfig)
 
     def validate(self) -> None:
@@ -79,6 +84,8 @@ class MultiwayConfig:
             raise InputError(f"prune_below must be in [0, 1), got {self.prune_below}")
         if self.voxel is not None and not self.voxel > 0:
             raise InputError(f"voxel must be positive, got {self.voxel}")
+        if self.init_max_rotation is not None and not 0 < self.init_max_rotation <= 180:
+            raise InputError(f"init_max_rotation must be in (0, 180] degrees, got {self.init_max_rotation}")
 
 
 @dataclass(frozen=True)
@@ -257,15 +264,18 @@ def multiway(
         quick = replace(quick, search=replace(quick.search, mode="off"), refine_flagged=False)
     found: Dict[Tuple[int, int], Tuple[Edge, RegistrationResult]] = {}
     for done, (i, j) in enumerate(pairs, start=1):
-        found[i, j] = _register_edge(points, names, i, j, quick, model, guesses)
+        found[i, j] = _register_edge(points, names, i, j, quick, model, guesses, config.init_max_rotation)
         if progress is not None:
             progress(done, len(pairs))
     # Then the search, only on the pairs of scans that no trusted edge reaches yet, until each joins.
     if quick is not config.register:
         group_of = _group_of(len(points), [e for e, _ in found.values()])
-        for i, j in pairs:
+        # Nearest in the sequence first: a scan's next one overlaps it most, and the first
+        # trusted search joins it (its farthest pair, searched first, had joined a last scan 31
+        # degrees off where its neighbour's was right).
+        for i, j in sorted(pairs, key=lambda pair: (pair[1] - pair[0], pair)):
             if group_of[i] != group_of[j] and found[i, j][0].likely_failed:
-                found[i, j] = _register_edge(points, names, i, j, config.register, model, guesses)
+                found[i, j] = _register_edge(points, names, i, j, config.register, model, guesses, config.init_max_rotation)
                 if not found[i, j][0].likely_failed:  # two groups joined
                     group_of = _group_of(len(points), [e for e, _ in found.values()])
     edges = [e for e, _ in found.values()]
@@ -358,11 +368,14 @@ def _checked_poses(init_poses: Optional[Sequence[Optional[np.ndarray]]], names: 
     return poses
 
 
-def _register_edge(points, names, i: int, j: int, config: RegisterConfig, model, guesses) -> Tuple[Edge, RegistrationResult]:
+def _register_edge(points, names, i: int, j: int, config: RegisterConfig, model, guesses, bound: Optional[float]) -> Tuple[Edge, RegistrationResult]:
     """Register scan j onto scan i (from T_i_j = inv(world_T_i) @ world_T_j where both have an
-    initial pose): the edge j -> i and the full result."""
+    initial pose, then within `bound` degrees of it where `config` sets no rotation prior): the
+    edge j -> i and the full result."""
     t0 = time.perf_counter()
     init = np.linalg.inv(guesses[i]) @ guesses[j] if guesses[i] is not None and guesses[j] is not None else None
+    if init is not None and config.max_rotation is None and bound is not None:
+        config = replace(config, max_rotation=bound)
     r = register(points[j], points[i], config, model=model, source_name=names[j], target_name=names[i], init=init)
     return Edge(j, i, r.transformation, r.confidence, r.fitness, r.likely_failed, r.failure_reason, time.perf_counter() - t0, r.searched), r
 

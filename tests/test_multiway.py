@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 
 import numpy as np
 import open3d as o3d
@@ -447,3 +448,48 @@ def test_the_module_is_callable_as_its_function():
     assert o3dsoft.multiway is module or o3dsoft.multiway is module.multiway
     with pytest.raises(InputError, match="multiway needs at least two scans, got 1"):
         module([np.random.default_rng(0).random((50, 3))])
+
+
+def _recording_register(calls):
+    """A stand-in for register that flags every pair and records (source, target, search mode,
+    max_rotation, init given)."""
+    from types import SimpleNamespace
+
+    def fake(source, target, config, model=None, source_name="", target_name="", init=None):
+        calls.append((source_name, target_name, config.search.mode, config.max_rotation, init is not None))
+        return SimpleNamespace(
+            transformation=np.eye(4), confidence=0.0, fitness=0.0, likely_failed=True, failure_reason="flagged", searched=False, voxel=None, tight_distance=0.01
+        )
+
+    return fake
+
+
+def test_scans_left_apart_are_searched_nearest_in_the_sequence_first(monkeypatch):
+    # The second pass stops searching a scan's pairs once one joins it; searched in index order,
+    # a last scan's farthest pair came first and joined it 31 degrees off.
+    import o3dsoft.multiway as mw
+
+    calls = []
+    monkeypatch.setattr(mw, "register", _recording_register(calls))
+    clouds = [blob(np.random.default_rng(k), 300) for k in range(4)]
+    multiway(clouds, MultiwayConfig(neighbours="all"), names=["a", "b", "c", "d"], model=object())
+    searched = [(s, t) for s, t, mode, _, _ in calls if mode == "auto"]
+    assert searched == [("b", "a"), ("c", "b"), ("d", "c"), ("c", "a"), ("d", "b"), ("d", "a")]
+
+
+def test_pairs_from_initial_poses_are_held_near_the_turn_between_them(monkeypatch):
+    import o3dsoft.multiway as mw
+
+    clouds = [blob(np.random.default_rng(k), 300) for k in range(3)]
+    for config, held in (
+        (MultiwayConfig(), 45.0),  # odometry is seldom that far off
+        (MultiwayConfig(register=replace(RegisterConfig(), max_rotation=10.0)), 10.0),  # the caller's own bound
+        (MultiwayConfig(init_max_rotation=None), None),
+    ):
+        calls = []
+        monkeypatch.setattr(mw, "register", _recording_register(calls))
+        multiway(clouds, config, model=object(), init_poses=[np.eye(4), np.eye(4), None])
+        assert {(s, t): (bound, given) for s, t, _, bound, given in calls}[("scan1", "scan0")] == (held, True)
+        assert all(bound == config.register.max_rotation for s, t, _, bound, given in calls if not given)  # no guess, no bound
+    with pytest.raises(InputError, match="init_max_rotation must be in"):
+        multiway(clouds, MultiwayConfig(init_max_rotation=0.0), model=object())
