@@ -11,19 +11,26 @@ from typing import Dict, NamedTuple, Optional
 
 import numpy as np
 
+from .errors import InputError
 from .transforms import apply_transform, in_frame_at, matrix_to_euler_deg, rotation_angle_deg
 
 
-def _as_transform(T: np.ndarray) -> np.ndarray:
-    """T as a (4, 4) float64 array; ValueError for any other shape."""
+def _as_transform(T: np.ndarray, name: str = "transform") -> np.ndarray:
+    """T as a (4, 4) float64 array. InputError naming `name` for any other shape, and for a finite
+    one whose 3x3 block is no rotation (|R^T R - I| over 0.01, or a reflection): its errors would
+    mean nothing. A non-finite one (a method that failed) is let through: its errors are NaN or
+    180 degrees."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
-        raise ValueError(f"expected a (4, 4) transform, got shape {T.shape}")
+        raise InputError(f"{name}: expected a (4, 4) transform, got shape {T.shape}")
+    R = T[:3, :3]
+    if np.isfinite(T).all() and (np.abs(R.T @ R - np.eye(3)).max() > 0.01 or np.linalg.det(R) < 0):
+        raise InputError(f"{name}: not a rigid transform (its 3x3 block is no rotation)")
     return T
 
 
-def _split(T: np.ndarray):
-    T = _as_transform(T)
+def _split(T: np.ndarray, name: str = "transform"):
+    T = _as_transform(T, name)
     return T[:3, :3], T[:3, 3]
 
 
@@ -59,8 +66,8 @@ def pair_errors(T_est: np.ndarray, T_gt: np.ndarray, origin: Optional[np.ndarray
     origin moves a cloud 4e6 m away by 7 km; :func:`o3dsoft.preprocess.local_origin`)."""
     if origin is not None and np.any(origin):
         T_est, T_gt = in_frame_at(T_est, origin), in_frame_at(T_gt, origin)
-    R_e, t_e = _split(T_est)
-    R_g, t_g = _split(T_gt)
+    R_e, t_e = _split(T_est, "T_est")
+    R_g, t_g = _split(T_gt, "T_gt")
     dR = R_e - R_g
     dt = t_e - t_g
     de = matrix_to_euler_deg(R_e) - matrix_to_euler_deg(R_g)

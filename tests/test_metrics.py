@@ -108,3 +108,16 @@ def test_input_chamfer_is_the_same_seen_from_either_cloud(seed):
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = random_rotation(rng), rng.normal(size=3)
     assert input_chamfer_distance(tgt, src, np.linalg.inv(T)) == pytest.approx(input_chamfer_distance(src, tgt, T), rel=1e-9)
+
+
+def test_pair_errors_refuse_what_is_no_rigid_transform():
+    from o3dsoft.errors import InputError
+
+    with pytest.raises(InputError, match=r"T_gt: expected a \(4, 4\) transform, got shape \(3, 3\)"):
+        pair_errors(np.eye(4), np.eye(3))
+    with pytest.raises(InputError, match="T_est: not a rigid transform"):
+        pair_errors(np.diag([2.0, 2.0, 2.0, 1.0]), np.eye(4))  # a scaled matrix read 75.5 degrees off
+    with pytest.raises(InputError, match="T_est: not a rigid transform"):
+        pair_errors(np.diag([1.0, 1.0, -1.0, 1.0]), np.eye(4))  # a reflection
+    failed = pair_errors(np.full((4, 4), np.nan), np.eye(4))  # a method that failed still counts as a failure
+    assert failed.rotation_deg == 180.0 or np.isnan(failed.rotation_deg)
