@@ -59,6 +59,17 @@ class PairErrors(NamedTuple):
     translation_abs: np.ndarray
 
 
+def _euler_differences(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """(3,) |Euler angle differences| (degrees, wrapped to [0, 180]) of two rotations, DCP's: of
+    the estimate's two Euler triples (a, b, c) and (a + 180, 180 - b, c + 180), which make the same
+    rotation, the one nearer the truth's. Near b = 90 degrees the triple the angles' formula picks
+    can flip to the other for a turn of 0.1 degree, which read as 180 degrees per angle."""
+    first = matrix_to_euler_deg(R_est)
+    truth = matrix_to_euler_deg(R_gt)
+    wrapped = [np.abs((e - truth + 180.0) % 360.0 - 180.0) for e in (first, first * [1.0, -1.0, 1.0] + [180.0, 180.0, 180.0])]
+    return min(wrapped, key=lambda d: float(np.sum(d**2)))
+
+
 def pair_errors(T_est: np.ndarray, T_gt: np.ndarray, origin: Optional[np.ndarray] = None) -> PairErrors:
     """All per-pair errors of the literature's protocols for one estimate (4, 4) against the truth
     (4, 4). `origin` (3,): the translation errors of both moved to a frame there (t + R o - o), for
@@ -70,8 +81,7 @@ def pair_errors(T_est: np.ndarray, T_gt: np.ndarray, origin: Optional[np.ndarray
     R_g, t_g = _split(T_gt, "T_gt")
     dR = R_e - R_g
     dt = t_e - t_g
-    de = matrix_to_euler_deg(R_e) - matrix_to_euler_deg(R_g)
-    de = np.abs((de + 180.0) % 360.0 - 180.0)
+    de = _euler_differences(R_e, R_g)
     return PairErrors(
         rotation_deg=rotation_error_deg(R_e, R_g),
         translation=float(np.linalg.norm(dt)),

@@ -121,3 +121,13 @@ def test_pair_errors_refuse_what_is_no_rigid_transform():
         pair_errors(np.diag([1.0, 1.0, -1.0, 1.0]), np.eye(4))  # a reflection
     failed = pair_errors(np.full((4, 4), np.nan), np.eye(4))  # a method that failed still counts as a failure
     assert failed.rotation_deg == 180.0 or np.isnan(failed.rotation_deg)
+
+
+def test_euler_errors_do_not_flip_across_the_gimbal_lock():
+    # A turn of 0.1 degree about y across b = 90 degrees: the angles' formula returns the other
+    # triple, (180, 89.95, 180), which read 180 degrees off in x and z.
+    truth, estimate = euler_to_matrix(np.array([0.0, 89.95, 0.0])), euler_to_matrix(np.array([0.0, 90.05, 0.0]))
+    assert abs(abs(matrix_to_euler_deg(estimate)[0]) - 180.0) < 1e-6  # the flipped triple
+    T_gt, T_est = np.eye(4), np.eye(4)
+    T_gt[:3, :3], T_est[:3, :3] = truth, estimate
+    assert np.allclose(pair_errors(T_est, T_gt).euler_abs_deg, [0.0, 0.1, 0.0], atol=1e-6)
