@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, TypeVar
+import threading
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator, TypeVar
 
 from .errors import O3dsoftError
 
@@ -18,11 +20,27 @@ except OSError as e:  # pragma: no cover - depends on the machine
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-def quiet() -> Any:
-    """A context in which Open3D prints no warnings (to stdout, e.g. "Read PLY failed"): o3dsoft
-    reports problems itself. The caller's level is back after it; o3dsoft never changes it for
-    the process."""
-    return open3d.utility.VerbosityContextManager(open3d.utility.VerbosityLevel.Error)
+_LOCK = threading.Lock()
+_QUIET = {"depth": 0, "level": None}  # blocks open across threads, and the level before the first
+
+
+@contextmanager
+def quiet() -> Iterator[None]:
+    """A block in which Open3D prints no warnings (to stdout, e.g. "Read PLY failed"): o3dsoft
+    reports problems itself. The caller's level is back once the last such block of any thread
+    ends (Open3D's level is one for the process); o3dsoft never changes it for good."""
+    with _LOCK:
+        if _QUIET["depth"] == 0:
+            _QUIET["level"] = open3d.utility.get_verbosity_level()
+            open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)
+        _QUIET["depth"] += 1
+    try:
+        yield
+    finally:
+        with _LOCK:
+            _QUIET["depth"] -= 1
+            if _QUIET["depth"] == 0:
+                open3d.utility.set_verbosity_level(_QUIET["level"])
 
 
 def quietly(function: F) -> F:

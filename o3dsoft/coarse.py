@@ -34,14 +34,24 @@ CPU_BATCH = 2  # clouds per network call on the CPU (see CoarseModel.aligner)
 MAX_WEIGHT = 1e8  # larger parameter values are taken for a corrupted file: trained ones stay far below
 
 
+_TORCH_RAN = [False]  # whether o3dsoft has run torch in this process (a network, a registration)
+
+
+def torch_runs() -> None:
+    """Note that o3dsoft runs torch in this process: a process it forks from now on runs torch on
+    one thread (:func:`_one_thread_after_fork`)."""
+    _TORCH_RAN[0] = True
+
+
 def _one_thread_after_fork() -> None:
-    torch.set_num_threads(1)
+    if _TORCH_RAN[0]:
+        torch.set_num_threads(1)
 
 
 # A forked child inherits torch's OpenMP thread pool without its threads: its first parallel
 # operation waits for them forever (Linux's default "fork" start method, after the parent has run
 # a network). With one thread the child runs every operation itself, as torch's DataLoader
-# workers do.
+# workers do. Forks of a process where o3dsoft ran no torch keep their threads.
 os.register_at_fork(after_in_child=_one_thread_after_fork)
 
 
@@ -211,6 +221,7 @@ class CoarseModel:
         ``register`` call's network time) and make later calls no faster there (docs/speed.md).
         Elsewhere the executor is left as the caller set it."""
         executor = torch.jit.optimized_execution(False) if self.device.type == "cpu" else nullcontext()
+        torch_runs()
         with torch.no_grad(), executor:
             yield
 

@@ -407,10 +407,15 @@ class RegisterConfig:
                 f"symmetry: max_ratio must be at least 1 and min_away_deg in [0, 180]; got {self.symmetry.max_ratio}, {self.symmetry.min_away_deg}"
             )
         degeneracy = self.degeneracy
-        if not 0 <= degeneracy.min_constraint < 1 or degeneracy.neighbours < 3 or degeneracy.shared_below < 0 or not degeneracy.max_flatness > 0:
+        if (
+            not 0 <= degeneracy.min_constraint < 1
+            or min(degeneracy.neighbours, degeneracy.line_neighbours) < 3
+            or degeneracy.shared_below < 0
+            or not degeneracy.max_flatness > 0
+        ):
             raise InputError(
-                "degeneracy: min_constraint must be in [0, 1), neighbours at least 3, shared_below not negative and max_flatness positive; "
-                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.shared_below}, {degeneracy.max_flatness}"
+                "degeneracy: min_constraint must be in [0, 1), neighbours and line_neighbours at least 3, shared_below not negative and max_flatness positive; "
+                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.line_neighbours}, {degeneracy.shared_below}, {degeneracy.max_flatness}"
             )
 
 

@@ -119,11 +119,19 @@ def assess(
         free = f"; the surfaces hold no {free} (target frame)" if free else ""
     scorer = make_scorer() if make_scorer is not None else Scorer(source, target, distance)
     flatness = _flatness(scorer, transformation, moved.mean(axis=0), config.turn_deg)
+    slide = _slide(scorer, transformation, plane) if plane is not None else None
     reason = None
     if equations is None:  # a correspondence distance far below the clouds' spacing (set by hand)
         reason = f"under 6 points lie within {distance:.3g} units of the other cloud (ICP's correspondence distance): whether the surfaces fix the pose is not measured"
     elif constraint < config.min_constraint:
         reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g}){free}"
+    elif slide is not None and slide[0] >= config.max_flatness:
+        # The outline's normals come from a few points each, which noise tilts: the fit itself says whether a shift keeps it.
+        fit, shift, along = slide
+        reason = (
+            f"the clouds slide on each other within their plane (a 2D scan): shifted {shift:.3g} units along "
+            f"({along[0]:.2f}, {along[1]:.2f}, {along[2]:.2f}) they fit {fit:.2f} as well (from {config.max_flatness:g}: not determined)"
+        )
     elif flatness >= config.max_flatness:
         reason = f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): points that fill a volume or a ball do not determine the pose"
     return Degeneracy(constraint, flatness, reason)
@@ -227,6 +235,27 @@ def held_motion(
     kept = held @ (held.T @ motion)
     R = Rotation.from_rotvec(kept[:3] / scale).as_matrix()
     return rigid(R, start + kept[3:] - R @ start)
+
+
+def _slide(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, plane: np.ndarray) -> Tuple[float, float, np.ndarray]:
+    """For clouds in the plane of unit normal `plane` (3,): the best consistency of the source
+    shifted by three of the scorer's tight distances along 8 directions within the plane, either
+    way, each scaled by the share of the result's overlap it keeps, over the result's; the shift
+    (cloud units) and the (3,) direction of that best. A corridor's walls or a filled sheet fit as
+    well shifted along them (about 1); an outline with walls across each other loses half."""
+    base = scorer(transformation)
+    shift = 3.0 * base.tight_distance
+    basis = _within(plane)[3:, 1:]  # (3, 2): two directions within the plane
+    best = (0.0, shift, basis[:, 0])
+    if base.consistency <= 0:
+        return best
+    for angle in np.radians(np.arange(0.0, 360.0, 22.5)):
+        along = basis @ [np.cos(angle), np.sin(angle)]
+        moved = scorer(rigid(np.eye(3), shift * along) @ transformation)
+        fit = moved.consistency * min(1.0, moved.overlap / max(base.overlap, 1e-12)) / base.consistency
+        if fit > best[0]:
+            best = (fit, shift, np.round(along, 2) + 0.0)
+    return best
 
 
 def _flatness(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, centre: np.ndarray, turn_deg: float) -> float:

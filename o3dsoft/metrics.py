@@ -60,14 +60,21 @@ class PairErrors(NamedTuple):
 
 
 def _euler_differences(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
-    """(3,) |Euler angle differences| (degrees, wrapped to [0, 180]) of two rotations, DCP's: of
-    the estimate's two Euler triples (a, b, c) and (a + 180, 180 - b, c + 180), which make the same
-    rotation, the one nearer the truth's. Near b = 90 degrees the triple the angles' formula picks
-    can flip to the other for a turn of 0.1 degree, which read as 180 degrees per angle."""
+    """(3,) |Euler angle differences| (degrees, wrapped to [0, 180]) of two rotations, DCP's; where
+    both middle angles b lie within ``LOCK_DEG`` of +-90 degrees, of the estimate's two Euler
+    triples (a, b, c) and (a + 180, 180 - b, c + 180), which make the same rotation, the one
+    nearer the truth's: there the triple the angles' formula picks flips to the other for a turn
+    of a fraction of a degree."""
     first = matrix_to_euler_deg(R_est)
     truth = matrix_to_euler_deg(R_gt)
-    wrapped = [np.abs((e - truth + 180.0) % 360.0 - 180.0) for e in (first, first * [1.0, -1.0, 1.0] + [180.0, 180.0, 180.0])]
+    triples = [first]
+    if min(abs(first[1]), abs(truth[1])) > 90.0 - LOCK_DEG:
+        triples.append(first * [1.0, -1.0, 1.0] + [180.0, 180.0, 180.0])
+    wrapped = [np.abs((e - truth + 180.0) % 360.0 - 180.0) for e in triples]
     return min(wrapped, key=lambda d: float(np.sum(d**2)))
+
+
+LOCK_DEG = 10.0  # middle Euler angles within this of +-90 degrees are near the gimbal lock
 
 
 def pair_errors(T_est: np.ndarray, T_gt: np.ndarray, origin: Optional[np.ndarray] = None) -> PairErrors:
@@ -75,6 +82,7 @@ def pair_errors(T_est: np.ndarray, T_gt: np.ndarray, origin: Optional[np.ndarray
     (4, 4). `origin` (3,): the translation errors of both moved to a frame there (t + R o - o), for
     clouds far from their own frame's origin (georeferenced scans: a turn of 0.1 degrees about the
     origin moves a cloud 4e6 m away by 7 km; :func:`o3dsoft.preprocess.local_origin`)."""
+    T_est, T_gt = _as_transform(T_est, "T_est"), _as_transform(T_gt, "T_gt")
     if origin is not None and np.any(origin):
         T_est, T_gt = in_frame_at(T_est, origin), in_frame_at(T_gt, origin)
     R_e, t_e = _split(T_est, "T_est")

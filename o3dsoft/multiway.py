@@ -59,7 +59,8 @@ class MultiwayConfig:
         init_max_rotation: a pair registered from the scans' initial poses is held within this
             many degrees of the turn between them (``RegisterConfig.max_rotation``, where
             `register` sets none): odometry is seldom that far off, and on scans that overlap
-            little the search otherwise found and trusted turns of 56-129 degrees; None: no bound.
+            little the search can find and trust a turn far from it (docs/multiway.md); None: no
+            bound.
         register: settings of every pairwise registration.
     """
 
@@ -271,8 +272,7 @@ def multiway(
     if quick is not config.register:
         group_of = _group_of(len(points), [e for e, _ in found.values()])
         # Nearest in the sequence first: a scan's next one overlaps it most, and the first
-        # trusted search joins it (its farthest pair, searched first, had joined a last scan 31
-        # degrees off where its neighbour's was right).
+        # trusted search joins it (docs/multiway.md).
         for i, j in sorted(pairs, key=lambda pair: (pair[1] - pair[0], pair)):
             if group_of[i] != group_of[j] and found[i, j][0].likely_failed:
                 found[i, j] = _register_edge(points, names, i, j, config.register, model, guesses, config.init_max_rotation)
@@ -425,12 +425,16 @@ def units_note(clouds: Sequence[np.ndarray], names: Sequence[str]) -> Optional[s
     """A warning, where the largest of the (N_i, 3) scans is over ``SIZE_RATIO_NOTE`` times the
     size of the smallest (:func:`~o3dsoft.preprocess.scene_size` of the finite points): scans
     in different units, whose pairs are never trusted; else None."""
-    sizes = [scene_size(c[np.isfinite(c).all(axis=1)]) for c in clouds]
-    big, small = int(np.argmax(sizes)), int(np.argmin(sizes))
-    if not sizes[big] > SIZE_RATIO_NOTE * max(sizes[small], 1e-300):
+    finite = [c[np.isfinite(c).all(axis=1)] for c in clouds]
+    sizes = [scene_size(c) if len(c) > 1 else 0.0 for c in finite]
+    measured = [k for k, size in enumerate(sizes) if size > 0]  # the others are refused later, by name
+    if len(measured) < 2:
+        return None
+    big, small = max(measured, key=lambda k: sizes[k]), min(measured, key=lambda k: sizes[k])
+    if not sizes[big] > SIZE_RATIO_NOTE * sizes[small]:
         return None
     return (
-        f"{names[big]} is {sizes[big] / max(sizes[small], 1e-300):.0f} times the size of {names[small]} "
+        f"{names[big]} is {sizes[big] / sizes[small]:.3g} times the size of {names[small]} "
         f"({sizes[big]:.4g} against {sizes[small]:.4g} units): are the scans in the same units? "
         "Scans in different units are not joined"
     )

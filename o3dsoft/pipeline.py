@@ -245,6 +245,7 @@ def register(
     """
     if not isinstance(config, RegisterConfig):
         raise UsageError(f"config must be an o3dsoft.RegisterConfig, got {type(config).__name__}")
+    coarse_stage.torch_runs()
     for name, given in (("model", model), ("search_model", search_model)):
         if isinstance(given, (str, os.PathLike)):
             raise UsageError(

@@ -237,8 +237,8 @@ def point_spacing(points: np.ndarray, sample: int = SPACING_SAMPLE, seed: int = 
     return _median_spacing(points, sample_points(points, sample, seed))
 
 
-# The grid is at least this many cells across a cloud's second-longest principal side: a pipe 100
-# m long and 10 cm across, on 1 % of its length, came down to 100 points along its axis.
+# The grid is at least this many cells across a cloud's second-longest principal side, so that a
+# pipe or a wire keeps its cross-section (docs/scans.md, "2D scans and thin structures").
 CELLS_ACROSS = 10
 
 

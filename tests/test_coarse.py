@@ -214,3 +214,24 @@ def test_cpu_inference_runs_without_the_optimising_graph_executor(tiny_model_pat
     before = torch._C._get_graph_executor_optimize()
     model.run(torch.rand(1, 40, 3) - 0.5, torch.rand(1, 40, 3) - 0.5)
     assert seen == [(False, False)] and torch._C._get_graph_executor_optimize() == before
+
+
+def test_a_fork_keeps_its_threads_until_o3dsoft_runs_torch():
+    import subprocess
+    import sys
+
+    code = (
+        "import os, torch, o3dsoft.coarse as c\n"
+        "torch.set_num_threads(2)\n"
+        "def child():\n"
+        "    pid = os.fork()\n"
+        "    if pid == 0:\n"
+        "        os._exit(torch.get_num_threads())\n"
+        "    return os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])\n"
+        "before = child()\n"
+        "c.torch_runs()\n"
+        "print(before, child())\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120)
+    assert run.returncode == 0, run.stderr.decode()[-2000:]
+    assert run.stdout.decode().split() == ["2", "1"]

@@ -119,3 +119,16 @@ def test_without_partners_within_the_distance_the_geometry_is_not_measured():
     far_below_the_spacing = degeneracy.assess(a, b, np.eye(4), 1e-9, 1.2)
     assert "not measured" in far_below_the_spacing.reason and "slide" not in far_below_the_spacing.reason
     assert degeneracy.assess(a, b, np.eye(4), 0.1, 1.2).reason is None  # a box holds the pose
+
+
+def test_a_filled_flat_strip_slid_along_itself_is_flagged():
+    # Of a filled sheet's insides, random groups of a few points can look like lines, whose normals
+    # seem to hold a shift; shifted, the sheet fits as well.
+    rng = np.random.default_rng(1)
+
+    def strip():
+        return np.c_[rng.uniform(0, 6, 6000), rng.uniform(0, 1, 6000), np.zeros(6000)]
+
+    a, b = strip(), strip()
+    slid = degeneracy.assess(a[a[:, 0] < 4], b[b[:, 0] > 2], rigid(np.eye(3), np.array([0.5, 0.0, 0.0])), 0.2, 3.0)
+    assert slid.reason is not None and ("within their plane" in slid.reason or "can slide" in slid.reason)

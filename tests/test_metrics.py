@@ -115,6 +115,8 @@ def test_pair_errors_refuse_what_is_no_rigid_transform():
 
     with pytest.raises(InputError, match=r"T_gt: expected a \(4, 4\) transform, got shape \(3, 3\)"):
         pair_errors(np.eye(4), np.eye(3))
+    with pytest.raises(InputError, match=r"T_est: expected a \(4, 4\) transform"):
+        pair_errors(np.eye(3), np.eye(4), origin=np.array([1.0, 2.0, 3.0]))
     with pytest.raises(InputError, match="T_est: not a rigid transform"):
         pair_errors(np.diag([2.0, 2.0, 2.0, 1.0]), np.eye(4))  # a scaled matrix read 75.5 degrees off
     with pytest.raises(InputError, match="T_est: not a rigid transform"):

@@ -242,12 +242,16 @@ def test_scans_in_different_units_are_named_before_they_are_registered(tmp_path,
 
     clouds, _ = scans
     assert units_note(clouds[:2], ["a", "b"]) is None
+    assert units_note([clouds[0], np.full((5, 3), np.nan), np.ones((4, 3))], ["a", "nan", "one point"]) is None  # refused later, by name
     note = units_note([clouds[0], clouds[1] * 1000.0], ["m.ply", "mm.ply"])
     assert note.startswith("mm.ply is ") and " times the size of m.ply" in note and 500 < float(note.split()[2]) < 2000
     a = write_points(tmp_path / "a.ply", clouds[0])
     mm = write_points(tmp_path / "mm.ply", clouds[1] * 1000.0)
     r = CliRunner().invoke(main, ["multiway", str(a), str(mm), "--out", str(tmp_path / "o"), "--search", "off", "--no-progress"])
     assert r.exit_code == 3 and "are the scans in the same units?" in r.output
+    (tmp_path / "nan.xyz").write_text("nan nan nan\n" * 40)
+    r = CliRunner().invoke(main, ["multiway", str(a), str(tmp_path / "nan.xyz"), "--out", str(tmp_path / "o2"), "--no-progress"])
+    assert r.exit_code == 1 and "nan.xyz: 0 distinct finite points" in r.output and "IndexError" not in r.output
 
 
 def test_the_merged_grid_is_the_finest_of_the_trusted_pairs():

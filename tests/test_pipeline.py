@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import o3dsoft
+from o3dsoft import degeneracy as degeneracy_stage
 from o3dsoft.coarse import load_model
 from o3dsoft.confidence import ConfidenceConfig
 from o3dsoft.config import FeatureSearchConfig, RegisterConfig, RestartConfig, SearchConfig, StartsConfig
@@ -204,6 +205,11 @@ def test_2d_scans_register_within_their_plane():
     corridor = register(_outline(rng, 5000, corridor=True), apply(T, _outline(rng, 5000, corridor=True)))
     assert corridor.likely_failed and "can slide" in corridor.failure_reason and corridor.constraint < 1e-3
     assert "the surfaces hold no shift along (0.98, 0.21, 0.00)" in corridor.failure_reason  # along its walls, turned 12 degrees
+    # With 2 cm of range noise the walls' normals tilt and seem to hold the shift along them; the fit itself does not.
+    noisy = [_outline(rng, 1000, corridor=True) + np.c_[rng.normal(0, 0.02, (1000, 2)), np.zeros(1000)] for _ in range(2)]
+    wrong = rigid(np.eye(3), np.array([1.0, 0.0, 0.0]))
+    held = degeneracy_stage.assess(noisy[0], noisy[1], wrong, 0.2, 10.0)
+    assert held.reason is not None and "slide on each other within their plane" in held.reason
 
 
 def test_a_process_forked_after_a_registration_registers_too():
@@ -1184,3 +1190,33 @@ def test_from_a_guess_the_motions_the_surfaces_leave_free_stay_at_the_guess():
     assert pair_errors(kept.transformation, T).translation < 0.01
     slid = register(src, tgt, RegisterConfig(degeneracy=DegeneracyConfig(held_from=0.0)), init=T)  # every motion ICP made
     assert pair_errors(slid.transformation, T).translation > 0.3 and "kept" not in slid.failure_reason
+
+
+def test_open3d_warnings_come_back_after_blocks_that_overlap_across_threads():
+    import threading
+
+    import open3d as o3d
+
+    from o3dsoft._open3d import quiet
+
+    before = o3d.utility.get_verbosity_level()
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Info)
+    try:
+        entered, leave = threading.Event(), threading.Event()
+
+        def other():
+            with quiet():
+                entered.set()
+                leave.wait(10)
+
+        thread = threading.Thread(target=other)
+        thread.start()
+        entered.wait(10)
+        with quiet():  # enters after the other thread, leaves before it
+            assert o3d.utility.get_verbosity_level() == o3d.utility.VerbosityLevel.Error
+        assert o3d.utility.get_verbosity_level() == o3d.utility.VerbosityLevel.Error  # the other block is still open
+        leave.set()
+        thread.join(10)
+        assert o3d.utility.get_verbosity_level() == o3d.utility.VerbosityLevel.Info
+    finally:
+        o3d.utility.set_verbosity_level(before)
