@@ -85,3 +85,14 @@ def georeferenced_bunny(folder: Path, digits: int = 6) -> Tuple[Path, Path, Path
     T[:3, :3] = R
     (folder / "gt.txt").write_text("\n".join(" ".join(f"{v:.10f}" for v in row) for row in T) + "\n")
     return folder / "bun045.ply", folder / "bun000.ply", folder / "gt.txt"
+
+
+def python_output(code: str, timeout: float) -> str:
+    """What a fresh Python process prints running `code` (the test fails, with its stderr, on a
+    non-zero exit): for what must not touch the test process (forks, crashes, hangs)."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=timeout)
+    assert run.returncode == 0, run.stderr.decode()[-2000:]
+    return run.stdout.decode()

@@ -7,7 +7,7 @@ from o3dsoft.errors import InputError, UsageError
 from o3dsoft.metrics import rotation_error_deg
 from o3dsoft.transforms import rotation_angle_deg
 
-from .conftest import apply, blob, random_transform
+from .conftest import apply, blob, python_output, random_transform
 from .fakes import HalfwayModel
 
 
@@ -217,9 +217,6 @@ def test_cpu_inference_runs_without_the_optimising_graph_executor(tiny_model_pat
 
 
 def test_a_fork_keeps_its_threads_until_o3dsoft_runs_torch():
-    import subprocess
-    import sys
-
     code = (
         "import os, torch, o3dsoft.coarse as c\n"
         "torch.set_num_threads(2)\n"
@@ -232,6 +229,4 @@ def test_a_fork_keeps_its_threads_until_o3dsoft_runs_torch():
         "c.torch_runs()\n"
         "print(before, child())\n"
     )
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120)
-    assert run.returncode == 0, run.stderr.decode()[-2000:]
-    assert run.stdout.decode().split() == ["2", "1"]
+    assert python_output(code, timeout=120).split() == ["2", "1"]

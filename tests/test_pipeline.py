@@ -16,7 +16,7 @@ from o3dsoft.refine import ICPConfig
 from o3dsoft.symmetry import SymmetryConfig
 from o3dsoft.transforms import euler_to_matrix, rigid, rotation_angle_deg
 
-from .conftest import EXAMPLES, apply, blob, random_transform
+from .conftest import EXAMPLES, apply, blob, python_output, random_transform
 from .fakes import NO_SECOND, AlwaysWrongModel, NearSightedModel, blob_pair, record_icp
 
 
@@ -216,9 +216,6 @@ def test_a_process_forked_after_a_registration_registers_too():
     # Linux's default multiprocessing start method forks; a child of a process whose torch
     # threads had run waited forever on its first parallel operation. In a subprocess, with a
     # time limit, so that a hang fails this test only.
-    import subprocess
-    import sys
-
     code = (
         "import multiprocessing, numpy as np, torch, o3dsoft\n"
         "from o3dsoft.transforms import euler_to_matrix\n"
@@ -233,9 +230,7 @@ def test_a_process_forked_after_a_registration_registers_too():
         "    again = pool.map_async(run, range(2)).get(timeout=120)\n"
         "print(max(float(np.abs(T - first).max()) for T in again))\n"
     )
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=300)
-    assert run.returncode == 0, run.stderr.decode()[-2000:]
-    assert float(run.stdout.decode()) < 1e-6  # the same pose, computed on one thread
+    assert float(python_output(code, timeout=300)) < 1e-6  # the same pose, computed on one thread
 
 
 def test_large_clouds_are_downsampled_for_icp_and_still_exact(tiny_model_path):
