@@ -118,8 +118,9 @@ def assess(
         free = ", ".join(_motion_in_words(basis @ v) for v in vectors[:, loose].T)
         free = f"; the surfaces hold no {free} (target frame)" if free else ""
     scorer = make_scorer() if make_scorer is not None else Scorer(source, target, distance)
-    flatness = _flatness(scorer, transformation, moved.mean(axis=0), config.turn_deg)
-    slide = _slide(scorer, transformation, plane) if plane is not None else None
+    base = scorer(transformation)
+    flatness = _flatness(scorer, transformation, base, moved.mean(axis=0), config.turn_deg)
+    slide = _slide(scorer, transformation, base, plane) if plane is not None else None
     reason = None
     if equations is None:  # a correspondence distance far below the clouds' spacing (set by hand)
         reason = f"under 6 points lie within {distance:.3g} units of the other cloud (ICP's correspondence distance): whether the surfaces fix the pose is not measured"
@@ -237,13 +238,18 @@ def held_motion(
     return rigid(R, start + kept[3:] - R @ start)
 
 
-def _slide(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, plane: np.ndarray) -> Tuple[float, float, np.ndarray]:
-    """For clouds in the plane of unit normal `plane` (3,): the best consistency of the source
-    shifted by three of the scorer's tight distances along 8 directions within the plane, either
-    way, each scaled by the share of the result's overlap it keeps, over the result's; the shift
-    (cloud units) and the (3,) direction of that best. A corridor's walls or a filled sheet fit as
-    well shifted along them (about 1); an outline with walls across each other loses half."""
-    base = scorer(transformation)
+def _kept_fit(moved: Features, base: Features) -> float:
+    """The consistency of the source moved away from the result (`moved`), scaled by the share of
+    the result's overlap it keeps, over the result's (`base`, whose consistency is positive)."""
+    return moved.consistency * min(1.0, moved.overlap / max(base.overlap, 1e-12)) / base.consistency
+
+
+def _slide(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, base: Features, plane: np.ndarray) -> Tuple[float, float, np.ndarray]:
+    """For clouds in the plane of unit normal `plane` (3,): the best :func:`_kept_fit` of the
+    source shifted by three of the scorer's tight distances along 8 directions within the plane,
+    either way (`base`: the result's own measurements); the shift (cloud units) and the (3,)
+    direction of that best. A corridor's walls or a filled sheet fit as well shifted along them
+    (about 1); an outline with walls across each other loses half."""
     shift = 3.0 * base.tight_distance
     basis = _within(plane)[3:, 1:]  # (3, 2): two directions within the plane
     best = (0.0, shift, basis[:, 0])
@@ -251,23 +257,20 @@ def _slide(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray,
         return best
     for angle in np.radians(np.arange(0.0, 360.0, 22.5)):
         along = basis @ [np.cos(angle), np.sin(angle)]
-        moved = scorer(rigid(np.eye(3), shift * along) @ transformation)
-        fit = moved.consistency * min(1.0, moved.overlap / max(base.overlap, 1e-12)) / base.consistency
+        fit = _kept_fit(scorer(rigid(np.eye(3), shift * along) @ transformation), base)
         if fit > best[0]:
             best = (fit, shift, np.round(along, 2) + 0.0)
     return best
 
 
-def _flatness(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, centre: np.ndarray, turn_deg: float) -> float:
-    """The best consistency of the source turned by `turn_deg` about `centre` (3,), about each axis
-    either way, each scaled by the share of the result's overlap it keeps, over the result's."""
-    base = scorer(transformation)
+def _flatness(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, base: Features, centre: np.ndarray, turn_deg: float) -> float:
+    """The best :func:`_kept_fit` of the source turned by `turn_deg` about `centre` (3,), about
+    each axis either way (`base`: the result's own measurements)."""
     if base.consistency <= 0:
         return 0.0
     best = 0.0
     for axis in np.eye(3):
         for sign in (1.0, -1.0):
             R = euler_to_matrix(sign * turn_deg * axis)
-            turned = scorer(rigid(R, centre - R @ centre) @ transformation)
-            best = max(best, turned.consistency * min(1.0, turned.overlap / max(base.overlap, 1e-12)))
-    return best / base.consistency
+            best = max(best, _kept_fit(scorer(rigid(R, centre - R @ centre) @ transformation), base))
+    return best
