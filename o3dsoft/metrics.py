@@ -29,11 +29,6 @@ def _as_transform(T: np.ndarray, name: str = "transform") -> np.ndarray:
     return T
 
 
-def _split(T: np.ndarray, name: str = "transform"):
-    T = _as_transform(T, name)
-    return T[:3, :3], T[:3, 3]
-
-
 def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
     """Isotropic rotation error: the angle of R_gt^T R_est, in degrees (accurate near 0)."""
     return rotation_angle_deg(np.asarray(R_gt, np.float64).T @ np.asarray(R_est, np.float64))
@@ -85,8 +80,8 @@ def pair_errors(T_est: np.ndarray, T_gt: np.ndarray, origin: Optional[np.ndarray
     T_est, T_gt = _as_transform(T_est, "T_est"), _as_transform(T_gt, "T_gt")
     if origin is not None and np.any(origin):
         T_est, T_gt = in_frame_at(T_est, origin), in_frame_at(T_gt, origin)
-    R_e, t_e = _split(T_est, "T_est")
-    R_g, t_g = _split(T_gt, "T_gt")
+    R_e, t_e = T_est[:3, :3], T_est[:3, 3]
+    R_g, t_g = T_gt[:3, :3], T_gt[:3, 3]
     dR = R_e - R_g
     dt = t_e - t_g
     de = _euler_differences(R_e, R_g)
