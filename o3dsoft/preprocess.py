@@ -185,16 +185,21 @@ def robust_extent(points: np.ndarray) -> np.ndarray:
     return hi - lo
 
 
+def principal_axes(points: np.ndarray) -> np.ndarray:
+    """(3, 3) the principal axes of (N, 3) points as columns, largest variance first."""
+    centred = points - points.mean(axis=0)
+    _, axes = np.linalg.eigh(centred.T @ centred)  # columns by increasing variance
+    return axes[:, ::-1]
+
+
 def principal_extents(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """(3,) sides of the box holding the central 98 % of the (N, 3) finite points along each of
-    their principal axes, longest first (cloud units), and (3, 3) those axes as columns, in the
-    same order: a pipe 100 long and 0.1 across has sides (100, 0.1, 0.1) whichever way it lies."""
+    their :func:`principal_axes`, longest first (cloud units), and (3, 3) those axes as columns, in
+    the same order: a pipe 100 long and 0.1 across has sides (100, 0.1, 0.1) whichever way it lies."""
     sample = _every_kth(points)
     sample = sample[np.isfinite(sample).all(axis=1)]
-    centred = sample - sample.mean(axis=0)
-    _, axes = np.linalg.eigh(centred.T @ centred)
-    axes = axes[:, ::-1]
-    lo, hi = np.percentile(centred @ axes, [1, 99], axis=0)
+    axes = principal_axes(sample)
+    lo, hi = np.percentile((sample - sample.mean(axis=0)) @ axes, [1, 99], axis=0)
     return hi - lo, axes
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .io import atomic_output
+from .preprocess import principal_axes
 from .transforms import apply_transform
 
 _MAX_DRAWN = 20_000  # points per cloud and panel; more only slows the drawing down
@@ -23,9 +24,7 @@ _MAX_DRAWN = 20_000  # points per cloud and panel; more only slows the drawing d
 
 def principal_plane(points: np.ndarray) -> np.ndarray:
     """(3, 2) the two largest principal axes of (N, 3) points, as columns (the view's x and y)."""
-    centred = points - points.mean(axis=0)
-    _, axes = np.linalg.eigh(centred.T @ centred)  # columns by increasing variance
-    return axes[:, [2, 1]]
+    return principal_axes(points)[:, :2]
 
 
 def render_registration(

@@ -25,6 +25,7 @@ from . import baselines
 from . import confidence as confidence_stage
 from . import refine as refine_stage
 from .coarse import CoarseModel
+from .preprocess import principal_axes
 from .procrustes import weighted_procrustes
 from .transforms import axis_angle_to_matrix, first_of_each_pose, near_poses, rigid
 
@@ -54,9 +55,7 @@ def half_turns(points: np.ndarray) -> np.ndarray:
     first: (3, 3, 3) float64. A shape nearly symmetric under one of them (a guitar's face and back,
     a table's ends) is often aligned the other way round, more so when a crop breaks the symmetry
     only in part."""
-    centred = points - points.mean(axis=0)
-    _, axes = np.linalg.eigh(centred.T @ centred)  # columns by increasing variance
-    return np.stack([2.0 * np.outer(a, a) - np.eye(3) for a in axes.T[::-1]])
+    return np.stack([2.0 * np.outer(a, a) - np.eye(3) for a in principal_axes(points).T])
 
 
 def network_candidates(model: CoarseModel, source: np.ndarray, target: np.ndarray, rotations: np.ndarray, passes: int = 1) -> np.ndarray:
