@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
-from .errors import InputError, O3dsoftError, UsageError, first_line
+from .errors import InputError, O3dsoftError, UsageError, first_line, release_interrupt, spawn_context
 
 COLUMNS = (
     "line",
@@ -339,12 +339,18 @@ def _run_alone(job: PairJob, config, task) -> dict:
 
 def _process_pool(workers: int):
     """A pool of `workers` fresh processes, each with its share of the CPU's threads."""
-    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     threads = max(1, (os.cpu_count() or 1) // workers)
-    context = multiprocessing.get_context("spawn")  # no fork of a process whose threads hold locks
-    return ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start, initargs=(threads,))
+    # spawn: no fork of a process whose threads hold locks
+    return ProcessPoolExecutor(workers, mp_context=spawn_context(), initializer=_pool_worker_start, initargs=(threads,))
+
+
+def _pool_worker_start(threads: int) -> None:
+    """A pool process's set-up (:func:`_worker_start`); from then on Ctrl-C ends it quietly, and
+    the parent reports the interrupt."""
+    _worker_start(threads)
+    release_interrupt()
 
 
 def _run_ray(ray, jobs: Sequence[PairJob], config, workers: int, task) -> Iterator[dict]:

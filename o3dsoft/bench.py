@@ -27,7 +27,7 @@ from . import baselines
 from . import refine as refine_stage
 from .coarse import CoarseModel, sha256_of, weights_file
 from .data import DEFAULT_POINTS_PER_SHAPE, get_protocol, load_pairs
-from .errors import InputError, O3dsoftError, UsageError, terminate_as_interrupt
+from .errors import InputError, O3dsoftError, UsageError, release_interrupt, spawn_context, terminate_as_interrupt
 from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, input_chamfer_distance, modified_chamfer_distance, pair_errors, summarise, within
 from .pipeline import RegisterConfig, register
@@ -797,7 +797,7 @@ def _start_worker(config: BenchConfig, weights: Optional[str], search_weights: O
 
     from .coarse import load_model
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    release_interrupt(signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     torch.set_num_threads(threads)
     _WORKER.update(
         config=config, model=load_model(weights, device) if weights else None, search_model=load_model(search_weights, device) if search_weights else None
@@ -820,7 +820,6 @@ def run_pairs(
         for pair in pairs:
             yield run_pair(pair, config, model, search_model)
         return
-    import multiprocessing
 
     threads = max(1, (os.cpu_count() or 1) // jobs)
     device = config.register.device
@@ -830,7 +829,7 @@ def run_pairs(
     before = os.environ.get("OMP_NUM_THREADS")
     os.environ["OMP_NUM_THREADS"] = str(threads)
     try:
-        pool = multiprocessing.get_context("spawn").Pool(jobs, _start_worker, args)
+        pool = spawn_context().Pool(jobs, _start_worker, args)
     finally:
         if before is None:
             del os.environ["OMP_NUM_THREADS"]

@@ -7,10 +7,12 @@ CLI can print it as it is, without a traceback.
 
 from __future__ import annotations
 
+import multiprocessing.context
+import os
 import signal
 import threading
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator, Union
 
 
 class O3dsoftError(Exception):
@@ -41,16 +43,77 @@ def terminate_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM (``kill``, a scheduler's time limit) stops the work as Ctrl-C
     does, so that the same clean-up runs (no temporary file left, partial results summarised).
     A command started in the background by a shell (``cmd &``) ignores SIGINT, so ``kill`` is how
-    it is stopped there. Only the main thread may set signal handlers; elsewhere nothing changes."""
+    it is stopped there. An error a library raises in place of the interrupt (Open3D's import
+    stopped by Ctrl-C: "ImportError: initialization failed") leaves the block as the interrupt.
+    Only the main thread may set signal handlers; elsewhere nothing changes."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    asked = []
 
     def interrupt(signum, frame):
+        asked.append(signum)
         raise KeyboardInterrupt
 
-    before = signal.signal(signal.SIGTERM, interrupt)
+    watched = [signal.SIGTERM]
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where it is ignored or the caller's own
+        watched.append(signal.SIGINT)
+    before = {signum: signal.signal(signum, interrupt) for signum in watched}
+    try:
+        yield
+    except Exception:
+        if asked:
+            raise KeyboardInterrupt from None
+        raise
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+
+
+@contextmanager
+def _interrupt_held() -> Iterator[None]:
+    """Ctrl-C (SIGINT) blocked in this thread within the block; one that arrives meanwhile is
+    delivered at its end. A process started within inherits the block."""
+    if not hasattr(signal, "pthread_sigmask"):  # Windows: a console's Ctrl-C is not inherited this way
+        yield
+        return
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, before)
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+class _HeldProcess(multiprocessing.context.SpawnProcess):
+    """A spawned process that starts with Ctrl-C blocked (see :func:`spawn_context`)."""
+
+    def start(self) -> None:
+        with _interrupt_held():
+            super().start()
+
+
+class _HeldContext(multiprocessing.context.SpawnContext):
+    Process = _HeldProcess
+
+
+def spawn_context() -> multiprocessing.context.SpawnContext:
+    """multiprocessing's "spawn" context, for worker pools, whose processes start with Ctrl-C
+    blocked until they call :func:`release_interrupt`.
+
+    A terminal sends Ctrl-C to every process of the command. A worker still importing torch or
+    Open3D would print a traceback of its own; blocked, the signal waits until the worker is set
+    up, and the parent, which gets it too, stops the pool."""
+    return _HeldContext()
+
+
+def _exit_quietly(signum, frame) -> None:
+    os._exit(128 + signum)
+
+
+def release_interrupt(handler: Union[Callable, int, None] = None) -> None:
+    """In a worker of :func:`spawn_context`: Ctrl-C from now on goes to `handler` (default: the
+    process ends at once, quietly: its parent reports the interrupt), or is ignored with
+    ``signal.SIG_IGN``. One that arrived while blocked is delivered now."""
+    signal.signal(signal.SIGINT, _exit_quietly if handler is None else handler)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})

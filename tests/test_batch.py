@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import os
 from pathlib import Path
+from typing import List
 
 import numpy as np
 import pytest
@@ -298,3 +299,66 @@ def test_a_row_measures_georeferenced_errors_as_register_does(tmp_path):
     row = run_job(PairJob(1, str(source), str(target), str(truth)), CONFIG)
     assert row["status"] == "ok" and not row["likely_failed"]
     assert row["rotation_error_deg"] < 1.0 and row["translation_error"] < 0.002  # the bunny is 0.2 units across
+
+
+def sigint_blocked(job=None, config=None) -> bool:
+    import signal
+
+    return signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+
+
+@pytest.mark.skipif(not hasattr(__import__("signal"), "pthread_sigmask"), reason="POSIX signal masks")
+def test_pool_workers_start_with_ctrl_c_held_until_they_are_set_up():
+    """A terminal's Ctrl-C reaches every process of the command: a worker still importing torch
+    must not print a traceback of its own, but once set up it must still stop on it."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from o3dsoft.batch import _process_pool
+    from o3dsoft.errors import spawn_context
+
+    with ProcessPoolExecutor(1, mp_context=spawn_context()) as pool:
+        assert pool.submit(sigint_blocked).result(timeout=120)  # as the worker starts
+    assert not sigint_blocked()  # the parent's own mask is as it was
+    with _process_pool(1) as pool:
+        assert not pool.submit(sigint_blocked).result(timeout=120)  # released by the worker's set-up
+
+
+def spawned_workers(pid: int) -> List[str]:
+    """The process ids of `pid`'s children that multiprocessing spawned (Linux)."""
+    found = []
+    for child in Path(f"/proc/{pid}/task/{pid}/children").read_text().split():
+        try:
+            if "spawn_main" in Path(f"/proc/{child}/cmdline").read_text():
+                found.append(child)
+        except OSError:  # it ended meanwhile
+            pass
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads the process tree from Linux's /proc")
+def test_ctrl_c_while_the_workers_start_is_one_line(tmp_path, pairs_file):
+    """The terminal's Ctrl-C, sent to the whole process group while both workers import their
+    modules: the command says "Interrupted." alone and exits 130."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    command = [sys.executable, "-m", "o3dsoft.cli.main", "register", "--pairs", str(pairs_file), "--out", str(tmp_path / "r.csv"), "--workers", "2"]
+    run = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's job
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and run.poll() is None and len(spawned_workers(run.pid)) < 2:
+        time.sleep(0.02)
+    assert run.poll() is None, "the command ended before its workers started"
+    time.sleep(0.5)  # the workers are importing torch and Open3D
+    os.killpg(run.pid, signal.SIGINT)
+    out, err = run.communicate(timeout=120)
+    assert run.returncode == 130, err
+    assert err.strip() == "Interrupted.", err

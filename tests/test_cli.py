@@ -486,3 +486,24 @@ def test_register_from_an_initial_guess(tmp_path):
     assert np.allclose(out["init"], read_transform(tmp_path / "guess.txt"))
     r = run("register", "--pairs", tmp_path / "p.txt", "--init", tmp_path / "guess.txt", "--out", tmp_path / "r.csv")
     assert r.exit_code == 2 and "--init belong(s) to a single pair" in r.output
+
+
+def test_an_error_a_library_raises_for_ctrl_c_is_an_interrupt(pair_files, monkeypatch):
+    """Ctrl-C while Open3D imports makes its import fail ("ImportError: initialization failed"):
+    the command reports the interrupt, not an error to report as a bug."""
+    import os
+    import signal
+
+    import o3dsoft.coarse
+
+    def interrupted_import(*args, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+        except KeyboardInterrupt:
+            raise ImportError("initialization failed") from None
+
+    monkeypatch.setattr(o3dsoft.coarse, "load_model", interrupted_import)
+    folder, _, _ = pair_files
+    r = CliRunner().invoke(main, ["register", str(folder / "src.ply"), str(folder / "tgt.pcd")])
+    assert r.exit_code == 130 and r.output.strip() == "Interrupted.", r.output
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
