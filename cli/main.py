@@ -813,6 +813,7 @@ _TRAIN_FIELDS = (
     is_flag=True,
     help="Continue from OUT/checkpoint.pt exactly where it stopped, with the settings of OUT/config.yaml (options given here override them).",
 )
+@click.option("--overwrite", is_flag=True, help="Start a new run in an --out folder that holds one, replacing its files.")
 @click.option("--max-steps", type=click.IntRange(min=1), default=None, help="Stop after this many steps (quick runs).")
 @click.option(
     "--max-minutes",
@@ -840,7 +841,7 @@ _TRAIN_FIELDS = (
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True, help="DataLoader worker processes.")
 @click.pass_context
 @_friendly_errors
-def train(ctx, config_file, resume, radius, k, separate_encoders, relative, overlap, **options):
+def train(ctx, config_file, resume, overwrite, radius, k, separate_encoders, relative, overlap, **options):
     """Train the network on ModelNet40 and export TorchScript + a model card into OUT.
 
     Several processes or machines: run the same command under torchrun, e.g.
@@ -854,7 +855,9 @@ def train(ctx, config_file, resume, radius, k, separate_encoders, relative, over
     given = {name: options[name] for name in _TRAIN_FIELDS if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE}
     net = {"radius": radius, "k": k, "shared_encoder": None if separate_encoders is None else not separate_encoders, "relative": relative, "overlap": overlap}
     config = settings_from(given, {name: options[name] for name in _TRAIN_FIELDS}, config_file, {n: v for n, v in net.items() if v is not None}, resume)
-    run_train(config, resume=resume, log=lambda m: click.echo(m, err=True))
+    if resume and overwrite:
+        raise click.UsageError("--resume goes on with the run in --out, --overwrite starts a new one: give one of them")
+    run_train(config, resume=resume, overwrite=overwrite, log=lambda m: click.echo(m, err=True))
 
 
 @main.group()

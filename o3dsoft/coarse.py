@@ -147,6 +147,29 @@ def _check_values(module: torch.jit.ScriptModule, path: Path) -> None:
             raise InputError(f"{path}: the model's {name} holds values above {MAX_WEIGHT:g} (a corrupted file)")
 
 
+def torch_device(name: Union[str, torch.device]) -> torch.device:
+    """The torch device `name` ("cpu", "cuda", "cuda:1", "mps") names, if this machine has it.
+
+    Raises:
+        UsageError: no such device type, or this torch build does not see it.
+    """
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise UsageError(f"invalid device {str(name)!r}: expected cpu, cuda, cuda:N or mps") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise UsageError(f"device {str(name)!r} was asked for but this torch build sees no CUDA GPU")
+        if device.index is not None and device.index >= count:
+            raise UsageError(f"device {str(name)!r} was asked for but this machine has {count} CUDA GPU(s), cuda:0 to cuda:{count - 1}")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise UsageError(f"device {str(name)!r} was asked for but this torch build sees no Apple GPU")
+    elif device.type not in ("cpu", "cuda", "mps"):
+        raise UsageError(f"invalid device {str(name)!r}: expected cpu, cuda, cuda:N or mps")
+    return device
+
+
 def sha256_of(path: Union[str, Path]) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -169,6 +192,7 @@ def export_torchscript(model: SoftAlignNet, config: NetConfig, path: Union[str, 
     path = Path(path)
     was_training = model.training
     model = model.eval()
+    model.forget_last_call()
     device = next(model.parameters()).device
     with _quiet_jit():
         scripted = torch.jit.script(model.cpu())
@@ -319,12 +343,7 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
             o3dsoft model; a shipped model does not match its card.
     """
     path = weights_file(path)
-    try:
-        device = torch.device(device)
-    except RuntimeError as e:
-        raise UsageError(f"invalid device {device!r}: {e}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise UsageError("device 'cuda' was asked for but this torch build sees no CUDA GPU")
+    device = torch_device(device)
     _check_archive(path)  # first: a file that is no model gets no warning about what it would run
     _check_origin(path)
     extra = {META_NAME: ""}

@@ -538,6 +538,13 @@ class SoftAlignNet(nn.Module):
         """(B, N, 3) -> (B, N, K) neighbour indices: :func:`ball_query` with this network's K and r."""
         return ball_query(points, self.k, self.radius)
 
+    @torch.jit.unused
+    def forget_last_call(self) -> None:
+        """Drop what the last eager call kept for the training losses (soft partners, B x N x M):
+        scripting stores every tensor attribute, so an export would carry them."""
+        for name in ("virtual_points", "soft_partners", "overlap_logits"):
+            self.__dict__.pop(name, None)
+
     @torch.jit.export
     def describe_source(self, source: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         """Source descriptors f (B, N, C) from source (B, N, 3) and its neighbours idx (B, N, K)."""

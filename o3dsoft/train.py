@@ -24,9 +24,20 @@ from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Se
 import numpy as np
 import torch
 
-from .coarse import export_torchscript, non_finite_weight, sha256_of
+from .coarse import export_torchscript, non_finite_weight, sha256_of, torch_device
 from .configfile import read_config, write_config
-from .data import DEFAULT_POINTS_PER_SHAPE, Pair, PairDataset, Protocol, Shapes, check_training_recipe, evaluation_protocol, load_pairs, training_parts
+from .data import (
+    DATA_ENV,
+    DEFAULT_POINTS_PER_SHAPE,
+    Pair,
+    PairDataset,
+    Protocol,
+    Shapes,
+    check_training_recipe,
+    evaluation_protocol,
+    load_pairs,
+    training_parts,
+)
 from .errors import InputError, O3dsoftError, UsageError
 from .io import atomic_output, make_folder, remove_stale_temporaries
 from .metrics import pair_errors, summarise
@@ -435,17 +446,30 @@ def settings_from(
     return config
 
 
-def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] = print) -> Path:
+def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] = print, overwrite: bool = False) -> Path:
     """Train, checkpoint, evaluate, and export TorchScript + model card into ``config.out``.
 
     Under ``torchrun --nproc_per_node P`` the same call trains with DistributedDataParallel: each
     process draws its own share of every epoch's pairs (batch_size pairs per process and step)
     and only rank 0 logs, evaluates and writes files.
 
+    Args:
+        resume: go on from ``config.out``'s checkpoint.
+        overwrite: start a new run in a folder that holds one (its files are replaced).
     Returns:
         The path of the exported model file.
+    Raises:
+        UsageError: ``config.out`` holds a run and neither `resume` nor `overwrite` is set; the
+            device is not on this machine.
     """
     config.validate()
+    torch_device(config.device)
+    held = [name for name in RUN_FILES if (Path(config.out) / name).exists()]
+    if held and not (resume or overwrite):
+        raise UsageError(
+            f"{config.out}: holds a training run ({', '.join(held)}); --resume goes on with it, --overwrite starts a new one there, or choose another --out"
+        )
+    config = replace(config, data=_absolute_folder(config.data, DATA_ENV), extra_data=_absolute_folder(config.extra_data))
     rank, world, device = _setup_distributed(config)
     try:
         return _train(config, resume, log if rank == 0 else (lambda message: None), rank, world, device)
@@ -455,6 +479,13 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     finally:
         if world > 1:
             _teardown_distributed()
+
+
+def _absolute_folder(path: Optional[str], env: Optional[str] = None) -> Optional[str]:
+    """`path` (else $`env`, if given and set) as an absolute path: a run folder's settings name
+    the data wherever the run is resumed from (None: neither is given)."""
+    chosen = path or (os.environ.get(env) if env else None)
+    return str(Path(chosen).expanduser().resolve()) if chosen else None
 
 
 def _teardown_distributed() -> None:
@@ -478,6 +509,7 @@ def _resume_checkpoint(path: Path, config: TrainConfig, world: int) -> dict:
         raise InputError(f"{path}: no checkpoint to resume from")
     ckpt = _load_checkpoint(path)
     saved = dict(ckpt["config"], net=NetConfig.from_dict(ckpt["config"]["net"]).to_dict())  # with settings added since
+    saved.update(data=_absolute_folder(saved.get("data"), DATA_ENV), extra_data=_absolute_folder(saved.get("extra_data")))  # earlier runs kept them as given
     mismatched = [k for k in RESUME_MUST_MATCH if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
     if mismatched:
         raise InputError(f"{path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")
@@ -502,10 +534,14 @@ def _splits(config: TrainConfig, protocol) -> Tuple[PairDataset, Optional[PairDa
     return train_pairs, test_pairs
 
 
-def _write_settings(out: Path, config: TrainConfig) -> None:
-    """The settings actually used, as config.json and config.yaml in the run folder."""
+def _write_settings(out: Path, config: TrainConfig, fresh: bool) -> None:
+    """The settings actually used, as config.json and config.yaml in the run folder; a `fresh`
+    run first removes an earlier run's files there, so that none outlives it unreplaced."""
     make_folder(out)
     remove_stale_temporaries(out, RUN_FILES)
+    if fresh:
+        for name in RUN_FILES:
+            (out / name).unlink(missing_ok=True)
     with atomic_output(out / "config.json") as tmp:
         tmp.write_text(json.dumps(config.to_dict(), indent=2))
     with atomic_output(out / "config.yaml") as tmp:
@@ -606,7 +642,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             if "scheduler" in ckpt:  # checkpoints of earlier versions had none (constant lr)
                 scheduler.load_state_dict(ckpt["scheduler"])
     if lead:
-        _write_settings(out, config)
+        _write_settings(out, config, fresh=not resume)
     net = model
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
@@ -634,6 +670,11 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     stop = _StopBetweenSteps(world == 1)
     last_ckpt = started = time.monotonic()
     done = config.max_steps is not None and state["global_step"] >= config.max_steps
+    if done or state["epoch"] >= config.epochs:
+        reached = f"max_steps = {config.max_steps}" if done else f"its {config.epochs} epochs"
+        log(
+            f"the run has already reached {reached} (step {state['global_step']}): nothing to train; the model is exported again. Raise --max-steps or --epochs to go on"
+        )
     try:
         while state["epoch"] < config.epochs and not done:
             epoch = state["epoch"]

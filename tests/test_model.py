@@ -360,6 +360,23 @@ def test_the_network_keeps_its_soft_partners_when_eager_and_scripts_without_them
     assert torch.allclose(R, R_s, atol=1e-5) and torch.allclose(t, t_s, atol=1e-5)
 
 
+def test_an_export_does_not_carry_the_last_calls_soft_partners(tmp_path):
+    """The training loop's last batch leaves B x N x M soft partners on the network; the exported
+    file is as small after it as before any call."""
+    from o3dsoft.coarse import export_torchscript, load_model
+    from o3dsoft.model import NetConfig, SoftAlignNet
+
+    config = NetConfig(k=8, channels=(8, 16), overlap=8)
+    net = SoftAlignNet(config)
+    fresh = export_torchscript(net, config, tmp_path / "fresh.pt").stat().st_size
+    src, tgt = torch.rand(8, 512, 3), torch.rand(8, 512, 3)  # soft partners: 8 MiB
+    R, t, w = net.eval()(src, tgt)
+    after = export_torchscript(net, config, tmp_path / "after.pt").stat().st_size
+    assert after < fresh + 10_000, (fresh, after)
+    R_s, t_s, _ = load_model(tmp_path / "after.pt").module(src, tgt)
+    assert torch.allclose(R, R_s, atol=1e-5) and torch.allclose(t, t_s, atol=1e-5)
+
+
 def test_soft_partner_sharpness_is_one_for_uniform_weights_and_rises_as_the_temperature_falls(modelnet_root):
     from benchmarks.soft_partners import sharpness
 

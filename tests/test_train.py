@@ -465,3 +465,51 @@ def test_a_checkpoint_given_as_weights_is_named_for_what_it_is(modelnet_root, tm
         load_model(tmp_path / "checkpoint.pt")
     r = CliRunner().invoke(main, ["train", "--data", str(modelnet_root), "--seed", "-1", "--out", str(tmp_path / "x")])
     assert r.exit_code == 2 and "Invalid value for '--seed'" in r.output
+
+
+def test_a_new_run_does_not_replace_a_run_unasked(modelnet_root, tmp_path):
+    quick = dict(max_steps=1, eval_pairs=0)
+    train(_config(modelnet_root, tmp_path, **quick), log=lambda m: None)
+    before = (tmp_path / "checkpoint.pt").read_bytes()
+    with pytest.raises(UsageError, match=r"holds a training run \(checkpoint.pt, model.pt.*--resume.*--overwrite"):
+        train(_config(modelnet_root, tmp_path, seed=1, **quick), log=lambda m: None)
+    assert (tmp_path / "checkpoint.pt").read_bytes() == before
+    # the run folder's own settings name it: started again from them, it is refused too
+    r = CliRunner().invoke(main, ["train", "--config", str(tmp_path / "config.yaml"), "--max-steps", "2"])
+    assert r.exit_code == 2 and "holds a training run" in r.output, r.output
+    assert (tmp_path / "checkpoint.pt").read_bytes() == before
+    (tmp_path / "model.pt").write_bytes(b"an earlier run's model")  # replaced or removed, never kept beside the new run
+    train(_config(modelnet_root, tmp_path, seed=1, max_steps=1, eval_pairs=0), overwrite=True, log=lambda m: None)
+    assert torch.load(tmp_path / "checkpoint.pt", weights_only=False)["config"]["seed"] == 1
+    assert load_model(tmp_path / "model.pt").config.k == TINY.k
+
+
+def test_a_run_resumes_with_its_data_named_another_way_and_not_with_other_data(modelnet_root, tmp_path, monkeypatch):
+    monkeypatch.delenv("O3DSOFT_DATA", raising=False)
+    monkeypatch.chdir(modelnet_root.parent)
+    train(_config(modelnet_root.name, tmp_path / "r", max_steps=1, eval_pairs=0), log=lambda m: None)  # a relative path
+    monkeypatch.chdir(tmp_path)
+    train(_config(str(modelnet_root) + "/", tmp_path / "r", max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
+    r = CliRunner().invoke(main, ["train", "--out", "r", "--resume", "--max-steps", "3"])  # the data as the run folder names it
+    assert r.exit_code == 0, r.output
+    monkeypatch.setenv("O3DSOFT_DATA", str(modelnet_root))
+    train(_config(modelnet_root, tmp_path / "e", data=None, max_steps=1, eval_pairs=0), log=lambda m: None)
+    (tmp_path / "other").mkdir()
+    monkeypatch.setenv("O3DSOFT_DATA", str(tmp_path / "other"))
+    with pytest.raises(InputError, match="different data"):
+        train(_config(modelnet_root, tmp_path / "e", data=None, max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without a CUDA GPU")
+@pytest.mark.parametrize("device, message", [("cuda", "sees no CUDA GPU"), ("gpu", "invalid device 'gpu': expected cpu, cuda")])
+def test_train_on_a_device_the_machine_lacks_is_one_line(modelnet_root, tmp_path, device, message):
+    r = CliRunner().invoke(main, ["train", "--data", str(modelnet_root), "--out", str(tmp_path), "--max-steps", "1", "--device", device])
+    assert r.exit_code == 2 and message in r.output and "report it" not in r.output, r.output
+    assert not any(tmp_path.iterdir())
+
+
+def test_resuming_a_finished_run_says_there_is_nothing_to_train(modelnet_root, tmp_path):
+    train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), log=lambda m: None)
+    said = []
+    train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=said.append)
+    assert any("already reached max_steps = 2" in line for line in said), said
