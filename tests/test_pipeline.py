@@ -1184,7 +1184,8 @@ def test_from_a_guess_the_motions_the_surfaces_leave_free_stay_at_the_guess():
     assert kept.likely_failed and "the initial guess is kept" in kept.failure_reason
     assert pair_errors(kept.transformation, T).translation < 0.01
     slid = register(src, tgt, RegisterConfig(degeneracy=DegeneracyConfig(held_from=0.0)), init=T)  # every motion ICP made
-    assert pair_errors(slid.transformation, T).translation > 0.3 and "kept" not in slid.failure_reason
+    # (ICP's tight stages, which run first from a guess, slide 5 cm here; the whole schedule 0.3 m and more)
+    assert pair_errors(slid.transformation, T).translation > 0.03 and "kept" not in slid.failure_reason
 
 
 def test_open3d_warnings_come_back_after_blocks_that_overlap_across_threads():
@@ -1215,3 +1216,41 @@ def test_open3d_warnings_come_back_after_blocks_that_overlap_across_threads():
         assert o3d.utility.get_verbosity_level() == o3d.utility.VerbosityLevel.Info
     finally:
         o3d.utility.set_verbosity_level(before)
+
+
+def ground_with_a_few_objects(real_scans_root):
+    """The laser pair cut to its ground within 20 m plus five small objects (posts, cars' parts):
+    (source, target, T_target_source). Yaw rests on the objects alone."""
+    import open3d as o3d
+
+    folder = real_scans_root / "outdoor_laser_car"
+    source, target = (o3dsoft.read_points(folder / f"car_cloud{n}.ply") for n in (401, 400))
+    T = o3dsoft.read_transform(folder / "gt_401_to_400.txt")
+    plane = np.array([-0.0715, 0.1875, 0.9797, 0.9373])  # the ground's (normal, offset) in the target's frame
+    height = lambda p: p @ plane[:3] + plane[3]  # noqa: E731
+    near = lambda p: np.linalg.norm(p[:, :2], axis=1) < 20.0  # noqa: E731
+    standing = target[(np.abs(height(target)) > 0.3) & near(target)]
+    labels = np.array(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(standing)).cluster_dbscan(0.6, 10))
+    small = [c for c in range(labels.max() + 1) if 30 <= (labels == c).sum() <= 600 and np.ptp(standing[labels == c], axis=0).max() < 8.0]
+    rng = np.random.default_rng(0)
+    rng.choice(small, 2, replace=False)
+    objects = standing[np.isin(labels, rng.choice(small, 5, replace=False))]
+    tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(objects)))
+
+    def cut(points_in_target_frame: np.ndarray) -> np.ndarray:
+        on_object = np.array([tree.search_knn_vector_3d(p, 1)[2][0] < 0.25 for p in points_in_target_frame])
+        return near(points_in_target_frame) & ((np.abs(height(points_in_target_frame)) < 0.25) | on_object)
+
+    return source[cut(apply(T, source))], target[cut(target)], T
+
+
+def test_from_a_close_guess_icp_does_not_slide_on_a_ground_with_a_few_objects(real_scans_root):
+    """ICP's loose first stage (10 % of the scene's radius, 2 m here) pulls a guess 3 degrees and
+    0.5 m off on the ground to a pose 10 degrees off, which the ground alone makes look right:
+    from a guess the tight stages run first."""
+    source, target, T = ground_with_a_few_objects(real_scans_root)
+    guess = rigid(euler_to_matrix([0.0, 0.0, 3.0]), [0.5, 0.0, 0.0]) @ T  # 3 degrees about the ground's normal, 0.5 m
+    res = register(source, target, init=guess)
+    e = pair_errors(res.transformation, T)
+    assert e.rotation_deg < 1.0 and e.translation < 0.3, (e, res.confidence)
+    assert res.estimate_from == "initial guess" and not res.likely_failed
