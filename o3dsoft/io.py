@@ -16,6 +16,7 @@ import os
 import re
 import sys
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
@@ -507,11 +508,17 @@ def _numbers(fields: List[str], count: int) -> Optional[List[float]]:
         return None
 
 
+_C_OUTPUT_LOCK = threading.Lock()
+_C_OUTPUT: Dict[int, List[int]] = {}  # file descriptor -> [blocks open across threads, the stream's own descriptor]
+
+
 @contextmanager
 def quiet_c_output(name: str = "stderr") -> Iterator[None]:
     """Silence what C code writes to the process's stderr or stdout (`name`) within the block:
     Open3D's PLY reader prints "RPly: ..." lines for a bad file, KISS-Matcher its warnings;
-    o3dsoft reports problems itself, in one line."""
+    o3dsoft reports problems itself, in one line. The descriptor is the process's: while a block
+    of any thread is open, everything written to it is lost, and it comes back once the last
+    block ends."""
     stream = getattr(sys, name)
     try:
         fd = stream.fileno()
@@ -519,14 +526,22 @@ def quiet_c_output(name: str = "stderr") -> Iterator[None]:
         yield
         return
     stream.flush()
-    saved = os.dup(fd)
+    with _C_OUTPUT_LOCK:
+        held = _C_OUTPUT.get(fd)
+        if held is None:
+            held = _C_OUTPUT[fd] = [0, os.dup(fd)]
+            with open(os.devnull, "w") as devnull:
+                os.dup2(devnull.fileno(), fd)
+        held[0] += 1
     try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), fd)
         yield
     finally:
-        os.dup2(saved, fd)
-        os.close(saved)
+        with _C_OUTPUT_LOCK:
+            held[0] -= 1
+            if held[0] == 0:
+                os.dup2(held[1], fd)
+                os.close(held[1])
+                del _C_OUTPUT[fd]
 
 
 @contextmanager

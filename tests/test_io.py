@@ -18,7 +18,7 @@ from o3dsoft.io import (
 )
 from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid
 
-from .conftest import blob
+from .conftest import blob, python_output
 
 
 @pytest.fixture
@@ -634,3 +634,28 @@ def test_the_colours_of_e57_scans_and_leica_pts_files_are_read(tmp_path, pts):
     (tmp_path / "nocount.pts").write_text(rows)
     with pytest.raises(InputError, match="nocount.pts: parsed to 0 points; is it a valid PTS point cloud \\(its first line must be the point count\\)"):
         read_points(tmp_path / "nocount.pts")
+
+
+def test_quiet_c_output_blocks_that_overlap_across_threads_give_the_stream_back():
+    """Two threads silence stdout (the file readers, KISS-Matcher) and leave in the order they
+    came, not nested: the process's stdout must be its own again afterwards, not /dev/null."""
+    out = python_output(
+        """
+import threading
+from o3dsoft.io import quiet_c_output
+entered, leave = threading.Event(), threading.Event()
+def first():
+    with quiet_c_output("stdout"):
+        entered.set()
+        leave.wait()
+thread = threading.Thread(target=first)
+thread.start()
+entered.wait()
+with quiet_c_output("stdout"):  # entered second, left first
+    leave.set()
+    thread.join()
+print("stdout is back")
+""",
+        timeout=120,
+    )
+    assert out.strip() == "stdout is back", out
