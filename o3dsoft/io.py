@@ -1172,13 +1172,24 @@ def _is_float(v: str) -> bool:
         return False
 
 
+def host_array(value):
+    """A torch tensor (on any device, with a gradient, in bfloat16) or an Open3D tensor
+    (``open3d.core.Tensor``) as a NumPy array; anything else as it is."""
+    if hasattr(value, "detach") and hasattr(value, "cpu"):  # torch
+        value = value.detach().cpu()
+        return (value.double() if value.is_floating_point() else value).numpy()  # NumPy has no bfloat16
+    if type(value).__module__.startswith("open3d") and hasattr(value, "numpy") and hasattr(value, "cpu"):
+        return value.cpu().numpy()
+    return value
+
+
 def as_rigid(T, name: str) -> np.ndarray:
     """`T` as a (4, 4) float64 array; InputError naming `name` unless it is a finite rigid 4x4
-    transform (:func:`check_rigid`)."""
+    transform (:func:`check_rigid`). A torch or Open3D tensor is taken as its values."""
     if isinstance(T, (str, os.PathLike)):
         raise InputError(f"{name}: expected a 4x4 transform, got the file name {str(T)!r} (read it with o3dsoft.read_transform)")
     try:
-        T = np.asarray(T, dtype=np.float64)
+        T = np.asarray(host_array(T), dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected a 4x4 transform of numbers, got {type(T).__name__}") from None
     T = _with_last_row(T)  # a 3x4 [R | t], as transform files may hold it

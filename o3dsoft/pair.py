@@ -15,6 +15,7 @@ from . import refine as refine_stage
 from .clock import StageClock
 from .config import RegisterConfig
 from .errors import InputError
+from .io import host_array
 from .preprocess import (
     clean_points,
     data_grid,
@@ -41,16 +42,15 @@ SCAN_POINTS = 4096
 
 
 def as_points(cloud: CloudLike, name: str) -> np.ndarray:
-    """An Open3D PointCloud (legacy or tensor), a torch tensor or an (N, 3) array-like -> (N, 3)
-    float64 array."""
+    """An Open3D PointCloud (legacy or tensor), a torch or Open3D tensor or an (N, 3) array-like
+    -> (N, 3) float64 array."""
     if hasattr(cloud, "points") and not isinstance(cloud, np.ndarray):
         return np.asarray(cloud.points, dtype=np.float64)
     if hasattr(cloud, "point") and hasattr(cloud, "to_legacy"):  # open3d.t.geometry.PointCloud
         if "positions" not in cloud.point:
             raise InputError(f"{name}: an Open3D tensor PointCloud without positions")
         return cloud.point.positions.cpu().numpy().astype(np.float64)
-    if hasattr(cloud, "detach") and hasattr(cloud, "cpu"):  # a torch tensor, perhaps on a GPU or with a gradient
-        cloud = cloud.detach().cpu().numpy()
+    cloud = host_array(cloud)
     try:
         arr = np.asarray(cloud)
     except ValueError as e:  # ragged nested lists

@@ -539,6 +539,12 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
     pts = np.random.default_rng(0).random((50, 3))
     assert np.array_equal(as_points(o3d.t.geometry.PointCloud(o3d.core.Tensor(pts)), "source"), pts)  # Open3D's tensor API
     assert np.array_equal(as_points(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)), "source"), pts)
+    assert np.array_equal(as_points(o3d.core.Tensor(pts), "source"), pts)  # a tensor PointCloud's positions
+    assert np.allclose(as_points(torch.tensor(pts, dtype=torch.bfloat16), "source"), pts, atol=0.01)  # NumPy has no bfloat16
+    from o3dsoft.io import as_rigid
+
+    T = rigid(euler_to_matrix([10.0, 0.0, 0.0]), [1.0, 2.0, 3.0])
+    assert np.allclose(as_rigid(o3d.core.Tensor(T), "init"), T) and np.allclose(as_rigid(torch.tensor(T), "init"), T)  # Open3D's tensor ICP takes one
     with pytest.raises(InputError, match="source: expected an Open3D PointCloud, a tensor or \\(N, 3\\) points, got a .*TriangleMesh"):
         as_points(o3d.geometry.TriangleMesh.create_sphere(), "source")
 
