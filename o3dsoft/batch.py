@@ -44,6 +44,9 @@ COLUMNS = (
 # The columns of results files written before rows named their ground truth and initial guess.
 _EARLIER_COLUMNS = tuple(c for c in COLUMNS if c not in ("ground_truth", "init"))
 RETRIES = 1  # a pair whose worker process dies is run this many more times
+# A worker process is replaced after this many pairs: KISS-Matcher keeps about 0.2 MB per call on a
+# 3DMatch pair that it never gives back (docs/scans.md), 1 GB over 5,000 pairs; a new process costs seconds.
+PAIRS_PER_WORKER = 500
 
 
 @dataclass(frozen=True)
@@ -343,7 +346,7 @@ def _process_pool(workers: int):
 
     threads = max(1, (os.cpu_count() or 1) // workers)
     # spawn: no fork of a process whose threads hold locks
-    return ProcessPoolExecutor(workers, mp_context=spawn_context(), initializer=_pool_worker_start, initargs=(threads,))
+    return ProcessPoolExecutor(workers, mp_context=spawn_context(), initializer=_pool_worker_start, initargs=(threads,), max_tasks_per_child=PAIRS_PER_WORKER)
 
 
 def _pool_worker_start(threads: int) -> None:

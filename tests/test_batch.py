@@ -362,3 +362,18 @@ def test_ctrl_c_while_the_workers_start_is_one_line(tmp_path, pairs_file):
     out, err = run.communicate(timeout=120)
     assert run.returncode == 130, err
     assert err.strip() == "Interrupted.", err
+
+
+def worker_pid(job: PairJob, config) -> dict:
+    return {"line": job.line, "pid": os.getpid()}
+
+
+def test_a_worker_process_is_replaced_after_its_share_of_pairs(monkeypatch):
+    """KISS-Matcher keeps memory it never gives back: a long run replaces its workers."""
+    import o3dsoft.batch as batch
+
+    monkeypatch.setattr(batch, "PAIRS_PER_WORKER", 2)
+    jobs = [PairJob(line, f"s{line}.ply", f"t{line}.ply") for line in range(1, 6)]
+    rows = list(batch._run_pool(jobs, CONFIG, 1, worker_pid))
+    assert sorted(r["line"] for r in rows) == [1, 2, 3, 4, 5]
+    assert len({r["pid"] for r in rows}) == 3  # 2 + 2 + 1 pairs
