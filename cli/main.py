@@ -785,7 +785,7 @@ _TRAIN_FIELDS = (
     "--init",
     type=click.Path(),
     default=None,
-    help="Start from these weights (fine-tuning): a run's checkpoint.pt, a model file, or a shipped model by name (default, paper).",
+    help="Start from these weights (fine-tuning): a run's checkpoint.pt, a model file, or a shipped model by name (default, paper, partial, incongruent).",
 )
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda (under torchrun: one GPU per process).")
@@ -900,7 +900,7 @@ def _run_bench(name, pairs, count, description, recall=None, titles=None, *, met
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
-    from ..coarse import load_model
+    from ..coarse import cached_model, load_model
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed, register=_register_config(**pipeline))
     if recall is not None:  # thresholds per protocol (folder of scans)
@@ -908,6 +908,8 @@ def _run_bench(name, pairs, count, description, recall=None, titles=None, *, met
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
     device = config.register.device
     model = load_model(config.register.weights, device) if needs_model else None
+    if needs_model and config.register.second_network.weights is not None:
+        cached_model(config.register.second_network.weights, device)  # a file that is no model fails now, not at each flagged pair
     searches = needs_model and config.register.search.mode != "off" and config.register.search.starts.weights is not None
     search_model = load_model(config.register.search.starts.weights, device) if searches else None
     description = {"command": shlex.join(["o3dsoft", *sys.argv[1:]]), **description, "jobs": jobs}

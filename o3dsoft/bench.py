@@ -156,7 +156,15 @@ def modelnet_pairs(
     in two)."""
     datasets = []
     for name in protocols:
-        ds = load_pairs(data, "test", get_protocol(name), seed, points_per_shape)
+        protocol = get_protocol(name)
+        ds = load_pairs(data, "test", protocol, seed, points_per_shape)
+        if len(ds) == 0:
+            unseen = (
+                f" (it takes the test shapes of the second half of 40 categories, labels 20-39; the data has {len(ds.shapes.categories)})"
+                if protocol.categories == "unseen"
+                else ""
+            )
+            raise InputError(f"protocol {name!r} has no test pairs in this data{unseen}; leave it out (--protocol)")
         datasets.append((name, ds, len(ds) if limit is None else min(limit, len(ds))))
 
     def generate() -> Iterator[BenchPair]:

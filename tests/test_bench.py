@@ -1000,3 +1000,25 @@ def test_modelnet40_runs_a_protocol_given_twice_once_and_fails_where_no_pair_run
     assert r.exit_code == 1 and "skipped" in r.output and "Error: no pair could run" in r.output
     r = _bench([*twice, "--seed", "-1", "--out", str(tmp_path / "c")])
     assert r.exit_code == 2 and "Invalid value for '--seed'" in r.output
+
+
+def test_a_second_network_file_that_is_no_model_fails_before_the_run(modelnet_root, tmp_path):
+    (tmp_path / "checkpoint.pt").write_bytes(b"not a model")
+    out = tmp_path / "run"
+    args = ["modelnet40", "--data", str(modelnet_root), "--protocol", "paper", "--limit", "1", "--method", "o3dsoft", "--out", str(out), "--no-progress"]
+    r = _bench([*args, "--second-weights", str(tmp_path / "checkpoint.pt")])
+    assert r.exit_code == 1 and "checkpoint.pt" in r.output and "Traceback" not in r.output, r.output
+    assert not out.exists()
+
+
+def test_a_protocol_without_test_pairs_in_the_data_is_named(tmp_path):
+    tetra = "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n"
+    for category in ("box", "cone"):
+        for split in ("train", "test"):
+            folder = tmp_path / "shapes" / category / split
+            folder.mkdir(parents=True)
+            (folder / f"{category}_0000.off").write_text("OFF\n4 4 0\n0 0 0\n2 0 0\n0 1 0\n0 0 1\n" + tetra)
+    r = _bench(
+        ["modelnet40", "--data", str(tmp_path / "shapes"), "--protocol", "dcp-unseen", "--method", "icp", "--out", str(tmp_path / "run"), "--no-progress"]
+    )
+    assert r.exit_code == 1 and "protocol 'dcp-unseen' has no test pairs in this data" in r.output and "the data has 2" in r.output, r.output
