@@ -25,8 +25,8 @@ def read_config(path: PathLike, cls: type) -> Dict[str, Any]:
 
     Raises:
         UsageError: the file does not exist.
-        InputError: YAML syntax error, a top level that is not a mapping, an unknown key, a value
-            of the wrong type (each with file and line).
+        InputError: YAML syntax error, a top level that is not a mapping, an unknown key or one
+            given twice, a value of the wrong type (each with file and line).
     """
     import yaml
 
@@ -52,8 +52,12 @@ def _read_mapping(path: Path, node, cls: type) -> Dict[str, Any]:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
     out: Dict[str, Any] = {}
+    first_line: Dict[str, int] = {}
     for key_node, value_node in node.value:
         key, line = key_node.value, key_node.start_mark.line + 1
+        if key in first_line:  # YAML keeps the last silently: a setting given twice is a mistake
+            raise InputError(f"{path} line {line}: {key!r} is given twice (first on line {first_line[key]})")
+        first_line[key] = line
         if key not in fields:
             close = difflib.get_close_matches(str(key), fields, n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""

@@ -276,6 +276,13 @@ def _zipfile_has(path: Path, name: str) -> bool:
         return False
 
 
+def _history(state: dict) -> List[dict]:
+    """Each epoch's record; the epoch under way when the run stopped last, marked partial (its
+    steps so far), so that a card's history agrees with its epochs_completed."""
+    partial = [{**state["partial"], "partial": True}] if "partial" in state and state["step_in_epoch"] else []
+    return state["history"] + partial
+
+
 def checkpoint_card(checkpoint: Path) -> dict:
     """The training record of a checkpoint, for the card of a run stopped before it wrote one."""
     ckpt = _load_checkpoint(checkpoint)
@@ -285,7 +292,7 @@ def checkpoint_card(checkpoint: Path) -> dict:
         "protocol": config["protocol"],
         "epochs_completed": state["epoch"],
         "steps": state["global_step"],
-        "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
+        "history": _history(state),
         "initialised_from": ckpt.get("init"),
         "training_seconds": round(state["seconds"], 1),
         "device": config["device"],
@@ -576,7 +583,7 @@ def _card_facts(config: TrainConfig, train_pairs: PairDataset, parts, state: dic
         "protocol": asdict(parts[0].protocol) if len(parts) == 1 else {"mixture": described},
         "epochs_completed": state["epoch"],
         "steps": state["global_step"],
-        "history": state["history"] + ([state["partial"]] if "partial" in state and state["step_in_epoch"] else []),
+        "history": _history(state),
         "training_seconds": round(state["seconds"], 1),
     }
 

@@ -37,6 +37,8 @@ def test_values_are_checked_and_converted(tmp_path):
         ("epochs: 2.5\n", r"'epochs' must be an integer, got 2.5"),
         ("lr: fast\n", r"'lr' must be a number"),
         ("net:\n  k: 8\n  radiu: 0.2\n", r"line 3: unknown key 'radiu' \(did you mean 'radius'\?\)"),
+        ("lr: 0.01\nepochs: 2\nlr: 0.001\n", r"line 3: 'lr' is given twice \(first on line 1\)"),
+        ("net:\n  k: 8\n  k: 16\n", r"line 3: 'k' is given twice \(first on line 2\)"),
         ("net:\n  shared_encoder: 1\n", r"'shared_encoder' must be true or false"),
         ("net: 3\n", r"line 1: expected a mapping of NetConfig settings"),
         ("- epochs\n", r"expected a mapping of TrainConfig settings"),

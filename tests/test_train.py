@@ -513,3 +513,10 @@ def test_resuming_a_finished_run_says_there_is_nothing_to_train(modelnet_root, t
     said = []
     train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=said.append)
     assert any("already reached max_steps = 2" in line for line in said), said
+
+
+def test_a_card_marks_the_epoch_a_step_limit_cut_short(modelnet_root, tmp_path):
+    train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=4), log=lambda m: None)
+    card = json.loads((tmp_path / "model_card.json").read_text())
+    assert card["epochs_completed"] == 0 and card["steps"] == 2
+    assert [(h["epoch"], h["steps"], h.get("partial")) for h in card["history"]] == [(1, 2, True)]
