@@ -654,6 +654,25 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
 
+    def export(identical: Optional[bool]) -> None:
+        """model.pt and model_card.json of the weights so far (rank 0)."""
+        model_path = export_torchscript(model, config.net, out / "model.pt", info={"protocol": config.protocol, "epochs_completed": state["epoch"]})
+        card = {
+            "model_file": model_path.name,
+            "sha256": sha256_of(model_path),
+            **_card_facts(config, train_pairs, parts, state),
+            "initialised_from": init_record,
+            "parameters": sum(p.numel() for p in model.parameters()),
+            "trained_parameters": count_parameters(model),  # fewer with only_overlap
+            "torch_version": torch.__version__,
+            "device": str(device),
+            "world_size": world,
+            "replicas_identical": identical,
+        }
+        with atomic_output(out / "model_card.json") as tmp:
+            tmp.write_text(json.dumps(card, indent=2))
+        log(f"wrote {model_path} and {out / 'model_card.json'}")
+
     def checkpoint() -> None:
         if not lead:
             return
@@ -722,6 +741,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                     checkpoint()
                 if stop.asked:
                     log(f"interrupted: checkpoint after step {state['global_step']} in {ckpt_path} (--resume goes on from there)")
+                    export(None)  # the model so far, usable at once (a second Ctrl-C stops without it)
                     raise KeyboardInterrupt
                 out_of_steps = config.max_steps is not None and state["global_step"] >= config.max_steps
                 if out_of_steps or (config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60):
@@ -750,22 +770,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         identical = _replicas_identical(model)
         log(f"{world} processes: replicas identical after training: {identical}")
     if lead:
-        model_path = export_torchscript(model, config.net, out / "model.pt", info={"protocol": config.protocol, "epochs_completed": state["epoch"]})
-        card = {
-            "model_file": model_path.name,
-            "sha256": sha256_of(model_path),
-            **_card_facts(config, train_pairs, parts, state),
-            "initialised_from": init_record,
-            "parameters": sum(p.numel() for p in model.parameters()),
-            "trained_parameters": count_parameters(model),  # fewer with only_overlap
-            "torch_version": torch.__version__,
-            "device": str(device),
-            "world_size": world,
-            "replicas_identical": identical,
-        }
-        with atomic_output(out / "model_card.json") as tmp:
-            tmp.write_text(json.dumps(card, indent=2))
-        log(f"wrote {model_path} and {out / 'model_card.json'}")
+        export(identical)
     if world > 1:
         import torch.distributed as dist
 

@@ -72,6 +72,9 @@ def test_ctrl_c_keeps_the_steps_done_and_resume_goes_on_exactly(modelnet_root, t
     assert signal.getsignal(signal.SIGINT) is before
     assert torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)["state"]["global_step"] == 2  # the step under way ended
     assert any("interrupted: checkpoint after step 2" in line for line in logged)
+    card = json.loads((tmp_path / "b" / "model_card.json").read_text())  # the model so far is usable at once
+    assert card["steps"] == 2 and card["sha256"] == sha256_of(tmp_path / "b" / "model.pt")
+    assert load_model(tmp_path / "b" / "model.pt").config.k == TINY.k
     monkeypatch.setattr(train_module, "registration_loss", loss)
     train(_config(modelnet_root, tmp_path / "b", max_steps=4, eval_pairs=0), resume=True, log=lambda m: None)
     a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
