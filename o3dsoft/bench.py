@@ -129,7 +129,10 @@ class BenchPair(NamedTuple):
 
     source (N, 3), target (M, 3); transform (4, 4) T_target_source; protocol and index name the
     pair; category is the shape's (or the scan pair's) name; clean_target (L, 3): the complete,
-    noise-free target for the modified Chamfer distance (None: the target itself).
+    noise-free target for the modified Chamfer distance (None: the target itself); origin (3,):
+    the point the errors are measured about, as :func:`o3dsoft.metrics.pair_errors` takes it
+    (None: the frame's origin, as the literature measures ModelNet40's pairs; scans: the
+    target's :func:`~o3dsoft.preprocess.local_origin`, their median where they lie far from it).
     """
 
     protocol: str
@@ -139,6 +142,7 @@ class BenchPair(NamedTuple):
     transform: np.ndarray
     category: str
     clean_target: Optional[np.ndarray] = None
+    origin: Optional[np.ndarray] = None
 
     @property
     def initial_angle(self) -> float:
@@ -253,7 +257,7 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto", unit
         keep = listed.is_file() or overlap >= min_overlap
         table.append({"source": s.stem, "target": t.stem, "overlap": overlap, "kept": keep})
         if keep:
-            pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{s.stem}->{t.stem}"))
+            pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{s.stem}->{t.stem}", origin=local_origin(clouds[t])))
     size = scene_size(next(iter(clouds.values())))  # of the first scan
     guessed = size if kind == "auto" else None
     kind = guess_kind(size * UNITS[unit]) if kind == "auto" else kind
@@ -496,7 +500,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
 
 def score(pair: BenchPair, result: MethodResult) -> Tuple[dict, PairErrors]:
     """The CSV row of one method on one pair, and its errors."""
-    e = pair_errors(result.transform, pair.transform, local_origin(pair.target))
+    e = pair_errors(result.transform, pair.transform, pair.origin)
     chamfer = modified_chamfer_distance(pair.source, pair.target, result.transform, pair.transform, pair.clean_target)
     row = {
         "protocol": pair.protocol,

@@ -212,7 +212,7 @@ def choose_pairs(clouds: Sequence[np.ndarray], config: MultiwayConfig, init_pose
 @quietly
 def multiway(
     clouds: Sequence[CloudLike],
-    config: MultiwayConfig = MultiwayConfig(),
+    config: Optional[MultiwayConfig] = None,
     names: Optional[Sequence[str]] = None,
     model=None,
     progress: Optional[Callable[[int, int], None]] = None,
@@ -222,7 +222,7 @@ def multiway(
 
     Args:
         clouds: the scans, (N_i, 3) arrays or Open3D point clouds, in the same units.
-        config: the settings.
+        config: the settings (None: the defaults).
         names: how to call the scans (file names); default scan0, scan1, ...
         model: an already loaded network (else loaded once from ``config.register.weights``).
         progress: called as progress(pairs done, pairs in all) after each registration.
@@ -241,6 +241,7 @@ def multiway(
     """
     from .coarse import load_model
 
+    config = MultiwayConfig() if config is None else config
     if not isinstance(config, MultiwayConfig):
         raise UsageError(f"config must be an o3dsoft.MultiwayConfig (its register field holds a RegisterConfig), got {type(config).__name__}")
     config.validate()

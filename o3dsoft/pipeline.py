@@ -212,7 +212,7 @@ def _each_transform(result: RegistrationResult, change: Callable[[np.ndarray], n
 def register(
     source: CloudLike,
     target: CloudLike,
-    config: RegisterConfig = RegisterConfig(),
+    config: Optional[RegisterConfig] = None,
     model: Optional[coarse_stage.CoarseModel] = None,
     search_model: Optional[coarse_stage.CoarseModel] = None,
     source_name: str = "source",
@@ -224,7 +224,7 @@ def register(
     Args:
         source: (N, 3) array, torch tensor or Open3D PointCloud (legacy or tensor), any units and position.
         target: (M, 3), the same kinds, in the same units as source.
-        config: pipeline settings.
+        config: pipeline settings (None: the defaults, ``RegisterConfig()``).
         model: an already loaded model (else loaded from ``config.weights``).
         search_model: an already loaded search network (else loaded from
             ``config.search.starts.weights`` when the search needs it).
@@ -243,6 +243,7 @@ def register(
             weights file is unusable, `init` is not a rigid 4x4 transform, or a setting of
             `config` is invalid (see its ``validate``).
     """
+    config = RegisterConfig() if config is None else config
     if not isinstance(config, RegisterConfig):
         raise UsageError(f"config must be an o3dsoft.RegisterConfig, got {type(config).__name__}")
     coarse_stage.torch_runs()

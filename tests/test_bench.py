@@ -17,7 +17,7 @@ from o3dsoft.errors import InputError, UsageError
 from o3dsoft.io import read_points, read_transform
 from o3dsoft.metrics import pair_errors
 from o3dsoft.preprocess import scene_size
-from o3dsoft.transforms import apply_transform, rotation_angle_deg
+from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid, rotation_angle_deg
 
 from .conftest import EXAMPLES, georeferenced_bunny
 
@@ -782,7 +782,6 @@ def test_kiss_matchers_radii_are_in_voxels_of_the_clouds_it_is_given(monkeypatch
 
 def test_kiss_matcher_answers_in_millimetres_as_in_metres(real_scans_root):
     from o3dsoft import baselines
-    from o3dsoft.preprocess import scene_size
 
     if not baselines.installed("kiss_matcher"):
         pytest.skip("the optional package kiss-matcher is not installed")
@@ -1022,3 +1021,22 @@ def test_a_protocol_without_test_pairs_in_the_data_is_named(tmp_path):
         ["modelnet40", "--data", str(tmp_path / "shapes"), "--protocol", "dcp-unseen", "--method", "icp", "--out", str(tmp_path / "run"), "--no-progress"]
     )
     assert r.exit_code == 1 and "protocol 'dcp-unseen' has no test pairs in this data" in r.output and "the data has 2" in r.output, r.output
+
+
+def test_modelnet_pairs_are_scored_about_the_origin_and_georeferenced_scans_about_themselves(tmp_path):
+    """The literature's translation error of a ModelNet40 pair is |t_est - t_gt|, even for a small
+    crop that lies farther from the origin than its size; a georeferenced scan's is measured where
+    it lies (a turn about a UTM frame's origin moves it by kilometres)."""
+
+    turn = rigid(euler_to_matrix([0.0, 0.0, 0.5]), [0.0, 0.0, 0.0])  # 0.5 degrees about z
+    crop = np.random.default_rng(0).uniform(-0.1, 0.1, (300, 3)) + [0.8, 0.0, 0.0]  # 0.2 across, 0.8 from the origin
+    estimate = turn @ rigid(np.eye(3), [0.003, 0.0, 0.0])
+    _, e = bench.score(bench.BenchPair("so3-crop", 0, crop, crop, np.eye(4), "box"), bench.MethodResult("icp", estimate, {"total": 1.0}))
+    assert e.translation == pytest.approx(0.003)  # not moved to the crop's median
+    georeferenced_bunny(tmp_path)
+    (tmp_path / "pairs.txt").write_text("bun045.ply bun000.ply gt.txt\n")
+    (scan,) = bench.scan_folder(tmp_path).pairs
+    assert np.linalg.norm(scan.origin) > 1e5
+    about_the_scan = rigid(turn[:3, :3], scan.origin - turn[:3, :3] @ scan.origin)
+    _, e = bench.score(scan, bench.MethodResult("icp", about_the_scan @ scan.transform, {"total": 1.0}))
+    assert e.rotation_deg == pytest.approx(0.5) and e.translation < 0.01 * scene_size(scan.target)  # about the frame's origin: 36 km

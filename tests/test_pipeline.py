@@ -1260,3 +1260,13 @@ def test_from_a_close_guess_icp_does_not_slide_on_a_ground_with_a_few_objects(re
     e = pair_errors(res.transformation, T)
     assert e.rotation_deg < 1.0 and e.translation < 0.3, (e, res.confidence)
     assert res.estimate_from == "initial guess" and not res.likely_failed
+
+
+def test_the_library_entry_points_read_as_short_signatures_and_take_none_for_the_defaults():
+    """help(o3dsoft.register) opens with its signature: not the whole default RegisterConfig."""
+    import inspect
+
+    for function in (o3dsoft.register, o3dsoft.multiway):
+        assert len(str(inspect.signature(function))) < 400, function.__name__
+    src, tgt, T = blob_pair(n=200)
+    assert pair_errors(register(src, tgt, None).transformation, T).rotation_deg < 1.0
