@@ -443,6 +443,10 @@ def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num
     bar = tqdm(total=len(jobs) - skipped, unit="pair", disable=True if no_progress else None, dynamic_ncols=True)
     try:
         rows = run_jobs(jobs, config, out_path, workers=workers, ray=ray_address, progress=lambda row: bar.update(1), done=done)
+    except KeyboardInterrupt:
+        bar.close()
+        click.echo(f"Stopped: the pairs done so far are in {out_path}; the same command goes on from there.", err=True)
+        raise
     finally:
         bar.close()
     failed = [r for r in rows if r["status"] != "ok"]
@@ -862,7 +866,7 @@ def train(ctx, config_file, resume, overwrite, radius, k, separate_encoders, rel
 
 @main.group()
 def bench():
-    """Compare o3dsoft with Open3D's ICP, FPFH + RANSAC and FGR on the same pairs."""
+    """Compare o3dsoft with Open3D's ICP, FPFH + RANSAC and FGR, and KISS-Matcher + small_gicp (o3dsoft[peers]), on the same pairs."""
 
 
 def _bench_options(fn):

@@ -698,6 +698,8 @@ def _result(
     if fewest < enough and trust >= config.confidence.likely_failed_below * fewest / enough:
         trust = config.confidence.likely_failed_below * fewest / enough
         reason = f"the smaller cloud has only {fewest} points: under {enough}, a wrong alignment fits as closely as the right one and scores as high"
+    if reason and search_reason is not None and pair.scans and config.search.kiss and not kiss_available():
+        reason += "; KISS-Matcher, which the search tries first on scans, is not installed: pip install 'o3dsoft[peers]'"
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:
         reason = f"the clouds' sizes differ {pair.size_ratio:.0f}-fold (are they in the same units? o3dsoft does not search a large scene for a small part of it); {reason}"
     return RegistrationResult(

@@ -1270,3 +1270,13 @@ def test_the_library_entry_points_read_as_short_signatures_and_take_none_for_the
         assert len(str(inspect.signature(function))) < 400, function.__name__
     src, tgt, T = blob_pair(n=200)
     assert pair_errors(register(src, tgt, None).transformation, T).rotation_deg < 1.0
+
+
+def test_a_flagged_scan_result_says_when_kiss_matcher_is_missing(monkeypatch):
+    from o3dsoft import pipeline
+
+    rng = np.random.default_rng(3)
+    unrelated = blob(rng, 5000), blob(rng, 5000) * [1.0, 0.5, 2.0]  # scans by their size, no pose fits both
+    monkeypatch.setattr(pipeline, "kiss_available", lambda: False)
+    res = register(*unrelated)
+    assert res.likely_failed and res.failure_reason.endswith("is not installed: pip install 'o3dsoft[peers]'"), res.failure_reason
