@@ -684,6 +684,19 @@ def source_commit(here: Optional[Path] = None) -> Optional[str]:
     return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
 
 
+def cpu_conditions() -> Dict[str, Optional[float]]:
+    """What sets a run's times besides the code: torch's threads, OMP_NUM_THREADS, and the 1-minute
+    load average (None where the system has none) before the run."""
+    import torch
+
+    try:
+        load: Optional[float] = round(os.getloadavg()[0], 2)
+    except (AttributeError, OSError):
+        load = None
+    omp = os.environ.get("OMP_NUM_THREADS")
+    return {"torch_threads": torch.get_num_threads(), "OMP_NUM_THREADS": int(omp) if omp and omp.isdigit() else None, "load_average_before": load}
+
+
 def versions() -> Dict[str, str]:
     """Versions of o3dsoft and what it runs on (and the git commit, from a checkout)."""
     import open3d
@@ -887,6 +900,12 @@ def run(
     errors: List[PairErrors] = []
     interrupted = False
     ran_with = versions()  # before the run: the checkout may change while it runs, the loaded code not
+    cpu = cpu_conditions()
+    if cpu["load_average_before"] is not None and cpu["load_average_before"] >= 0.75 * (os.cpu_count() or 1):
+        log(
+            f"Note: the CPU is busy (load average {cpu['load_average_before']:.1f} on {os.cpu_count()} logical CPUs before the run): "
+            "times are not comparable with a run on an idle machine, and torch's threads slow most (docs/speed.md)"
+        )
     t_start = time.monotonic()
     bar = tqdm(total=count, unit="pair", disable=None if progress else True, dynamic_ncols=True)  # None: only on a terminal
     failed: List[dict] = []
@@ -919,6 +938,7 @@ def run(
         "search_weights": _weights_record(search_model.path if search_model is not None else None),
         "second_weights": _weights_record(config.register.second_network.weights) if model is not None else None,
         "versions": ran_with,
+        "cpu": {**cpu, "load_average_after": cpu_conditions()["load_average_before"]},
         "recall_thresholds": {p: [{"rotation_deg": d, "translation": t} for d, t in config.recall_for(p)] for p in dict.fromkeys(r["protocol"] for r in rows)},
         "methods": {m: METHODS[m] for m in config.methods},
         "summaries": summaries,

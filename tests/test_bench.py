@@ -53,6 +53,7 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     summary = json.loads((out / "summary.json").read_text())
     assert summary["pairs_completed"] == 2 and not summary["interrupted"]
     assert len(summary["weights"]["sha256"]) == 64 and "open3d" in summary["versions"]
+    assert summary["cpu"]["torch_threads"] >= 1 and set(summary["cpu"]) == {"torch_threads", "OMP_NUM_THREADS", "load_average_before", "load_average_after"}
     assert summary["second_weights"]["path"].endswith("o3dsoft_incongruent.pt") and len(summary["second_weights"]["sha256"]) == 64
     assert {s["method"] for s in summary["summaries"]} == set(bench.CORE_METHODS)
     # ICP from the truth stays there on a pair of identical point sets.
@@ -1040,3 +1041,10 @@ def test_modelnet_pairs_are_scored_about_the_origin_and_georeferenced_scans_abou
     about_the_scan = rigid(turn[:3, :3], scan.origin - turn[:3, :3] @ scan.origin)
     _, e = bench.score(scan, bench.MethodResult("icp", about_the_scan @ scan.transform, {"total": 1.0}))
     assert e.rotation_deg == pytest.approx(0.5) and e.translation < 0.01 * scene_size(scan.target)  # about the frame's origin: 36 km
+
+
+def test_a_bench_on_a_busy_cpu_says_its_times_are_not_comparable(modelnet_root, tmp_path, monkeypatch):
+    monkeypatch.setattr(os, "getloadavg", lambda: (8.0, 8.0, 8.0))
+    r = _bench(["modelnet40", "--data", str(modelnet_root), "--protocol", "paper", "--limit", "1", "--method", "icp", "--out", str(tmp_path / "run")])
+    assert r.exit_code == 0 and "the CPU is busy (load average 8.0" in r.output, r.output
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["cpu"]["load_average_before"] == 8.0
