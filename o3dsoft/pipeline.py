@@ -370,11 +370,12 @@ def _register(
     clock.lap("score")
     geometry = _assess(pair, best)
     clock.lap("degeneracy")
-    if search.mode == "auto" and not search_reason and geometry.reason and not pair.scans and verifier.shares_no_point(best):
+    if search.mode == "auto" and not search_reason and geometry.reason and (guess or not pair.scans) and verifier.shares_no_point(best):
         # Trusted, but the pose does not hold and shows no shared point: on two independent
         # samplings a wrong pose that fits a part closely is trusted strictly and fits as well
         # turned. (A symmetric shape's right pose shows the points noisy clouds share; on scans
-        # the test flags surfaces that slide.) What a flag starts runs now, the flagged estimate
+        # the test flags surfaces that slide, but from a caller's guess nothing else was tried:
+        # a guess turned 90 degrees on a street scan ends there.) What a flag starts runs now, the flagged estimate
         # out of the choice; what it finds replaces the flagged result only where it fits the
         # clouds clearly closer (a turn of a symmetric shape fits as well, and stays flagged).
         verifier.distrust(chosen, 0.0)

@@ -1280,3 +1280,20 @@ def test_a_flagged_scan_result_says_when_kiss_matcher_is_missing(monkeypatch):
     monkeypatch.setattr(pipeline, "kiss_available", lambda: False)
     res = register(*unrelated)
     assert res.likely_failed and res.failure_reason.endswith("is not installed: pip install 'o3dsoft[peers]'"), res.failure_reason
+
+
+def test_a_guess_turned_far_off_on_a_street_scan_is_searched_past(real_scans_root):
+    """ICP from a guess turned 90 degrees ends at a pose that fits the thinned street scan closely
+    but as well turned (the geometry's flag); nothing else had been tried: the search runs."""
+    from scipy.spatial.transform import Rotation
+
+    folder = real_scans_root / "outdoor_laser_car"
+    source, target = (o3dsoft.read_points(folder / f"car_cloud{n}.ply") for n in (401, 400))
+    rng = np.random.default_rng(11)
+    source, target = source[rng.choice(len(source), 10000, replace=False)], target[rng.choice(len(target), 10000, replace=False)]
+    T = o3dsoft.read_transform(folder / "gt_401_to_400.txt")
+    turn = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    centre = apply(T, source.mean(axis=0)[None])[0]
+    res = register(source, target, init=rigid(turn, centre - turn @ centre) @ T)
+    e = pair_errors(res.transformation, T)
+    assert e.rotation_deg < 1.0 and e.translation < 0.3 and not res.likely_failed and res.searched, (e.rotation_deg, res.failure_reason)
