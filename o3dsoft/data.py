@@ -345,6 +345,16 @@ def resolve_data_root(path: Optional[str]) -> Path:
     return root
 
 
+def folder_fingerprint(root: Path) -> str:
+    """sha256 of the names (relative to `root`) and sizes of the files under it: the same data
+    wherever it is copied or however its path is written, without reading it."""
+    import hashlib
+
+    root = Path(root)
+    listing = sorted((str(path.relative_to(root)), path.stat().st_size) for path in root.rglob("*") if path.is_file())
+    return hashlib.sha256(json.dumps(listing).encode()).hexdigest()
+
+
 def load_modelnet40(root: Path, split: str, categories: str = "all", points_per_shape: Optional[int] = DEFAULT_POINTS_PER_SHAPE) -> Shapes:
     """Read one split of ModelNet40 from the official HDF5 layout or from a folder of OFF meshes.
 

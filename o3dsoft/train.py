@@ -27,7 +27,6 @@ import torch
 from .coarse import export_torchscript, non_finite_weight, sha256_of, torch_device
 from .configfile import read_config, write_config
 from .data import (
-    DATA_ENV,
     DEFAULT_POINTS_PER_SHAPE,
     Pair,
     PairDataset,
@@ -35,7 +34,9 @@ from .data import (
     Shapes,
     check_training_recipe,
     evaluation_protocol,
+    folder_fingerprint,
     load_pairs,
+    resolve_data_root,
     training_parts,
 )
 from .errors import InputError, O3dsoftError, UsageError
@@ -476,7 +477,6 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
         raise UsageError(
             f"{config.out}: holds a training run ({', '.join(held)}); --resume goes on with it, --overwrite starts a new one there, or choose another --out"
         )
-    config = replace(config, data=_absolute_folder(config.data, DATA_ENV), extra_data=_absolute_folder(config.extra_data))
     rank, world, device = _setup_distributed(config)
     try:
         return _train(config, resume, log if rank == 0 else (lambda message: None), rank, world, device)
@@ -488,11 +488,14 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
             _teardown_distributed()
 
 
-def _absolute_folder(path: Optional[str], env: Optional[str] = None) -> Optional[str]:
-    """`path` (else $`env`, if given and set) as an absolute path: a run folder's settings name
-    the data wherever the run is resumed from (None: neither is given)."""
-    chosen = path or (os.environ.get(env) if env else None)
-    return str(Path(chosen).expanduser().resolve()) if chosen else None
+def _data_fingerprints(config: TrainConfig) -> Dict[str, Optional[str]]:
+    """:func:`~o3dsoft.data.folder_fingerprint` of the run's data folder (``data``, else
+    $O3DSOFT_DATA) and of ``extra_data`` (None where not given): the data a resumed run must
+    keep, wherever it lies now (a run trained on a lent GPU machine goes on here)."""
+    return {
+        "data": folder_fingerprint(resolve_data_root(config.data)),
+        "extra_data": folder_fingerprint(resolve_data_root(config.extra_data)) if config.extra_data else None,
+    }
 
 
 def _teardown_distributed() -> None:
@@ -516,8 +519,12 @@ def _resume_checkpoint(path: Path, config: TrainConfig, world: int) -> dict:
         raise InputError(f"{path}: no checkpoint to resume from")
     ckpt = _load_checkpoint(path)
     saved = dict(ckpt["config"], net=NetConfig.from_dict(ckpt["config"]["net"]).to_dict())  # with settings added since
-    saved.update(data=_absolute_folder(saved.get("data"), DATA_ENV), extra_data=_absolute_folder(saved.get("extra_data")))  # earlier runs kept them as given
-    mismatched = [k for k in RESUME_MUST_MATCH if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
+    by_content = "data_fingerprints" in ckpt  # the data compared by its files, not by how its path is written
+    names = [k for k in RESUME_MUST_MATCH if not (by_content and k in ("data", "extra_data"))]
+    mismatched = [k for k in names if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
+    if by_content:
+        now = _data_fingerprints(config)
+        mismatched += [k for k in ("data", "extra_data") if ckpt["data_fingerprints"].get(k) != now[k]]
     if mismatched:
         raise InputError(f"{path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")
     if ckpt.get("world_size", 1) != world:
@@ -567,7 +574,8 @@ def _evaluation_line(epoch: int, m: Dict[str, float]) -> str:
 def _card_facts(config: TrainConfig, train_pairs: PairDataset, parts, state: dict) -> dict:
     """What the model card says about the data, the protocol and the progress of the run."""
     shapes = train_pairs.shapes.points
-    dataset = f"train split of {config.data or 'ModelNet40'} ({shapes.shape[0]} shapes, {shapes.shape[1]} points each)"
+    root = resolve_data_root(config.data)  # $O3DSOFT_DATA's where none was given
+    dataset = f"train split of {root} ({shapes.shape[0]} shapes, {shapes.shape[1]} points each)"
     if config.limit_train:
         dataset += f", first {config.limit_train} shapes"
     if config.extra_data is not None:
@@ -577,9 +585,7 @@ def _card_facts(config: TrainConfig, train_pairs: PairDataset, parts, state: dic
     return {
         "config": config.to_dict(),
         "dataset": dataset,
-        "evaluated_on": f"test split of {config.data or 'ModelNet40'}, first {config.eval_pairs} pairs of the protocol (seed {config.seed + 1})"
-        if config.eval_pairs
-        else None,
+        "evaluated_on": f"test split of {root}, first {config.eval_pairs} pairs of the protocol (seed {config.seed + 1})" if config.eval_pairs else None,
         "protocol": asdict(parts[0].protocol) if len(parts) == 1 else {"mixture": described},
         "epochs_completed": state["epoch"],
         "steps": state["global_step"],
@@ -673,6 +679,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             tmp.write_text(json.dumps(card, indent=2))
         log(f"wrote {model_path} and {out / 'model_card.json'}")
 
+    fingerprints = _data_fingerprints(config) if lead else None
+
     def checkpoint() -> None:
         if not lead:
             return
@@ -685,6 +693,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             "torch_rng": torch.get_rng_state(),
             "config": config.to_dict(),
             "world_size": world,
+            "data_fingerprints": fingerprints,
         }
         try:
             _save_atomic(contents, ckpt_path)

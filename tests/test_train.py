@@ -490,17 +490,36 @@ def test_a_new_run_does_not_replace_a_run_unasked(modelnet_root, tmp_path):
 def test_a_run_resumes_with_its_data_named_another_way_and_not_with_other_data(modelnet_root, tmp_path, monkeypatch):
     monkeypatch.delenv("O3DSOFT_DATA", raising=False)
     monkeypatch.chdir(modelnet_root.parent)
-    train(_config(modelnet_root.name, tmp_path / "r", max_steps=1, eval_pairs=0), log=lambda m: None)  # a relative path
+    train(_config(modelnet_root, tmp_path / "r", data=modelnet_root.name, max_steps=1, eval_pairs=0), log=lambda m: None)  # a relative path
     monkeypatch.chdir(tmp_path)
-    train(_config(str(modelnet_root) + "/", tmp_path / "r", max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
-    r = CliRunner().invoke(main, ["train", "--out", "r", "--resume", "--max-steps", "3"])  # the data as the run folder names it
-    assert r.exit_code == 0, r.output
+    train(_config(modelnet_root, tmp_path / "r", data=str(modelnet_root) + "/", max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
     monkeypatch.setenv("O3DSOFT_DATA", str(modelnet_root))
     train(_config(modelnet_root, tmp_path / "e", data=None, max_steps=1, eval_pairs=0), log=lambda m: None)
+    card = json.loads((tmp_path / "e" / "model_card.json").read_text())
+    assert str(modelnet_root) in card["dataset"]  # the data the environment named
     (tmp_path / "other").mkdir()
     monkeypatch.setenv("O3DSOFT_DATA", str(tmp_path / "other"))
     with pytest.raises(InputError, match="different data"):
         train(_config(modelnet_root, tmp_path / "e", data=None, max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
+
+
+def test_a_run_goes_on_from_its_data_copied_elsewhere(tmp_path):
+    """A run trained on a lent machine comes back with its data at another path."""
+    import shutil
+
+    tetra = "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n"
+    for category in ("box", "cone"):
+        for i in range(4):
+            folder = tmp_path / "there" / category / "train"
+            folder.mkdir(parents=True, exist_ok=True)
+            (folder / f"{category}_{i:04d}.off").write_text(f"OFF\n4 4 0\n0 0 0\n{i + 2} 0 0\n0 1 0\n0 0 1\n" + tetra)
+    quick = dict(limit_train=None, eval_pairs=0, batch_size=2, points_per_shape=64)
+    train(_config(tmp_path / "there", tmp_path / "run", max_steps=1, **quick), log=lambda m: None)
+    shutil.copytree(tmp_path / "there", tmp_path / "here")
+    train(_config(tmp_path / "here", tmp_path / "run", max_steps=2, **quick), resume=True, log=lambda m: None)
+    (tmp_path / "here" / "box" / "train" / "box_0003.off").rename(tmp_path / "here" / "box" / "train" / "box_0004.off")  # other shapes
+    with pytest.raises(InputError, match="different data"):
+        train(_config(tmp_path / "here", tmp_path / "run", max_steps=3, **quick), resume=True, log=lambda m: None)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without a CUDA GPU")
