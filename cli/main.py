@@ -273,7 +273,11 @@ def _register_config(
     type=click.Path(path_type=Path),
     help="Write a PNG of the pair (input, after the network, after ICP), seen onto its principal plane, the source coloured by its distance to the target.",
 )
-@click.option("--strict", is_flag=True, help="Exit with code 3 when the result is flagged as likely failed.")
+@click.option(
+    "--strict",
+    is_flag=True,
+    help="Exit with code 3 when the result is flagged as likely failed, writing neither --out nor --save-transform (--render still shows it).",
+)
 @_pipeline_options
 @_friendly_errors
 def register(
@@ -391,6 +395,11 @@ def register(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: {result.failure_reason}). Check it visually (--render).", err=True
         )
     # The outputs last, so that a failed write still leaves the result on screen.
+    if strict and result.likely_failed:  # a failed run leaves no result for a pipeline to pick up
+        held = [opt for opt, p in (("--out", out_path), ("--save-transform", save_transform)) if p is not None]
+        if held:
+            click.echo(f"Not written (--strict, the result is flagged): {', '.join(held)}", err=True)
+        out_path = save_transform = None
     if out_path is not None:
         io.write_moved(out_path, source, src, result.transformation)  # with the source's colours, normals, LAS dimensions
         click.echo(f"Aligned source: {out_path}", err=as_json)

@@ -168,8 +168,9 @@ def test_likely_failure_warns_and_strict_exits_3(tmp_path, tiny_model_path):
     r = CliRunner().invoke(main, [str(a) for a in args + ["--json"]])
     assert r.exit_code == 0 and "likely wrong" in r.stderr
     assert json.loads(r.stdout)["likely_failed"] is True
-    r = CliRunner().invoke(main, [str(a) for a in args + ["--strict"]])
-    assert r.exit_code == 3 and "LIKELY FAILED" in r.stdout
+    r = CliRunner().invoke(main, [str(a) for a in args + ["--strict", "--out", tmp_path / "moved.ply", "--save-transform", tmp_path / "T.txt"]])
+    assert r.exit_code == 3 and "LIKELY FAILED" in r.stdout and "Not written (--strict, the result is flagged): --out, --save-transform" in r.stderr
+    assert not (tmp_path / "moved.ply").exists() and not (tmp_path / "T.txt").exists()  # nothing a pipeline could pick up
 
 
 def test_search_options_reach_the_pipeline(pair_files, tiny_model_path, monkeypatch):
