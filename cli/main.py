@@ -969,14 +969,18 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
     from ..bench import BENCH_PROTOCOLS, check_methods, modelnet_pairs
     from ..bench import export_pairs as write_pairs
     from ..bench import import_pairs as read_pairs
+    from ..coarse import sha256_of
     from ..data import get_protocol
 
     check_methods(common["methods"])
     seed = common["seed"]
     if import_pairs:
+        made = [opt for opt, given in (("--protocol", protocols), ("--limit", limit), ("--data", data), ("--export-pairs", export_pairs)) if given]
+        if made:
+            raise click.UsageError(f"--import-pairs scores the file's pairs as they are; {', '.join(made)} make(s) pairs: leave it out")
         pairs = read_pairs(import_pairs)
         count, iterator = len(pairs), iter(pairs)
-        description = {"benchmark": "pairs file", "pairs_file": str(import_pairs)}
+        description = {"benchmark": "pairs file", "pairs_file": str(import_pairs.resolve()), "pairs_sha256": sha256_of(import_pairs)}
     else:
         protocols = tuple(dict.fromkeys(protocols)) or BENCH_PROTOCOLS  # a protocol given twice runs once
         for name in protocols:
@@ -991,6 +995,8 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
             "points_per_shape": points_per_shape,
         }
         if export_pairs:
+            if export_pairs.exists() and not common["overwrite"]:
+                raise click.UsageError(f"--export-pairs {export_pairs}: the file exists; choose another name or pass --overwrite")
             pairs = list(iterator)
             write_pairs(export_pairs, pairs)
             click.echo(f"wrote {len(pairs)} pairs to {export_pairs}", err=True)

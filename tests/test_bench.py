@@ -84,6 +84,14 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     again = list(csv.DictReader(open(tmp_path / "again" / "pairs.csv")))
     before = [row for row in rows if row["method"] == "icp"]
     assert [float(a["rotation_deg"]) for a in again] == pytest.approx([float(b["rotation_deg"]) for b in before], abs=1e-6)
+    described = json.loads((tmp_path / "again" / "summary.json").read_text())["description"]
+    assert described["pairs_sha256"] == bench.sha256_of(tmp_path / "pairs.npz")
+    # Options that make pairs do not go with a pairs file, and an export does not replace a file unasked.
+    r = _bench(["modelnet40", "--import-pairs", str(tmp_path / "pairs.npz"), "--limit", "1", "--method", "icp", "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "--limit make(s) pairs" in r.output
+    export = ["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--export-pairs", str(tmp_path / "pairs.npz")]
+    r = _bench([*export, "--out", str(tmp_path / "y")])
+    assert r.exit_code == 2 and "the file exists" in r.output
 
 
 def test_pairs_file_round_trip(modelnet_root, tmp_path):
