@@ -684,17 +684,21 @@ def source_commit(here: Optional[Path] = None) -> Optional[str]:
     return head.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
 
 
+def load_average() -> Optional[float]:
+    """The 1-minute load average (None where the system has none)."""
+    try:
+        return round(os.getloadavg()[0], 2)
+    except (AttributeError, OSError):
+        return None
+
+
 def cpu_conditions() -> Dict[str, Optional[float]]:
-    """What sets a run's times besides the code: torch's threads, OMP_NUM_THREADS, and the 1-minute
-    load average (None where the system has none) before the run."""
+    """What sets a run's times besides the code, before it: torch's threads, OMP_NUM_THREADS and
+    the :func:`load_average`."""
     import torch
 
-    try:
-        load: Optional[float] = round(os.getloadavg()[0], 2)
-    except (AttributeError, OSError):
-        load = None
     omp = os.environ.get("OMP_NUM_THREADS")
-    return {"torch_threads": torch.get_num_threads(), "OMP_NUM_THREADS": int(omp) if omp and omp.isdigit() else None, "load_average_before": load}
+    return {"torch_threads": torch.get_num_threads(), "OMP_NUM_THREADS": int(omp) if omp and omp.isdigit() else None, "load_average_before": load_average()}
 
 
 def versions() -> Dict[str, str]:
@@ -938,7 +942,7 @@ def run(
         "search_weights": _weights_record(search_model.path if search_model is not None else None),
         "second_weights": _weights_record(config.register.second_network.weights) if model is not None else None,
         "versions": ran_with,
-        "cpu": {**cpu, "load_average_after": cpu_conditions()["load_average_before"]},
+        "cpu": {**cpu, "load_average_after": load_average()},
         "recall_thresholds": {p: [{"rotation_deg": d, "translation": t} for d, t in config.recall_for(p)] for p in dict.fromkeys(r["protocol"] for r in rows)},
         "methods": {m: METHODS[m] for m in config.methods},
         "summaries": summaries,

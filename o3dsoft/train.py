@@ -513,8 +513,9 @@ def _teardown_distributed() -> None:
         dist.destroy_process_group()
 
 
-def _resume_checkpoint(path: Path, config: TrainConfig, world: int) -> dict:
-    """The checkpoint to resume from, refused when its run's settings or process count differ."""
+def _resume_checkpoint(path: Path, config: TrainConfig, world: int, fingerprints: Dict[str, Optional[str]]) -> dict:
+    """The checkpoint to resume from, refused when its run's settings, its data (`fingerprints`:
+    :func:`_data_fingerprints` of this run's) or its process count differ."""
     if not path.is_file():
         raise InputError(f"{path}: no checkpoint to resume from")
     ckpt = _load_checkpoint(path)
@@ -523,8 +524,7 @@ def _resume_checkpoint(path: Path, config: TrainConfig, world: int) -> dict:
     names = [k for k in RESUME_MUST_MATCH if not (by_content and k in ("data", "extra_data"))]
     mismatched = [k for k in names if saved.get(k, TrainConfig().to_dict()[k]) != config.to_dict()[k]]
     if by_content:
-        now = _data_fingerprints(config)
-        mismatched += [k for k in ("data", "extra_data") if ckpt["data_fingerprints"].get(k) != now[k]]
+        mismatched += [k for k in ("data", "extra_data") if ckpt["data_fingerprints"].get(k) != fingerprints[k]]
     if mismatched:
         raise InputError(f"{path}: cannot resume with a different {', '.join(mismatched)} than the checkpoint's")
     if ckpt.get("world_size", 1) != world:
@@ -627,8 +627,9 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             model.log_tau.fill_(math.log(config.init_temperature))
     state = {"epoch": 0, "step_in_epoch": 0, "global_step": 0, "history": [], "seconds": 0.0}
     ckpt: dict = {}
+    fingerprints = _data_fingerprints(config) if lead or resume else {}  # what a resumed run must keep, and what rank 0 checkpoints
     if resume:
-        ckpt = _resume_checkpoint(ckpt_path, config, world)
+        ckpt = _resume_checkpoint(ckpt_path, config, world, fingerprints)
         with _damaged(ckpt_path):
             model.load_state_dict(ckpt["model"])
             missing = set(state) - set(ckpt["state"])
@@ -678,8 +679,6 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         with atomic_output(out / "model_card.json") as tmp:
             tmp.write_text(json.dumps(card, indent=2))
         log(f"wrote {model_path} and {out / 'model_card.json'}")
-
-    fingerprints = _data_fingerprints(config) if lead else None
 
     def checkpoint() -> None:
         if not lead:

@@ -96,3 +96,9 @@ def python_output(code: str, timeout: float) -> str:
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=timeout)
     assert run.returncode == 0, run.stderr.decode()[-2000:]
     return run.stdout.decode()
+
+
+def tetra_off(i: int, header: str = "OFF\n4 4 0\n") -> str:
+    """An OFF file of a tetrahedron stretched to x = i + 2 (`header`: the first line(s), counts
+    included), for ModelNet40-like folders of meshes (<category>/<split>/*.off)."""
+    return header + f"0 0 0\n{i + 2} 0 0\n0 1 0\n0 0 1\n" + "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n"

@@ -19,7 +19,7 @@ from o3dsoft.metrics import pair_errors
 from o3dsoft.preprocess import scene_size
 from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid, rotation_angle_deg
 
-from .conftest import EXAMPLES, georeferenced_bunny
+from .conftest import EXAMPLES, georeferenced_bunny, tetra_off
 
 
 def _bench(args):
@@ -1020,12 +1020,11 @@ def test_a_second_network_file_that_is_no_model_fails_before_the_run(modelnet_ro
 
 
 def test_a_protocol_without_test_pairs_in_the_data_is_named(tmp_path):
-    tetra = "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n"
     for category in ("box", "cone"):
         for split in ("train", "test"):
             folder = tmp_path / "shapes" / category / split
             folder.mkdir(parents=True)
-            (folder / f"{category}_0000.off").write_text("OFF\n4 4 0\n0 0 0\n2 0 0\n0 1 0\n0 0 1\n" + tetra)
+            (folder / f"{category}_0000.off").write_text(tetra_off(0))
     r = _bench(
         ["modelnet40", "--data", str(tmp_path / "shapes"), "--protocol", "dcp-unseen", "--method", "icp", "--out", str(tmp_path / "run"), "--no-progress"]
     )

@@ -7,7 +7,7 @@ from o3dsoft.data import PROTOCOLS, get_protocol, load_modelnet40, load_pairs, m
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.metrics import rotation_error_deg
 
-from .conftest import apply, blob
+from .conftest import apply, blob, tetra_off
 
 
 @pytest.fixture
@@ -133,16 +133,13 @@ def test_official_2048_layout_takes_the_first_1024_points(tmp_path):
         load_modelnet40(tmp_path, "test", points_per_shape=4096)
 
 
-_TETRA = "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n"
-
-
 def test_off_folder_is_sampled_on_faces_and_normalised(tmp_path):
     for category, header in (("cone", "OFF\n4 4 0\n"), ("box", "OFF4 4 0\n")):  # the second: ModelNet's malformed header
         for split in ("train", "test"):
             folder = tmp_path / category / split
             folder.mkdir(parents=True)
             for i in range(2):
-                (folder / f"{category}_{i:04d}.off").write_text(header + f"0 0 0\n{i + 2} 0 0\n0 1 0\n0 0 1\n" + _TETRA)
+                (folder / f"{category}_{i:04d}.off").write_text(tetra_off(i, header))
     shapes = load_modelnet40(tmp_path, "test", points_per_shape=64)
     assert shapes.points.shape == (4, 64, 3)
     assert shapes.categories == ["box", "cone"] and list(shapes.labels) == [0, 0, 1, 1]

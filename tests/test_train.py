@@ -15,7 +15,7 @@ from o3dsoft.errors import InputError, O3dsoftError, UsageError
 from o3dsoft.model import NetConfig
 from o3dsoft.train import TrainConfig, train
 
-from .conftest import TINY
+from .conftest import TINY, tetra_off
 
 
 def _config(root, out, **kw):
@@ -507,12 +507,11 @@ def test_a_run_goes_on_from_its_data_copied_elsewhere(tmp_path):
     """A run trained on a lent machine comes back with its data at another path."""
     import shutil
 
-    tetra = "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n"
     for category in ("box", "cone"):
         for i in range(4):
             folder = tmp_path / "there" / category / "train"
             folder.mkdir(parents=True, exist_ok=True)
-            (folder / f"{category}_{i:04d}.off").write_text(f"OFF\n4 4 0\n0 0 0\n{i + 2} 0 0\n0 1 0\n0 0 1\n" + tetra)
+            (folder / f"{category}_{i:04d}.off").write_text(tetra_off(i))
     quick = dict(limit_train=None, eval_pairs=0, batch_size=2, points_per_shape=64)
     train(_config(tmp_path / "there", tmp_path / "run", max_steps=1, **quick), log=lambda m: None)
     shutil.copytree(tmp_path / "there", tmp_path / "here")
