@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._open3d import open3d as o3d
-from .preprocess import robust_extent
+from .preprocess import point_spacing, robust_extent
 from .procrustes import rigid_fit
 from .transforms import apply_transform, rigid
 
@@ -59,11 +59,15 @@ class ICPConfig:
             they refine an estimate that is already nearly right without the loose first stage,
             which pulls it towards parts with no partner.
         method: "point" (point-to-point, the paper's), "plane" (point-to-plane, against the
-            target's normals from `normal_neighbours` neighbours: far fewer iterations on sampled
-            surfaces, and not limited by their sampling; Open3D sums it in threads, so results
-            repeat to about 1e-15, not to the bit), or "auto": plane on scans (clouds
-            registered on a voxel grid, or of more than 4,096 points), point otherwise
-            (:class:`o3dsoft.pair.PreparedPair` decides).
+            target's :func:`normals`: far fewer iterations on sampled surfaces, and not limited
+            by their sampling; Open3D sums it in threads, so results repeat to about 1e-15, not
+            to the bit), or "auto": plane on scans (clouds registered on a voxel grid, or of
+            more than 4,096 points), point otherwise (:class:`o3dsoft.pair.PreparedPair` decides).
+        normal_neighbours, normal_within: point-to-plane ICP's normals fit the `normal_neighbours`
+            nearest points within `normal_within` point spacings (:func:`normals`; 0: the
+            nearest, however far). The pipeline bounds them on clouds on a voxel grid only,
+            whose spacing is even; on a random sample few points lie within a few times its
+            median spacing.
     """
 
     distance: Optional[float] = None
@@ -81,6 +85,7 @@ class ICPConfig:
     tight_from: float = 0.3
     method: str = "auto"
     normal_neighbours: int = 20
+    normal_within: float = 3.0
 
     def distance_for(self, scale: float) -> float:
         """The correspondence distance in cloud units for a pair of this scale."""
@@ -148,12 +153,40 @@ def downsample(points: np.ndarray, max_points: int) -> np.ndarray:
     return down
 
 
-def normals(points: np.ndarray, neighbours: int) -> np.ndarray:
+# Open3D's normal for a point with fewer than 3 neighbours within the search radius.
+_NO_PLANE = (0.0, 0.0, 1.0)
+
+
+def normals(points: np.ndarray, neighbours: int, within: float = 0.0) -> np.ndarray:
     """(N, 3) unit normals (sign arbitrary) of an (N, 3) cloud: of the plane through each point's
-    `neighbours` nearest points (for point-to-plane ICP: estimate once, pass to :func:`icp`)."""
+    `neighbours` nearest points that lie within `within` times the cloud's point spacing
+    (:func:`o3dsoft.preprocess.point_spacing`); through all `neighbours` nearest where fewer
+    than 3 do, or where `within` is 0. For point-to-plane ICP: estimate once, pass to :func:`icp`.
+
+    Why the bound: where a cloud is sparse (a LiDAR frame on a coarse grid) the nearest points
+    reach across edges onto other surfaces, and ICP's planes tilt with them (docs/scans.md)."""
     cloud = to_open3d(points)
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
-    return np.asarray(cloud.normals).copy()
+    if within <= 0 or len(points) < 2:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
+        return np.asarray(cloud.normals).copy()
+    radius = within * point_spacing(points)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=neighbours))
+    out = np.asarray(cloud.normals).copy()
+    few = np.flatnonzero(np.all(out == _NO_PLANE, axis=1))  # or a plane's own normal, on exactly level points
+    if len(few):
+        tree = cKDTree(points)
+        few = few[tree.query_ball_point(points[few], radius, return_length=True) < 3]
+        if len(few):
+            _, nearest = tree.query(points[few], k=min(neighbours, len(points)))
+            out[few] = _plane_normals(np.asarray(points, dtype=np.float64)[nearest])
+    return out
+
+
+def _plane_normals(groups: np.ndarray) -> np.ndarray:
+    """(G, 3) unit normals of the planes fitted to (G, K, 3) groups of points (least squares)."""
+    centred = groups - groups.mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("gki,gkj->gij", centred, centred))
+    return vectors[:, :, 0]  # the direction of least spread
 
 
 def icp(
@@ -171,7 +204,8 @@ def icp(
         source: (N, 3); target: (M, 3) in their original frames.
         init: (4, 4) initial T_target_source.
         distance: max correspondence distance in cloud units (the schedule's multipliers apply).
-        target_normals: (M, 3) the target's :func:`normals` (``config.normal_neighbours``), when
+        target_normals: (M, 3) the target's :func:`normals` (``config.normal_neighbours``,
+            ``config.normal_within``), when
             point-to-plane ICP runs on it often (estimated here otherwise, and when the target is
             downsampled first).
     Returns:
@@ -191,7 +225,7 @@ def icp(
 
     if plane:
         given = target_normals is not None and len(target_normals) == len(target) and len(target) <= config.max_points
-        tgt.normals = o3d.utility.Vector3dVector(target_normals if given else normals(tgt_points, config.normal_neighbours))
+        tgt.normals = o3d.utility.Vector3dVector(target_normals if given else normals(tgt_points, config.normal_neighbours, config.normal_within))
     estimation = reg.TransformationEstimationPointToPlane() if plane else reg.TransformationEstimationPointToPoint()
 
     def run(T: np.ndarray, stage_distance: float, criteria) -> np.ndarray:

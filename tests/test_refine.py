@@ -175,9 +175,65 @@ def test_point_to_plane_with_the_normals_given_once_is_the_same_icp():
     tgt = src @ T[:3, :3].T + T[:3, 3]
     config = ICPConfig(method="plane")
     inside = icp(src, tgt, np.eye(4), 0.3, config)
-    given = icp(src, tgt, np.eye(4), 0.3, config, normals(tgt, config.normal_neighbours))
+    given = icp(src, tgt, np.eye(4), 0.3, config, normals(tgt, config.normal_neighbours, config.normal_within))
     assert np.allclose(inside.transformation, given.transformation, rtol=0, atol=1e-12)
     assert rotation_error_deg(given.transformation[:3, :3], T[:3, :3]) < 0.01
+
+
+def _ground_strip_beside_a_wall() -> tuple:
+    """(ground, wall): a strip of ground two points deep (spacing 0.1, z = 0) and a wall 0.45 from
+    it (x, 0.45, z): as a LiDAR frame on a coarse grid has it, the nearest 20 points of a ground
+    point reach the wall."""
+    x = np.arange(0, 2.01, 0.1)
+    ground = np.array([(a, b, 0.0) for a in x for b in (0.0, 0.1)])
+    wall = np.array([(a, 0.45, c) for a in x for c in np.arange(0, 1.01, 0.1)])
+    return ground, wall
+
+
+def _tilt_deg(n: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.abs(n @ axis), 0, 1)))
+
+
+def test_normals_stay_on_the_points_own_surface():
+    from o3dsoft.refine import normals
+
+    ground, wall = _ground_strip_beside_a_wall()
+    cloud = np.vstack([ground, wall])
+    up = np.array([0.0, 0.0, 1.0])
+    bounded = _tilt_deg(normals(cloud, 20, within=3.0)[: len(ground)], up)
+    nearest = _tilt_deg(normals(cloud, 20, within=0.0)[: len(ground)], up)
+    assert bounded.max() < 0.1
+    assert np.median(nearest) > 5.0  # the nearest 20, however far, take in the wall
+
+
+def test_a_point_with_few_neighbours_within_takes_its_nearest_plane():
+    """Open3D gives (0, 0, 1) to a point with fewer than 3 neighbours within the radius: such
+    points get the plane through their nearest points instead."""
+    from o3dsoft.refine import normals
+    from o3dsoft.transforms import apply_transform
+
+    rng = np.random.default_rng(4)
+    u, v = np.meshgrid(np.arange(0, 3, 0.1), np.arange(0, 3, 0.1))
+    plane = np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)
+    far = np.array([[3 + 0.8 * k, 1.5 + 0.1 * (k % 2), 0.0] for k in range(6)])  # sparse, on the same plane
+    T = random_transform(rng, 60.0, 0.0)  # off the axes: (0, 0, 1) is wrong there
+    cloud = apply_transform(T, np.vstack([plane, far]))
+    n = normals(cloud, 20, within=3.0)
+    assert _tilt_deg(n, T[:3, 2]).max() < 1.0
+
+
+def test_the_normals_are_bounded_on_a_voxel_grid_only():
+    """Within a few point spacings of a random sample lie a handful of points (about 6 at 3
+    median spacings): its normals take the nearest 20, however far."""
+    from o3dsoft.pair import PreparedPair
+
+    rng = np.random.default_rng(2)
+    sphere = rng.normal(size=(40_000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)  # a dense surface: a grid from the data
+    on_grid = PreparedPair(sphere, sphere + 1e-3, RegisterConfig(), k=8)
+    as_given = PreparedPair(sphere[:6_000], sphere[:6_000] + 1e-3, RegisterConfig(), k=8)
+    assert on_grid.voxel is not None and on_grid.config.icp.normal_within == 3.0
+    assert as_given.voxel is None and as_given.config.icp.normal_within == 0.0
 
 
 @pytest.mark.parametrize("method", ["point", "plane"])
