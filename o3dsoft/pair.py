@@ -136,7 +136,7 @@ class PreparedPair:
         # Scans: on a voxel grid, or more points than any ModelNet40 shape has (clouds a user
         # downsampled already: the data's grid leaves them as they are).
         self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
-        if self.voxel is None:  # normals within a few point spacings: only a grid spaces its points evenly
+        if self.voxel is None:  # normals within a few point spacings only where a grid spaced the points evenly
             config = replace(config, icp=replace(config.icp, normal_within=0.0))
         if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest
             # and on a flat target (a 2D scan), whose normals all leave its plane: they hold no motion within it

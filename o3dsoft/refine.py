@@ -66,8 +66,7 @@ class ICPConfig:
         normal_neighbours, normal_within: point-to-plane ICP's normals fit the `normal_neighbours`
             nearest points within `normal_within` point spacings (:func:`normals`; 0: the
             nearest, however far). The pipeline bounds them on clouds on a voxel grid only,
-            whose spacing is even; on a random sample few points lie within a few times its
-            median spacing.
+            whose spacing is even; a random sample is sparse in places.
     """
 
     distance: Optional[float] = None
@@ -85,7 +84,7 @@ class ICPConfig:
     tight_from: float = 0.3
     method: str = "auto"
     normal_neighbours: int = 20
-    normal_within: float = 3.0
+    normal_within: float = 5.0
 
     def distance_for(self, scale: float) -> float:
         """The correspondence distance in cloud units for a pair of this scale."""

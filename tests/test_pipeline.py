@@ -686,7 +686,7 @@ def test_a_noisy_low_overlap_pair_that_fits_from_one_side_only_is_flagged(real_s
     folder = bench.scan_folder(real_scans_root / "3dmatch_redkitchen")
     pairs = {p.category: p for p in folder.pairs}
     config = RegisterConfig(search=SearchConfig(kiss=False))  # the feature match alone: the same estimates on every run
-    for seed in (0, 4):  # noise of 0.5 % of the room (1.8 cm) on both fragments, which overlap by 10-21 %
+    for seed in (0, 3):  # noise of 0.5 % of the room (1.8 cm) on both fragments, which overlap by 10-21 %
         (noisy,) = bench.noisy_pairs([pairs["cloud_bin_34->cloud_bin_6"]], 0.005, seed=seed)
         res = register(noisy.source, noisy.target, config)
         assert pair_errors(res.transformation, noisy.transform).rotation_deg > 90.0  # wrong, and fitting the source's side closely:

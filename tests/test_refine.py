@@ -181,12 +181,11 @@ def test_point_to_plane_with_the_normals_given_once_is_the_same_icp():
 
 
 def _ground_strip_beside_a_wall() -> tuple:
-    """(ground, wall): a strip of ground two points deep (spacing 0.1, z = 0) and a wall 0.45 from
-    it (x, 0.45, z): as a LiDAR frame on a coarse grid has it, the nearest 20 points of a ground
-    point reach the wall."""
-    x = np.arange(0, 2.01, 0.1)
-    ground = np.array([(a, b, 0.0) for a in x for b in (0.0, 0.1)])
-    wall = np.array([(a, 0.45, c) for a in x for c in np.arange(0, 1.01, 0.1)])
+    """(ground, wall): two rows of ground 0.1 apart with a point every 0.3 (z = 0), and a wall of
+    spacing 0.1 at 0.6 from them (x, 0.7, z). As on a LiDAR frame on a coarse grid, the nearest
+    20 points of a ground point reach the wall; within 5 spacings (0.5) lie only ground points."""
+    ground = np.array([(a, b, 0.0) for a in np.arange(0, 3.01, 0.3) for b in (0.0, 0.1)])
+    wall = np.array([(a, 0.7, c) for a in np.arange(0, 3.01, 0.1) for c in np.arange(0, 1.01, 0.1)])
     return ground, wall
 
 
@@ -200,10 +199,10 @@ def test_normals_stay_on_the_points_own_surface():
     ground, wall = _ground_strip_beside_a_wall()
     cloud = np.vstack([ground, wall])
     up = np.array([0.0, 0.0, 1.0])
-    bounded = _tilt_deg(normals(cloud, 20, within=3.0)[: len(ground)], up)
+    bounded = _tilt_deg(normals(cloud, 20, within=ICPConfig().normal_within)[: len(ground)], up)
     nearest = _tilt_deg(normals(cloud, 20, within=0.0)[: len(ground)], up)
     assert bounded.max() < 0.1
-    assert np.median(nearest) > 5.0  # the nearest 20, however far, take in the wall
+    assert np.median(nearest) > 2.0  # the nearest 20, however far, take in the wall
 
 
 def test_a_point_with_few_neighbours_within_takes_its_nearest_plane():
@@ -218,13 +217,14 @@ def test_a_point_with_few_neighbours_within_takes_its_nearest_plane():
     far = np.array([[3 + 0.8 * k, 1.5 + 0.1 * (k % 2), 0.0] for k in range(6)])  # sparse, on the same plane
     T = random_transform(rng, 60.0, 0.0)  # off the axes: (0, 0, 1) is wrong there
     cloud = apply_transform(T, np.vstack([plane, far]))
-    n = normals(cloud, 20, within=3.0)
+    n = normals(cloud, 20, within=ICPConfig().normal_within)
     assert _tilt_deg(n, T[:3, 2]).max() < 1.0
 
 
 def test_the_normals_are_bounded_on_a_voxel_grid_only():
-    """Within a few point spacings of a random sample lie a handful of points (about 6 at 3
-    median spacings): its normals take the nearest 20, however far."""
+    """A random sample spaces its points unevenly (within 5 median spacings of a point on a
+    surface lie about 17 others on average, far fewer where it is sparse): its normals take the
+    nearest 20, however far."""
     from o3dsoft.pair import PreparedPair
 
     rng = np.random.default_rng(2)
@@ -232,7 +232,7 @@ def test_the_normals_are_bounded_on_a_voxel_grid_only():
     sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)  # a dense surface: a grid from the data
     on_grid = PreparedPair(sphere, sphere + 1e-3, RegisterConfig(), k=8)
     as_given = PreparedPair(sphere[:6_000], sphere[:6_000] + 1e-3, RegisterConfig(), k=8)
-    assert on_grid.voxel is not None and on_grid.config.icp.normal_within == 3.0
+    assert on_grid.voxel is not None and on_grid.config.icp.normal_within == ICPConfig().normal_within > 0
     assert as_given.voxel is None and as_given.config.icp.normal_within == 0.0
 
 
