@@ -479,10 +479,10 @@ def _errors_dict(e) -> dict:
     return d
 
 
-def _cleaning_lines(removed: dict, isolated_radius: float) -> list:
+def _cleaning_lines(removed: dict, isolated: str) -> list:
     """The lines saying how many rows without finite coordinates, repeated points and stray far
-    points cleaning dropped and how many isolated grid points were left out (`isolated_radius`:
-    in voxels), where there were any."""
+    points cleaning dropped and how many isolated points were left out (`isolated`: within what,
+    in words), where there were any."""
     from ..preprocess import STRAY_PERCENTILE, STRAY_REACH
 
     reach = f"over {STRAY_REACH * 2:,.0f} times farther from the median than {STRAY_PERCENTILE:.0f} % of the cloud"
@@ -490,7 +490,7 @@ def _cleaning_lines(removed: dict, isolated_radius: float) -> list:
         ("non_finite", "rows dropped (a NaN or infinite coordinate)"),
         ("duplicates", "repeated points dropped (kept once)"),
         ("strays", f"points dropped ({reach})"),
-        ("isolated", f"grid points left out (fewer than two other points within {isolated_radius:g} voxels: scattered outliers, or the sparsest far returns)"),
+        ("isolated", f"points left out (fewer than two other points within {isolated}: scattered outliers, or the sparsest far returns)"),
     )
     lines = []
     for key, what in kinds:
@@ -519,7 +519,9 @@ def _format_result(source, target, result, errors, model_info, config, read=None
         + ("" if read is None else f"; {read[0]} and {read[1]} read")
         + f"); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
-        *_cleaning_lines(result.removed, config.isolated_radius),
+        *_cleaning_lines(
+            result.removed, f"{config.isolated_radius:g} voxels" if result.voxel is not None else f"{config.isolated_spacings:g} times the median point spacing"
+        ),
         f"  model:  {model_info['path']}"
         + (f"; second network: {weights_file(config.second_network.weights)}" if "second_network" in result.timings_ms else ""),
         "",

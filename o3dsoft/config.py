@@ -273,6 +273,11 @@ class RegisterConfig:
             (default 3; 0: keep them). A scattered outlier keeps a cell of its own where a
             surface shares its cells, so on the grid 2 % of scattered points in a fragment
             become 5-13 % of its points.
+        isolated_spacings: off a grid (scans of more than 4,096 points registered whole, or
+            sparser than the data's grid; not with `voxel` = 0), points with fewer than two
+            others within this many median point spacings are left out the same way, where they
+            are 1-10 % of a cloud (more: it is sparse in places, as a LiDAR sweep's far returns
+            are; default 6, at which randomly thinned clean scans lose none; 0: keep them).
         num_points: points sampled from each cloud for the network (default 1024).
         coarse_iterations: network passes, each on the source moved by the estimate so far
             (default 1).
@@ -310,6 +315,7 @@ class RegisterConfig:
     voxel: Optional[float] = None
     data_voxel: float = 0.01
     isolated_radius: float = 3.0
+    isolated_spacings: float = 6.0
     num_points: int = 1024
     coarse_iterations: int = 1
     attempt_points: int = 10_000
@@ -345,8 +351,9 @@ class RegisterConfig:
             raise InputError(f"voxel must be positive (or 0: keep every point), got {self.voxel}")
         if not 0 <= self.data_voxel < 1:
             raise InputError(f"data_voxel must be in [0, 1), got {self.data_voxel}")
-        if not 0 <= self.isolated_radius < float("inf"):
-            raise InputError(f"isolated_radius must be finite and at least 0, got {self.isolated_radius}")
+        for name in ("isolated_radius", "isolated_spacings"):
+            if not 0 <= getattr(self, name) < float("inf"):
+                raise InputError(f"{name} must be finite and at least 0, got {getattr(self, name)}")
         if search.features.candidates < 1:
             raise InputError(f"search.features.candidates must be at least 1, got {search.features.candidates}")
         if self.max_rotation is not None and not 0 < self.max_rotation <= 180:

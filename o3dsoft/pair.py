@@ -4,6 +4,7 @@ scorers, the FPFH features)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from functools import cached_property
 from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union
@@ -23,6 +24,7 @@ from .preprocess import (
     isolated_points,
     normalisation_for,
     normalise_pair,
+    point_spacing,
     same_profile_pvalue,
     sample_points,
     scene_size,
@@ -68,6 +70,9 @@ def as_points(cloud: CloudLike, name: str) -> np.ndarray:
 # scan's few (under 0.2 % of the 3DMatch fragments on their grid) do not disturb its registration,
 # and leaving them in keeps the work that depends on every point (sampling, features) the same.
 ISOLATED_MIN_SHARE = 0.01
+# Off a grid, a cloud whose isolated points are more than this share of it is sparse in places (a
+# LiDAR sweep thinned at random: 10-25 % of its points at 4-6 spacings), not scattered.
+ISOLATED_MAX_SHARE_OFF_GRID = 0.1
 
 
 class PreparedPair:
@@ -75,8 +80,8 @@ class PreparedPair:
 
     - ``full``: cleaned (no NaN/inf, no duplicates) and on the voxel grid ``voxel`` (the
       config's, or one from the data, :func:`o3dsoft.preprocess.data_grid`; None: none), without
-      its scattered outliers on the grid (``isolated``: how many per cloud,
-      ``config.isolated_radius``): what is registered, and where the kept estimate is refined
+      its scattered outliers (``isolated``: how many per cloud; ``config.isolated_radius`` on a
+      grid, ``config.isolated_spacings`` off one): what is registered, and where the kept estimate is refined
       and scored last;
     - ``work``: ``full`` voxel-downsampled to at most ``config.attempt_points`` each, where every
       estimate is refined and scored;
@@ -133,6 +138,11 @@ class PreparedPair:
                     for grid, report in zip(self.full, self.cleaned)
                 )
                 self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
+        elif config.voxel is None and config.isolated_spacings > 0 and max(map(len, self.full)) > SCAN_POINTS:
+            # Scans off a grid: isolated by each cloud's own spacing. Where more of a cloud is, it
+            # is sparse in places (a LiDAR sweep's far returns), not scattered.
+            src, tgt = (self._without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID) for c in self.full)
+            self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
         # Scans: on a voxel grid, or more points than any ModelNet40 shape has (clouds a user
         # downsampled already: the data's grid leaves them as they are).
         self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
@@ -170,14 +180,14 @@ class PreparedPair:
         return (voxel_downsample(clouds[0], voxel, names[0], min_points=k), voxel_downsample(clouds[1], voxel, names[1], min_points=k))
 
     @staticmethod
-    def _without_isolated(cloud: np.ndarray, radius: float, k: int) -> Tuple[np.ndarray, int]:
+    def _without_isolated(cloud: np.ndarray, radius: float, k: int, most: float = 0.5) -> Tuple[np.ndarray, int]:
         """(N', 3) `cloud` without its :func:`~o3dsoft.preprocess.isolated_points` at `radius`
-        (cloud units) where they are at least :data:`ISOLATED_MIN_SHARE` of it, unless that would
-        leave it fewer than `k` points or half its points (then it is sparse, not scattered); and
-        how many points it lost."""
+        (cloud units) where they are at least :data:`ISOLATED_MIN_SHARE` of it, unless they are
+        more than the share `most` of it or would leave it fewer than `k` points (then it is
+        sparse, not scattered); and how many points it lost."""
         isolated = isolated_points(cloud, radius)
         n = int(isolated.sum())
-        if n < ISOLATED_MIN_SHARE * len(cloud) or len(cloud) - n < max(k, len(cloud) // 2):
+        if n < ISOLATED_MIN_SHARE * len(cloud) or n > math.ceil(most * len(cloud)) or len(cloud) - n < k:
             return cloud, 0
         return cloud[~isolated], n
 

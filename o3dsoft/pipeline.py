@@ -106,7 +106,7 @@ class RegistrationResult:
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
         num_source, num_target: points registered (after cleaning, the voxel grid and the
-            isolated points left out there; the work
+            isolated points left out; the work
             clouds' for a flagged result left unrefined, ``refine_flagged=False``).
         voxel: the voxel grid the clouds were registered on (cloud units): the config's, or one
             from the data (:func:`o3dsoft.preprocess.data_grid`); None: every point.
@@ -120,8 +120,9 @@ class RegistrationResult:
             was not trusted at full resolution, or the trusted pose is not fixed by the geometry.
         removed: rows dropped by cleaning, per cloud: {"source_non_finite", "source_duplicates",
             "source_strays" (points over ``preprocess.STRAY_REACH`` times the cloud's reach from
-            its median), "source_isolated" (grid points left out of the registration as
-            scattered outliers, ``RegisterConfig.isolated_radius``), and the target's}.
+            its median), "source_isolated" (points left out of the registration as scattered
+            outliers, ``RegisterConfig.isolated_radius`` and ``isolated_spacings``), and the
+            target's}.
         network_transformation: (4, 4) the network's own estimate from the pose as given, before
             ICP; None when the network did not run (a feature match tried first was confident).
         points_used: points per cloud (source, target) at each stage: "network", "attempts"

@@ -94,7 +94,7 @@ def test_register_says_how_many_isolated_points_it_left_out(tmp_path):
     r = run("register", *files, "--voxel", "0.004")
     assert r.exit_code == 0, r.output
     assert re.search(
-        r"isolated: source \d+, target \d+ grid points left out \(fewer than two other points within 3 voxels: scattered outliers, or the sparsest far returns\)",
+        r"isolated: source \d+, target \d+ points left out \(fewer than two other points within 3 voxels: scattered outliers, or the sparsest far returns\)",
         r.output,
     )
 

@@ -712,6 +712,24 @@ def test_a_noisy_low_overlap_pair_that_fits_from_one_side_only_is_flagged(real_s
         assert (side is None) == (len(source) < len(pair.source))
 
 
+def test_scattered_outliers_off_the_grid_are_left_out(bunny_root):
+    """Scans thinned at random to 6,000 points are registered whole, on no grid: their isolated
+    points are judged by each cloud's own spacing."""
+    from o3dsoft import bench
+
+    pair = {p.category: p for p in bench.scan_folder(bunny_root).pairs}["bun000->bun090"]
+    rng = np.random.default_rng(0)
+    src, tgt = (c[rng.choice(len(c), 6_000, replace=False)] for c in (pair.source, pair.target))
+    noisy = tuple(np.vstack([c, rng.uniform(c.min(0), c.max(0), (240, 3))]) for c in (src, tgt))  # 4 % more, scattered
+    res = register(*noisy)
+    assert res.voxel is None and res.removed["source_isolated"] > 120 and res.removed["target_isolated"] > 120
+    assert not res.likely_failed and pair_errors(res.transformation, pair.transform, pair.origin).rotation_deg < 1.0
+    kept = register(*noisy, RegisterConfig(isolated_spacings=0.0))  # with them: a half turn, flagged
+    assert kept.removed["source_isolated"] == 0 and kept.likely_failed
+    clean = register(src, tgt)  # a clean thinned scan keeps every point
+    assert clean.removed["source_isolated"] == clean.removed["target_isolated"] == 0
+
+
 def test_scattered_outliers_on_the_grid_are_left_out():
     src = o3dsoft.read_points(EXAMPLES / "bun045.ply")
     tgt = o3dsoft.read_points(EXAMPLES / "bun000.ply")
