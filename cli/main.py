@@ -520,7 +520,8 @@ def _format_result(source, target, result, errors, model_info, config, read=None
         + f"); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
         *_cleaning_lines(
-            result.removed, f"{config.isolated_radius:g} voxels" if result.voxel is not None else f"{config.isolated_spacings:g} times the median point spacing"
+            result.removed,
+            f"{config.isolated_radius:g} voxels" if result.voxel is not None else f"{config.isolated_spacings:g} times each cloud's median point spacing",
         ),
         f"  model:  {model_info['path']}"
         + (f"; second network: {weights_file(config.second_network.weights)}" if "second_network" in result.timings_ms else ""),

@@ -273,8 +273,8 @@ class RegisterConfig:
             (default 3; 0: keep them). A scattered outlier keeps a cell of its own where a
             surface shares its cells, so on the grid 2 % of scattered points in a fragment
             become 5-13 % of its points.
-        isolated_spacings: off a grid (scans of more than 4,096 points registered whole, or
-            sparser than the data's grid; not with `voxel` = 0), points with fewer than two
+        isolated_spacings: off a grid (scans, a cloud of more than 4,096 points in the pair,
+            registered whole or sparser than the data's grid; not with `voxel` = 0), points with fewer than two
             others within this many median point spacings are left out the same way, where they
             are 1-10 % of a cloud (more: it is sparse in places, as a LiDAR sweep's far returns
             are; default 6, at which randomly thinned clean scans lose none; 0: keep them).
@@ -351,6 +351,10 @@ class RegisterConfig:
             raise InputError(f"voxel must be positive (or 0: keep every point), got {self.voxel}")
         if not 0 <= self.data_voxel < 1:
             raise InputError(f"data_voxel must be in [0, 1), got {self.data_voxel}")
+        if not 0 <= self.icp.normal_within < float("inf"):
+            raise InputError(f"icp.normal_within must be finite and at least 0, got {self.icp.normal_within}")
+        if self.icp.normal_neighbours < 3:
+            raise InputError(f"icp.normal_neighbours must be at least 3 (a plane), got {self.icp.normal_neighbours}")
         for name in ("isolated_radius", "isolated_spacings"):
             if not 0 <= getattr(self, name) < float("inf"):
                 raise InputError(f"{name} must be finite and at least 0, got {getattr(self, name)}")

@@ -71,7 +71,7 @@ def as_points(cloud: CloudLike, name: str) -> np.ndarray:
 # and leaving them in keeps the work that depends on every point (sampling, features) the same.
 ISOLATED_MIN_SHARE = 0.01
 # Off a grid, a cloud whose isolated points are more than this share of it is sparse in places (a
-# LiDAR sweep thinned at random: 10-25 % of its points at 4-6 spacings), not scattered.
+# LiDAR sweep's far returns), not scattered (docs/scans.md).
 ISOLATED_MAX_SHARE_OFF_GRID = 0.1
 
 
@@ -94,7 +94,8 @@ class PreparedPair:
     ``scans``: the clouds are scans, registered on a voxel grid or of more than
     :data:`SCAN_POINTS` points (point-to-plane ICP, KISS-Matcher in the search, no second network).
     ``config`` is the pipeline's settings with ICP's method decided for this pair (``"auto"``:
-    point-to-plane on scans).
+    point-to-plane on scans), and ``icp.normal_within`` 0 off a grid (normals from the nearest
+    points, however far: a cloud not on a grid is spaced unevenly).
 
     Args:
         source: (N, 3) array or Open3D PointCloud; target: (M, 3), in the same units.
@@ -138,14 +139,14 @@ class PreparedPair:
                     for grid, report in zip(self.full, self.cleaned)
                 )
                 self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
-        elif config.voxel is None and config.isolated_spacings > 0 and max(map(len, self.full)) > SCAN_POINTS:
-            # Scans off a grid: isolated by each cloud's own spacing. Where more of a cloud is, it
-            # is sparse in places (a LiDAR sweep's far returns), not scattered.
-            src, tgt = (self._without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID) for c in self.full)
-            self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
         # Scans: on a voxel grid, or more points than any ModelNet40 shape has (clouds a user
         # downsampled already: the data's grid leaves them as they are).
         self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
+        if self.scans and self.voxel is None and config.voxel is None and config.isolated_spacings > 0:
+            # Scans off a grid: isolated by each cloud's own spacing; where more than
+            # ISOLATED_MAX_SHARE_OFF_GRID of a cloud is, it is sparse in places, not scattered.
+            src, tgt = (self._without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID) for c in self.full)
+            self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
         if self.voxel is None:  # normals within a few point spacings only where a grid spaced the points evenly
             config = replace(config, icp=replace(config.icp, normal_within=0.0))
         if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest

@@ -165,19 +165,20 @@ def normals(points: np.ndarray, neighbours: int, within: float = 0.0) -> np.ndar
     Why the bound: where a cloud is sparse (a LiDAR frame on a coarse grid) the nearest points
     reach across edges onto other surfaces, and ICP's planes tilt with them (docs/scans.md)."""
     cloud = to_open3d(points)
-    if within <= 0 or len(points) < 2:
+    radius = within * point_spacing(points) if within > 0 and len(points) >= 3 and neighbours >= 3 else 0.0
+    if not (np.isfinite(radius) and radius > 0):  # no bound asked, or no spacing to bound by
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
         return np.asarray(cloud.normals).copy()
-    radius = within * point_spacing(points)
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=neighbours))
     out = np.asarray(cloud.normals).copy()
     few = np.flatnonzero(np.all(out == _NO_PLANE, axis=1))  # or a plane's own normal, on exactly level points
     if len(few):
         tree = cKDTree(points)
-        few = few[tree.query_ball_point(points[few], radius, return_length=True) < 3]
+        third, _ = tree.query(points[few], k=3)  # the point itself and its two nearest
+        few = few[~(third[:, 2] ** 2 < radius**2)]  # Open3D's rule: fewer than 3 strictly within
         if len(few):
             _, nearest = tree.query(points[few], k=min(neighbours, len(points)))
-            out[few] = _plane_normals(np.asarray(points, dtype=np.float64)[nearest])
+            out[few] = _plane_normals(np.asarray(points)[nearest].astype(np.float64))
     return out
 
 

