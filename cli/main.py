@@ -511,7 +511,7 @@ def _format_result(source, target, result, errors, model_info, config, read=None
 
     refined = config.refine
     grid = f" and a {result.voxel:.3g}-unit voxel grid" if result.voxel is not None else ""
-    without = ", without its isolated points" if result.removed.get("source_isolated") or result.removed.get("target_isolated") else ""
+    without = ", without their isolated points" if result.removed.get("source_isolated") or result.removed.get("target_isolated") else ""
     T = result.transformation
     lines = [
         f"o3dsoft register  {source} -> {target}",

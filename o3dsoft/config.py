@@ -276,8 +276,9 @@ class RegisterConfig:
         isolated_spacings: off a grid (scans, a cloud of more than 4,096 points in the pair,
             registered whole or sparser than the data's grid; not with `voxel` = 0), points with fewer than two
             others within this many median point spacings are left out the same way, where they
-            are 1-10 % of a cloud (more: it is sparse in places, as a LiDAR sweep's far returns
-            are; default 6, at which randomly thinned clean scans lose none; 0: keep them).
+            are 1-10 % of a cloud and lie about as far out as it does (more, or over twice as
+            far from its median: it is sparse in places, as a LiDAR sweep's far returns are;
+            default 6, at which randomly thinned clean scans lose none; 0: keep them).
         num_points: points sampled from each cloud for the network (default 1024).
         coarse_iterations: network passes, each on the source moved by the estimate so far
             (default 1).

@@ -73,6 +73,10 @@ ISOLATED_MIN_SHARE = 0.01
 # Off a grid, a cloud whose isolated points are more than this share of it is sparse in places (a
 # LiDAR sweep's far returns), not scattered (docs/scans.md).
 ISOLATED_MAX_SHARE_OFF_GRID = 0.1
+# ... and so is one whose isolated points lie out: their median distance from the cloud's median
+# point over this many times the cloud's own (a LiDAR sweep's far returns; scattered points in the
+# cloud's box lie about as far out as its surfaces).
+ISOLATED_FAR_OUT = 2.0
 
 
 class PreparedPair:
@@ -145,7 +149,9 @@ class PreparedPair:
         if self.scans and self.voxel is None and config.voxel is None and config.isolated_spacings > 0:
             # Scans off a grid: isolated by each cloud's own spacing; where more than
             # ISOLATED_MAX_SHARE_OFF_GRID of a cloud is, it is sparse in places, not scattered.
-            src, tgt = (self._without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID) for c in self.full)
+            src, tgt = (
+                self._without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID, ISOLATED_FAR_OUT) for c in self.full
+            )
             self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
         if self.voxel is None:  # normals within a few point spacings only where a grid spaced the points evenly
             config = replace(config, icp=replace(config.icp, normal_within=0.0))
@@ -181,15 +187,20 @@ class PreparedPair:
         return (voxel_downsample(clouds[0], voxel, names[0], min_points=k), voxel_downsample(clouds[1], voxel, names[1], min_points=k))
 
     @staticmethod
-    def _without_isolated(cloud: np.ndarray, radius: float, k: int, most: float = 0.5) -> Tuple[np.ndarray, int]:
+    def _without_isolated(cloud: np.ndarray, radius: float, k: int, most: float = 0.5, far_out: float = math.inf) -> Tuple[np.ndarray, int]:
         """(N', 3) `cloud` without its :func:`~o3dsoft.preprocess.isolated_points` at `radius`
         (cloud units) where they are at least :data:`ISOLATED_MIN_SHARE` of it, unless they are
-        more than the share `most` of it or would leave it fewer than `k` points (then it is
+        more than the share `most` of it, would leave it fewer than `k` points, or lie out from
+        its median point over `far_out` times as far as the cloud does (medians; then it is
         sparse, not scattered); and how many points it lost."""
         isolated = isolated_points(cloud, radius)
         n = int(isolated.sum())
         if n < ISOLATED_MIN_SHARE * len(cloud) or n > math.ceil(most * len(cloud)) or len(cloud) - n < k:
             return cloud, 0
+        if math.isfinite(far_out):
+            out = np.linalg.norm(cloud - np.median(cloud, axis=0), axis=1)
+            if np.median(out[isolated]) > far_out * np.median(out):
+                return cloud, 0
         return cloud[~isolated], n
 
     @property

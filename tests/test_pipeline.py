@@ -740,10 +740,16 @@ def test_off_the_grid_only_a_few_isolated_points_are_outliers():
     sheet = np.stack([u.ravel(), v.ravel(), 0.1 * np.sin(u.ravel() / 5.0)], axis=1).astype(float)  # 4,160 points, spacing 1
     assert len(sheet) > SCAN_POINTS
 
-    scattered = rng.uniform([0, 0, 40], [63, 64, 100], (int(0.03 * len(sheet)), 3))  # far above the sheet
+    scattered = rng.uniform([0, 0, -30], [63, 64, 30], (int(0.03 * len(sheet)), 3))  # in the sheet's box
     few = np.vstack([sheet, scattered])
     pair = PreparedPair(few, few + 0.01, RegisterConfig(), k=8)
     assert pair.voxel is None and pair.scans and 0 < pair.isolated[0] <= len(scattered)
+    # Far returns: a ring of points 10 apart, far out from the sheet, under the 10 %.
+    angle = np.arange(0, 2 * np.pi, 10 / 150)
+    ring = np.stack([32 + 150 * np.cos(angle), 32 + 150 * np.sin(angle), np.zeros_like(angle)], axis=1)
+    out = np.vstack([sheet, ring])
+    assert len(ring) < ISOLATED_MAX_SHARE_OFF_GRID * len(out)
+    assert PreparedPair(out, out + 0.01, RegisterConfig(), k=8).isolated == (0, 0)
     # Far returns: a second sheet with points 8 apart, each with no other within 6 spacings.
     u, v = np.meshgrid(np.arange(0, 200, 8.0), np.arange(0, 200, 8.0))
     far = np.stack([u.ravel(), v.ravel(), np.full(u.size, 300.0)], axis=1)
