@@ -148,7 +148,8 @@ class PreparedPair:
         self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
         if self.scans and self.voxel is None and config.voxel is None and config.isolated_spacings > 0:
             # Scans off a grid: isolated by each cloud's own spacing; where more than
-            # ISOLATED_MAX_SHARE_OFF_GRID of a cloud is, it is sparse in places, not scattered.
+            # ISOLATED_MAX_SHARE_OFF_GRID of a cloud is, or they lie out (ISOLATED_FAR_OUT), it is
+            # sparse in places, not scattered.
             src, tgt = (
                 self._without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID, ISOLATED_FAR_OUT) for c in self.full
             )
