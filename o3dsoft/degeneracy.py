@@ -168,8 +168,7 @@ def _in_plane_normals(points: np.ndarray, plane: np.ndarray, neighbours: int) ->
     do not follow a line (within LINE_SPREAD: the inside of a filled flat shape), which then
     holds no motion."""
     _, j = cKDTree(points).query(points, k=min(neighbours, len(points)))
-    local = points[j] - points[j].mean(axis=1, keepdims=True)
-    values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    values, vectors = refine_stage.local_spread(points[j])
     across = np.cross(plane, vectors[:, :, -1])  # the line's direction is the largest eigenvector
     across /= np.maximum(np.linalg.norm(across, axis=1, keepdims=True), 1e-300)
     return across * (values[:, 1] <= LINE_SPREAD * values[:, 2])[:, None]  # values[:, 0]: across the plane, 0

@@ -178,15 +178,17 @@ def normals(points: np.ndarray, neighbours: int, within: float = 0.0) -> np.ndar
         few = few[~(third[:, 2] ** 2 < radius**2)]  # Open3D's rule: fewer than 3 strictly within
         if len(few):
             _, nearest = tree.query(points[few], k=min(neighbours, len(points)))
-            out[few] = _plane_normals(np.asarray(points)[nearest].astype(np.float64))
+            out[few] = local_spread(np.asarray(points)[nearest].astype(np.float64))[1][:, :, 0]  # the direction of least spread
     return out
 
 
-def _plane_normals(groups: np.ndarray) -> np.ndarray:
-    """(G, 3) unit normals of the planes fitted to (G, K, 3) groups of points (least squares)."""
+def local_spread(groups: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """How each of the (G, K, 3) groups of points spreads about its mean: (G, 3) eigenvalues of
+    its scatter, increasing, and (G, 3, 3) their unit eigenvectors as columns (the first: the
+    normal of the least-squares plane; the last: the direction of a line)."""
     centred = groups - groups.mean(axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(np.einsum("gki,gkj->gij", centred, centred))
-    return vectors[:, :, 0]  # the direction of least spread
+    values, vectors = np.linalg.eigh(np.einsum("gki,gkj->gij", centred, centred))
+    return values, vectors
 
 
 def icp(
