@@ -152,33 +152,45 @@ def downsample(points: np.ndarray, max_points: int) -> np.ndarray:
     return down
 
 
-# Open3D's normal for a point with fewer than 3 neighbours within the search radius.
-_NO_PLANE = (0.0, 0.0, 1.0)
+# Open3D's covariance of a point with fewer than 3 neighbours within the search radius.
+_NO_SPREAD = np.eye(3)
+# A neighbourhood follows a line (one ring of a sparse LiDAR sweep) where its spread across the
+# line is at most this share of its spread along it (variances): the plane through it turns freely
+# about the line, and point-to-plane ICP slides the rings of one sweep onto the other's.
+LINE_SHARE = 0.01
+# Such a neighbourhood is widened to this many times the nearest points, in turn, until it spans a
+# plane (on a sweep of 8 rings the next ring lies past a few hundred points of the ring's own).
+WIDER = (4, 16)
 
 
 def normals(points: np.ndarray, neighbours: int, within: float = 0.0) -> np.ndarray:
     """(N, 3) unit normals (sign arbitrary) of an (N, 3) cloud: of the plane through each point's
     `neighbours` nearest points that lie within `within` times the cloud's point spacing
     (:func:`o3dsoft.preprocess.point_spacing`); through all `neighbours` nearest where fewer
-    than 3 do, or where `within` is 0. For point-to-plane ICP: estimate once, pass to :func:`icp`.
+    than 3 do or where `within` is 0; and where those follow a line (:data:`LINE_SHARE`), through
+    the :data:`WIDER` times as many nearest. For point-to-plane ICP: estimate once, pass to :func:`icp`.
 
     Why the bound: where a cloud is sparse (a LiDAR frame on a coarse grid) the nearest points
     reach across edges onto other surfaces, and ICP's planes tilt with them (docs/scans.md)."""
+    points = np.asarray(points, dtype=np.float64)
     cloud = to_open3d(points)
     radius = within * point_spacing(points) if within > 0 and len(points) >= 3 and neighbours >= 3 else 0.0
-    if not (np.isfinite(radius) and radius > 0):  # no bound asked, or no spacing to bound by
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
-        return np.asarray(cloud.normals).copy()
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=neighbours))
-    out = np.asarray(cloud.normals).copy()
-    few = np.flatnonzero(np.all(out == _NO_PLANE, axis=1))  # or a plane's own normal, on exactly level points
-    if len(few):
-        tree = cKDTree(points)
-        third, _ = tree.query(points[few], k=3)  # the point itself and its two nearest
-        few = few[~(third[:, 2] ** 2 < radius**2)]  # Open3D's rule: fewer than 3 strictly within
-        if len(few):
-            _, nearest = tree.query(points[few], k=min(neighbours, len(points)))
-            out[few] = local_spread(np.asarray(points)[nearest].astype(np.float64))[1][:, :, 0]  # the direction of least spread
+    bounded = bool(np.isfinite(radius) and radius > 0)  # not where no bound is asked, or there is no spacing to bound by
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=neighbours) if bounded else o3d.geometry.KDTreeSearchParamKNN(neighbours)
+    cloud.estimate_covariances(search)
+    cloud.estimate_normals(search)  # from those covariances
+    out, spread = np.asarray(cloud.normals).copy(), np.asarray(cloud.covariances)
+    values = np.linalg.eigvalsh(spread)
+    loose = np.flatnonzero(np.all(spread == _NO_SPREAD, axis=(1, 2)) | (values[:, 1] <= LINE_SHARE * values[:, 2]))
+    tree = cKDTree(points) if len(loose) else None
+    for k in ((1,) if bounded else ()) + WIDER:  # the nearest however far, then wider
+        k = min(k * neighbours, len(points))
+        if not len(loose) or k < 3:
+            break
+        _, nearest = tree.query(points[loose], k=k)
+        values, vectors = local_spread(points[nearest])
+        out[loose] = vectors[:, :, 0]  # the direction of least spread
+        loose = loose[values[:, 1] <= LINE_SHARE * values[:, 2]]
     return out
 
 
