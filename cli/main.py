@@ -118,6 +118,22 @@ def _pipeline_options(fn):
                 help="Network passes, each on the source moved by the estimate so far (more: closer start for ICP, slower).",
             ),
             click.option(
+                "--icp-distance",
+                type=click.FloatRange(min=0, min_open=True),
+                default=None,
+                callback=_a_number,
+                show_default="0.1",
+                help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute (the confidence measures at 0.1 of the radius whatever this).",
+            ),
+            click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units."),
+            click.option(
+                "--icp-method",
+                type=click.Choice(["auto", "point", "plane"]),
+                default="auto",
+                show_default=True,
+                help="ICP's error: point-to-point, point-to-plane, or auto (point-to-plane on scans: clouds registered on a voxel grid, or of more than 4,096 points).",
+            ),
+            click.option(
                 "--search",
                 type=click.Choice(SEARCH_MODES),
                 default="auto",
@@ -190,11 +206,18 @@ def _register_config(
     second_weights,
     second_turns,
     max_rotation,
+    icp_distance,
+    icp_absolute,
+    icp_method,
     **more,
 ):
     """RegisterConfig from the values of :func:`_pipeline_options` and further fields (`more`)."""
     from ..coarse import weights_file
     from ..config import FeatureSearchConfig, RegisterConfig, RestartConfig, SearchConfig, SecondNetworkConfig
+    from ..refine import ICPConfig
+
+    if icp_absolute and icp_distance is None:
+        raise click.UsageError("--icp-absolute needs --icp-distance, in the clouds' units")
 
     second = None if second_weights.lower() == "none" else second_weights
     if second is not None:
@@ -215,6 +238,7 @@ def _register_config(
         search=search_config,
         second_network=SecondNetworkConfig(weights=second, turns=second_turns),
         max_rotation=max_rotation,
+        icp=ICPConfig(distance=icp_distance, absolute=icp_absolute, method=icp_method),
         **more,
     )
 
@@ -250,21 +274,6 @@ def _register_config(
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
 @click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")
-@click.option(
-    "--icp-distance",
-    type=click.FloatRange(min=0, min_open=True),
-    default=None,
-    show_default="0.1",
-    help="ICP max correspondence distance, relative to the clouds' radius unless --icp-absolute (the confidence measures at 0.1 of the radius whatever this).",
-)
-@click.option("--icp-absolute", is_flag=True, help="--icp-distance is in the clouds' units.")
-@click.option(
-    "--icp-method",
-    type=click.Choice(["auto", "point", "plane"]),
-    default="auto",
-    show_default=True,
-    help="ICP's error: point-to-point, point-to-plane, or auto (point-to-plane on scans: clouds registered on a voxel grid, or of more than 4,096 points).",
-)
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option(
@@ -293,9 +302,6 @@ def register(
     save_transform,
     as_json,
     no_refine,
-    icp_distance,
-    icp_absolute,
-    icp_method,
     num_points,
     mesh_points,
     render_path,
@@ -309,9 +315,6 @@ def register(
     sampled on their faces. With --pairs, every
     pair of a file, one CSV row each (a run stopped half-way resumes from its --out file).
     """
-    if icp_absolute and icp_distance is None:
-        raise click.UsageError("--icp-absolute needs --icp-distance, in the clouds' units")
-    icp = dict(distance=icp_distance, absolute=icp_absolute, method=icp_method)
     if pairs_path is not None:
         given = [
             name
@@ -331,7 +334,7 @@ def register(
             raise click.UsageError("--pairs needs --out RESULTS.csv")
         if out_path.is_dir() or out_path.suffix.lower() != ".csv":
             raise click.UsageError(f"--out {out_path}: --pairs writes a CSV file; give --out RESULTS.csv")
-        _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num_points, no_refine, icp, pipeline)
+        _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num_points, no_refine, pipeline)
         return
     if source is None or target is None:
         raise click.UsageError("give SOURCE and TARGET, or --pairs FILE")
@@ -342,7 +345,6 @@ def register(
     from ..metrics import pair_errors
     from ..pipeline import register as run_register
     from ..preprocess import local_origin
-    from ..refine import ICPConfig
 
     for opt, p in (("--out", out_path), ("--render", render_path)):
         if p is not None and (p.suffix == "" or p.is_dir()):
@@ -367,7 +369,7 @@ def register(
     T_gt = io.read_transform(gt_path, moved) if gt_path is not None else None
     T_init = io.read_transform(init_path, moved) if init_path is not None else None
     read_ms = (time.perf_counter() - t0) * 1000.0
-    config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
+    config = _register_config(**pipeline, num_points=num_points, refine=not no_refine)
     t0 = time.perf_counter()
     model = load_model(config.weights, config.device)
     load_ms = (time.perf_counter() - t0) * 1000.0
@@ -429,16 +431,15 @@ def register(
         sys.exit(3)
 
 
-def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num_points, no_refine, icp, pipeline) -> None:
+def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num_points, no_refine, pipeline) -> None:
     """`register --pairs`: every pair of the file, rows into the CSV `out_path`; exit 3 when a pair
     failed to run."""
     from tqdm import tqdm
 
     from ..batch import check_results_belong, done_lines, model_for, read_pair_jobs, reusable_rows, run_jobs
-    from ..refine import ICPConfig
 
     jobs = read_pair_jobs(pairs_path)
-    config = _register_config(**pipeline, num_points=num_points, refine=not no_refine, icp=ICPConfig(**icp))
+    config = _register_config(**pipeline, num_points=num_points, refine=not no_refine)
     model_for(config)  # a bad --weights fails here, once, not on every row; a run in this process reuses it
     done = done_lines(out_path)
     check_results_belong(jobs, done, out_path)

@@ -1055,3 +1055,19 @@ def test_a_bench_on_a_busy_cpu_says_its_times_are_not_comparable(modelnet_root, 
     r = _bench(["modelnet40", "--data", str(modelnet_root), "--protocol", "paper", "--limit", "1", "--method", "icp", "--out", str(tmp_path / "run")])
     assert r.exit_code == 0 and "the CPU is busy (load average 8.0" in r.output, r.output
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["cpu"]["load_average_before"] == 8.0
+
+
+def test_icp_options_set_the_benchs_icp(listed_scans, monkeypatch):
+    """--icp-distance, --icp-absolute and --icp-method set ICP for every method of the bench that
+    runs it (o3dsoft, the oracle, the feature matches' refinement), as for register."""
+    seen = []
+    real = bench.run
+    monkeypatch.setattr(
+        bench, "run", lambda pairs, count, config, *args, **kwargs: seen.append(config.register.icp) or real(pairs, count, config, *args, **kwargs)
+    )
+    args = ["scans", str(listed_scans), "--method", "oracle", "--out", str(listed_scans.parent / "b"), "--no-progress"]
+    r = _bench([*args, "--icp-distance", "0.02", "--icp-absolute", "--icp-method", "point"])
+    assert r.exit_code == 0, r.output
+    assert [(c.distance, c.absolute, c.method) for c in seen] == [(0.02, True, "point")]
+    r = _bench([*args, "--icp-absolute", "--overwrite"])
+    assert r.exit_code == 2 and "--icp-absolute needs --icp-distance, in the clouds' units" in r.output

@@ -497,3 +497,18 @@ def test_pairs_from_initial_poses_are_held_near_the_turn_between_them(monkeypatc
         assert all(bound == config.register.max_rotation for s, t, _, bound, given in calls if not given)  # no guess, no bound
     with pytest.raises(InputError, match="init_max_rotation must be in"):
         multiway(clouds, MultiwayConfig(init_max_rotation=0.0), model=object())
+
+
+def test_icp_options_set_multiways_icp(tmp_path, scans, monkeypatch):
+    """--icp-distance, --icp-absolute and --icp-method set the ICP of every pair, as for register."""
+    import o3dsoft.multiway as mw
+
+    clouds, _ = scans
+    files = [write_points(tmp_path / f"s{k}.ply", c) for k, c in enumerate(clouds[:2])]
+    seen = []
+    real = mw.multiway
+    monkeypatch.setattr(mw, "multiway", lambda clouds, config, **kwargs: seen.append(config.register.icp) or real(clouds, config, **kwargs))
+    args = ["multiway", *map(str, files), "--out", str(tmp_path / "o"), "--search", "off", "--no-progress", "--icp-distance", "0.3", "--icp-method", "plane"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code in (0, 3), r.output  # 3: a scan left unjoined
+    assert [(c.distance, c.absolute, c.method) for c in seen] == [(0.3, False, "plane")]
