@@ -436,19 +436,17 @@ def _register_pairs(pairs_path, out_path, workers, ray_address, no_progress, num
     failed to run."""
     from tqdm import tqdm
 
-    from ..batch import check_results_belong, done_lines, model_for, read_pair_jobs, reusable_rows, run_jobs
+    from ..batch import check_results_belong, done_lines, model_for, read_pair_jobs, resume_counts, run_jobs
 
     jobs = read_pair_jobs(pairs_path)
     config = _register_config(**pipeline, num_points=num_points, refine=not no_refine)
     model_for(config)  # a bad --weights fails here, once, not on every row; a run in this process reuses it
     done = done_lines(out_path)
     check_results_belong(jobs, done, out_path)
-    skipped = len(reusable_rows(jobs, done))
-    again = sum(j.line in done for j in jobs) - skipped
-    dropped = len(set(done) - {j.line for j in jobs})
+    skipped, again, dropped = resume_counts(jobs, done, out_path)
     if skipped or again or dropped:
-        rerun = f"; {again} run again (their line names other files now, or they failed)" if again else ""
-        gone = f"; {dropped} rows of lines the pairs file no longer has are dropped" if dropped else ""
+        rerun = f"; {again} run again (they failed, or a line or a file they name changed since)" if again else ""
+        gone = f"; {dropped} rows of pairs the pairs file no longer lists are dropped" if dropped else ""
         click.echo(f"Resuming: {skipped} of {len(jobs)} pairs already in {out_path}{rerun}{gone}", err=True)
     bar = tqdm(total=len(jobs) - skipped, unit="pair", disable=True if no_progress else None, dynamic_ncols=True)
     try:

@@ -14,6 +14,7 @@ counts before those start.
 from __future__ import annotations
 
 import csv
+import math
 import os
 import signal
 import threading
@@ -162,43 +163,70 @@ def done_lines(results) -> Dict[int, dict]:
     return rows
 
 
-def reusable_rows(jobs: Sequence[PairJob], rows: Dict[int, dict]) -> Dict[int, dict]:
-    """The rows of `rows` (:func:`done_lines`) that a resumed run keeps, by line: those that ran
-    and name the files their line names now (a row of a file without the ground_truth and init
-    columns: the same source and target). A line edited since, or a pair that failed (a
-    missing file since put in place), runs again."""
+def reusable_rows(jobs: Sequence[PairJob], rows: Dict[int, dict], results=None) -> Dict[int, dict]:
+    """The rows of `rows` (:func:`done_lines`) that a resumed run keeps, by the line of `jobs` they
+    now belong to: those that ran and name the files a line names now (source, target, ground
+    truth, initial guess; a row of a file without the ground_truth and init columns: the same
+    source and target), wherever that line has moved in the pairs file. A pair that failed (a
+    missing file since put in place), a line edited since, or one whose files changed after the
+    CSV `results` was last written (their modification time), runs again."""
+    written = _modified(results) if results is not None else None
+    free: Dict[tuple, List[dict]] = {}
+    for row in rows.values():
+        if row["status"] == "ok":
+            files = (row["source"], row["target"]) + ((row["ground_truth"], row["init"]) if "ground_truth" in row else ())
+            free.setdefault(_files_key(files), []).append(row)
     kept = {}
     for job in jobs:
-        row = rows.get(job.line)
         named = _named(job)
-        if row is not None and row["status"] == "ok" and all(_same_file(row.get(k, v), v) for k, v in named.items() if k != "line"):
-            kept[job.line] = {**named, **row}
+        files = (job.source, job.target, named["ground_truth"], named["init"])
+        matches = free.get(_files_key(files)) or free.get(_files_key(files[:2]))
+        if matches and (written is None or all(_modified(f) <= written for f in files if f)):
+            kept[job.line] = {**matches.pop(0), **named}
     return kept
+
+
+def resume_counts(jobs: Sequence[PairJob], rows: Dict[int, dict], results) -> Tuple[int, int, int]:
+    """What a resumed run does with the rows of the CSV `results` (:func:`done_lines`): how many
+    pairs of `jobs` keep theirs (:func:`reusable_rows`), how many run again though a row names
+    their source and target (it failed, or a file changed since), and how many rows name no
+    pair of `jobs` and are dropped."""
+    kept = len(reusable_rows(jobs, rows, results))
+    named = {_files_key((row["source"], row["target"])) for row in rows.values()}
+    listed = [_files_key((job.source, job.target)) for job in jobs]
+    again = sum(key in named for key in listed) - kept
+    dropped = sum(_files_key((row["source"], row["target"])) not in set(listed) for row in rows.values())
+    return kept, again, dropped
+
+
+def _files_key(names: Sequence[str]) -> tuple:
+    """The files of a results row or a pairs line ("" for none), as a key that names each file
+    one way (relative to the working folder; the pairs file may have been given by another path)."""
+    return tuple(os.path.realpath(n) if n else "" for n in names)
+
+
+def _modified(path) -> float:
+    """The modification time of the file at `path`; infinite where it cannot be read."""
+    try:
+        return os.stat(path).st_mtime
+    except OSError:
+        return math.inf
 
 
 def check_results_belong(jobs: Sequence[PairJob], rows: Dict[int, dict], results) -> None:
     """Refuse to resume a results file none of whose rows (:func:`done_lines`) names the source
-    and target its line names in `jobs`: the results of another pairs file, which the run would
+    and target of a line of `jobs`: the results of another pairs file, which the run would
     replace.
 
     Raises:
         InputError: naming the file and how many rows it holds.
     """
-    lines = {job.line: job for job in jobs}
-    ours = [
-        line for line, row in rows.items() if line in lines and _same_file(row["source"], lines[line].source) and _same_file(row["target"], lines[line].target)
-    ]
-    if rows and not ours:
+    pairs = {_files_key((job.source, job.target)) for job in jobs}
+    if rows and not any(_files_key((row["source"], row["target"])) in pairs for row in rows.values()):
         raise InputError(
-            f"{results}: holds the results of other pairs (none of its {len(rows)} rows names the files its line names here); "
+            f"{results}: holds the results of other pairs (none of its {len(rows)} rows names the source and target of a line here); "
             "choose another --out, or remove it to start again"
         )
-
-
-def _same_file(a: str, b: str) -> bool:
-    """Two file names of a results row ("" for none) name the same file (relative to the
-    working folder; the pairs file may have been given by another path)."""
-    return a == b or (bool(a) and bool(b) and os.path.realpath(a) == os.path.realpath(b))
 
 
 class ResultsFile:
@@ -270,7 +298,7 @@ def run_jobs(
         raise InputError("two pairs share a line number")
     done = done_lines(results) if done is None else done
     check_results_belong(jobs, done, results)
-    rows = reusable_rows(jobs, done)
+    rows = reusable_rows(jobs, done, results)
     todo = [j for j in jobs if j.line not in rows]
     ray_module = _ray_connect(ray) if ray is not None else None  # before any file is written
     out = ResultsFile(results, rows)

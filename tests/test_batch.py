@@ -157,6 +157,48 @@ def test_a_resumed_run_runs_edited_lines_and_failed_pairs_again(tmp_path, pairs_
     assert _rows(results)[2]["ground_truth"] == f"{data}/gt1.txt"
 
 
+def test_a_resumed_run_finds_its_rows_where_their_lines_moved(tmp_path, pairs_file):
+    """Rows belong to the files a line names, not to its number: with a comment and a new pair
+    put in above them, the rows are kept under their new lines and only the new pair runs."""
+    data = pairs_file.parent
+    pairs = tmp_path / "pairs.txt"
+    first = [f"{data}/s{k}.npy {data}/t{k}.npy {data}/gt{k}.txt" for k in (0, 1)]
+    pairs.write_text("\n".join(first) + "\n")
+    results = tmp_path / "r.csv"
+    before = run_jobs(read_pair_jobs(pairs), CONFIG, results)
+    pairs.write_text("\n".join(["# a comment", first[0], f"{data}/s2.npy {data}/t2.npy", first[1]]) + "\n")
+    ran: List[dict] = []
+    rows = run_jobs(read_pair_jobs(pairs), CONFIG, results, progress=ran.append)
+    assert [r["line"] for r in ran] == [3]
+    assert [int(r["line"]) for r in rows] == [2, 3, 4]
+    assert [(r["T_target_source"], r["seconds"]) for r in (rows[0], rows[2])] == [(r["T_target_source"], str(r["seconds"])) for r in before]
+    assert list(_rows(results)) == [2, 3, 4]
+    r = CliRunner().invoke(main, ["register", "--pairs", str(pairs), "--out", str(results), "--no-progress"])
+    assert r.exit_code == 0 and "Resuming: 3 of 3 pairs already in" in r.stderr and "run again" not in r.stderr and "dropped" not in r.stderr
+
+
+def test_a_resumed_run_runs_a_pair_whose_file_changed_since(tmp_path, pairs_file):
+    """A ground truth edited under its name after the results were written: its pair runs again,
+    measured against the truth as it is now."""
+    data = pairs_file.parent
+    gt = tmp_path / "gt.txt"
+    gt.write_bytes((data / "gt0.txt").read_bytes())
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{data}/s0.npy {data}/t0.npy {gt}\n{data}/s1.npy {data}/t1.npy\n")
+    results = tmp_path / "r.csv"
+    first = run_jobs(read_pair_jobs(pairs), CONFIG, results)
+    assert float(first[0]["translation_error"]) < 0.05
+    T = np.loadtxt(gt)
+    T[0, 3] += 1.0
+    np.savetxt(gt, T)
+    edited = results.stat().st_mtime + 1.0  # whatever the file system's clock resolution
+    os.utime(gt, (edited, edited))
+    r = CliRunner().invoke(main, ["register", "--pairs", str(pairs), "--out", str(results), "--no-progress"])
+    assert r.exit_code == 0 and "Resuming: 1 of 2 pairs already in" in r.stderr and "1 run again" in r.stderr
+    rows = _rows(results)
+    assert float(rows[1]["translation_error"]) > 0.9 and rows[2]["seconds"] == str(first[1]["seconds"])
+
+
 def test_a_resumed_run_knows_its_rows_by_another_path_and_in_an_earlier_layout(tmp_path, pairs_file, monkeypatch):
     data, sub = pairs_file.parent, tmp_path / "sub"
     sub.mkdir()
@@ -197,13 +239,13 @@ def test_the_results_of_another_pairs_file_are_not_replaced(tmp_path, pairs_file
     (tmp_path / "other.txt").write_text(f"{data}/s2.npy {data}/t2.npy\n{data}/s3.npy {data}/t3.npy\n")
     run_jobs(read_pair_jobs(tmp_path / "one.txt"), CONFIG, results)
     before = results.read_text()
-    with pytest.raises(InputError, match="r.csv: holds the results of other pairs \\(none of its 2 rows names the files its line names here\\)"):
+    with pytest.raises(InputError, match="r.csv: holds the results of other pairs \\(none of its 2 rows names the source and target of a line here\\)"):
         run_jobs(read_pair_jobs(tmp_path / "other.txt"), CONFIG, results)
     assert results.read_text() == before
     # The same file with a line left out: the rows of the lines it has are kept, the others dropped, and said so.
     (tmp_path / "one.txt").write_text(f"{data}/s0.npy {data}/t0.npy\n")
     r = CliRunner().invoke(main, ["register", "--pairs", str(tmp_path / "one.txt"), "--out", str(results), "--no-progress"])
-    assert r.exit_code == 0 and "Resuming: 1 of 1 pairs already in" in r.stderr and "1 rows of lines the pairs file no longer has are dropped" in r.stderr
+    assert r.exit_code == 0 and "Resuming: 1 of 1 pairs already in" in r.stderr and "1 rows of pairs the pairs file no longer lists are dropped" in r.stderr
     assert list(_rows(results)) == [1]
 
 
