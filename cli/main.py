@@ -554,7 +554,7 @@ def _format_result(source, target, result, errors, model_info, config, read=None
             if result.copy_fit is not None
             else []
         ),
-        f"  estimate     from the {result.estimate_from}" + (", refined by ICP" if refined else ""),
+        f"  estimate     from {'' if result.estimate_from == 'KISS-Matcher' else 'the '}{result.estimate_from}" + (", refined by ICP" if refined else ""),
     ]
     if result.sparser_moved:
         lines.append("  roles        the target is much sparser: it was registered onto the source, and the result inverted")

@@ -517,3 +517,18 @@ def test_an_error_a_library_raises_for_ctrl_c_is_an_interrupt(pair_files, monkey
     finally:
         signal.signal(signal.SIGINT, before)
     assert r.exit_code == 130 and r.output.strip() == "Interrupted.", r.output
+
+
+@pytest.mark.parametrize("by, words", [("KISS-Matcher", "from KISS-Matcher, refined by ICP"), ("feature match", "from the feature match, refined by ICP")])
+def test_the_estimate_line_names_where_it_came_from(pair_files, tiny_model_path, by, words):
+    from dataclasses import replace
+
+    from o3dsoft.cli.main import _format_result
+    from o3dsoft.config import RegisterConfig
+    from o3dsoft.pipeline import register as run_register
+
+    _, src, T = pair_files
+    config = RegisterConfig(weights=str(tiny_model_path))
+    result = replace(run_register(src, apply(T, src), config), estimate_from=by)
+    text = _format_result("src.ply", "tgt.ply", result, None, {"path": "model.pt", "trained": {}}, config)
+    assert f"  estimate     {words}\n" in text
