@@ -34,7 +34,7 @@ SCANNER_EXTENSIONS = (".las", ".laz", ".e57")
 TABLE_EXTENSIONS = (".csv", ".txt")  # delimited text: CloudCompare's and PDAL's exports
 READ_EXTENSIONS = POINT_EXTENSIONS + MESH_ONLY_EXTENSIONS + SCANNER_EXTENSIONS + TABLE_EXTENSIONS + (".npy",)
 WRITE_EXTENSIONS = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".csv", ".npy", ".las")
-LAS_RESOLUTION = 1e-4  # coordinate step of the LAS files written (file units: 0.1 mm for metres)
+LAS_RESOLUTION = 1e-4  # coordinate step of the LAS files written (file units: 0.1 mm for metres), or finer: _las_steps
 DEFAULT_MESH_POINTS = 20_000
 READ_TOLERANCE = 1e-3  # |R^T R - I| a transform file may have (rounded published ground truths)
 
@@ -634,14 +634,11 @@ def _las_xyz(las) -> np.ndarray:
 
 
 def _write_las(f, points: np.ndarray) -> None:
-    """LAS 1.4, point format 0, coordinates stored as integers of LAS_RESOLUTION from the
-    cloud's lowest corner (coarser only where the cloud spans more than 2^31 steps)."""
+    """LAS 1.4, point format 0, coordinates stored as integers on :func:`_las_steps`."""
     import laspy
 
     header = laspy.LasHeader(point_format=0, version="1.4")
-    header.offsets = np.floor(points.min(axis=0)) if len(points) else np.zeros(3)
-    span = points.max(axis=0) - header.offsets if len(points) else np.zeros(3)
-    header.scales = np.maximum(LAS_RESOLUTION, (span + 1.0) / (2**31 - 1))
+    header.offsets, header.scales = _las_steps(points)
     las = laspy.LasData(header)
     las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
     las.write(f)
@@ -649,20 +646,34 @@ def _write_las(f, points: np.ndarray) -> None:
 
 def _write_las_moved(path: Path, source: Path, T: np.ndarray) -> Path:
     """The LAS/LAZ file `source` as LAS with its coordinates moved by the (4, 4) `T`, every other
-    dimension kept; at a coordinate step of at most :data:`LAS_RESOLUTION` (the source's where
-    finer, coarser only where the moved cloud spans more than 2^31 steps), from its lowest corner."""
+    dimension kept, on :func:`_las_steps` (the source's step where finer)."""
     import laspy
 
     las = laspy.read(str(source))
     xyz = apply_transform(T, _las_xyz(las))
-    offsets = np.floor(xyz.min(axis=0))
-    # The source's step, at most LAS_RESOLUTION, coarser only where the turned cloud spans more than 2^31 steps.
-    scales = np.maximum(np.minimum(np.asarray(las.header.scales, dtype=np.float64), LAS_RESOLUTION), (xyz.max(axis=0) - offsets + 1.0) / (2**31 - 1))
+    offsets, scales = _las_steps(xyz, np.asarray(las.header.scales, dtype=np.float64))
     las.header.scales, las.header.offsets = scales, offsets  # the stored integers are all set anew below
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     with atomic_output(path) as tmp:
         las.write(str(tmp))
     return path
+
+
+def _las_steps(points: np.ndarray, finer: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """(3,) offsets and (3,) scales of a LAS file holding the (N, 3) `points` as integers: a step of
+    :data:`LAS_RESOLUTION`, or a millionth of the cloud's extent where that is finer (a cloud in
+    kilometres would otherwise round to a few points), or `finer`'s per axis where that is finer
+    still; coarser only where the cloud spans more than 2^31 steps. The offsets: the lowest
+    corner, rounded down to a power of ten near the extent."""
+    if not len(points):
+        return np.zeros(3), np.full(3, LAS_RESOLUTION)
+    extent = float(np.max(np.ptp(points, axis=0)))
+    near = 10.0 ** np.floor(np.log10(extent)) if extent > 0 else 1.0
+    step = np.full(3, min(LAS_RESOLUTION, 1e-6 * near))
+    if finer is not None:
+        step = np.minimum(step, finer)
+    offsets = np.floor(points.min(axis=0) / near) * near
+    return offsets, np.maximum(step, (points.max(axis=0) - offsets) / (2**31 - 2))  # the stored integers are int32
 
 
 def _read_npy_points(path: Path) -> np.ndarray:

@@ -475,6 +475,16 @@ def test_las_keeps_large_coordinates_to_its_step(tmp_path, pts):
     assert np.abs(back - far).max() <= LAS_RESOLUTION / 2 + 1e-9
 
 
+def test_las_keeps_a_cloud_in_large_units_to_a_millionth_of_its_size(tmp_path, pts):
+    """A 2-unit cloud in units a thousand times larger (kilometres for metres) spans 0.002: at
+    LAS_RESOLUTION it would keep a handful of distinct points, and written, read no more."""
+    small = pts / 1000.0 + np.array([3.0, -7.0, 0.5])
+    back = read_points(write_points(tmp_path / "small.las", small))
+    extent = np.ptp(small, axis=0).max()
+    assert len(np.unique(back, axis=0)) == len(np.unique(small, axis=0))
+    assert np.abs(back - small).max() <= 1e-6 * extent
+
+
 def test_laz_is_read(tmp_path, pts):
     import laspy
 
