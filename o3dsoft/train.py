@@ -473,10 +473,14 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     config.validate()
     torch_device(config.device)
     held = [name for name in RUN_FILES if (Path(config.out) / name).exists()]
+    saved = "checkpoint.pt" in held  # a run stopped before its first checkpoint left its settings only
     if held and not (resume or overwrite):
-        raise UsageError(
-            f"{config.out}: holds a training run ({', '.join(held)}); --resume goes on with it, --overwrite starts a new one there, or choose another --out"
-        )
+        go_on = "--resume goes on with it, " if saved else ""
+        what = "a training run" if saved or "model.pt" in held else "the settings of a run stopped before its first checkpoint"
+        raise UsageError(f"{config.out}: holds {what} ({', '.join(held)}); {go_on}--overwrite starts a new one there, or choose another --out")
+    if resume and not saved:  # before the data: with no checkpoint there is nothing to go on with
+        started = " (a run stopped before its first checkpoint: --overwrite starts it again)" if held else ""
+        raise InputError(f"{Path(config.out) / 'checkpoint.pt'}: no checkpoint to resume from{started}")
     rank, world, device = _setup_distributed(config)
     try:
         return _train(config, resume, log if rank == 0 else (lambda message: None), rank, world, device)

@@ -487,6 +487,26 @@ def test_a_new_run_does_not_replace_a_run_unasked(modelnet_root, tmp_path):
     assert load_model(tmp_path / "model.pt").config.k == TINY.k
 
 
+def test_a_run_stopped_before_its_first_checkpoint_is_named_so(modelnet_root, tmp_path):
+    """A second Ctrl-C while the first checkpoint was written leaves the run's settings alone:
+    --resume says there is nothing to go on with and how to start again, a new run is not told to
+    --resume, and --resume with no data given says so too (not that the data is missing)."""
+    train(_config(modelnet_root, tmp_path, max_steps=1, eval_pairs=0), log=lambda m: None)
+    for name in ("checkpoint.pt", "model.pt", "model_card.json"):
+        (tmp_path / name).unlink()
+    with pytest.raises(
+        InputError, match=r"checkpoint.pt: no checkpoint to resume from \(a run stopped before its first checkpoint: --overwrite starts it again\)"
+    ):
+        train(_config(modelnet_root, tmp_path, max_steps=1), resume=True)
+    with pytest.raises(
+        UsageError, match=r"holds the settings of a run stopped before its first checkpoint \(config.json, config.yaml\); --overwrite"
+    ) as refused:
+        train(_config(modelnet_root, tmp_path, max_steps=1), log=lambda m: None)
+    assert "--resume" not in str(refused.value)
+    r = CliRunner().invoke(main, ["train", "--out", str(tmp_path / "empty"), "--resume"])
+    assert r.exit_code == 1 and "no checkpoint to resume from" in r.output and "data" not in r.output, r.output
+
+
 def test_a_run_resumes_with_its_data_named_another_way_and_not_with_other_data(modelnet_root, tmp_path, monkeypatch):
     monkeypatch.delenv("O3DSOFT_DATA", raising=False)
     monkeypatch.chdir(modelnet_root.parent)
