@@ -909,7 +909,7 @@ def _bench_options(fn):
             help="Seed of the pairs and of RANSAC (o3dsoft's search repeats exactly; Open3D's multi-threaded RANSAC, in the FPFH baselines, can vary between runs).",
         ),
         click.option("--out", type=click.Path(path_type=Path), default=None, help="Run folder (default runs/bench-<name>-<time>)."),
-        click.option("--overwrite", is_flag=True, help="Reuse an existing run folder."),
+        click.option("--overwrite", is_flag=True, help="Write into an existing run folder, replacing its results (a bench run does not resume)."),
         click.option("--no-progress", is_flag=True, help="No progress bar."),
         click.option(
             "--jobs",

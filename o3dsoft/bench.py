@@ -951,6 +951,8 @@ def run(
         tmp.write_text(json.dumps(summary_doc, indent=2))
     with atomic_output(out / "config.json") as tmp:
         tmp.write_text(json.dumps({**description, "bench": config.to_dict()}, indent=2))
+    if interrupted:  # a table read later says it is a part of the run
+        table = f"Interrupted: {summary_doc['pairs_completed']} pairs completed; the table holds those only.\n\n{table}"
     with atomic_output(out / "table.txt") as tmp:
         tmp.write_text(table + "\n")
     plot(out, rows, config)

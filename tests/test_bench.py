@@ -243,6 +243,7 @@ def test_interrupted_run_keeps_what_finished(modelnet_root, tmp_path, monkeypatc
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["interrupted"] and summary["pairs_completed"] == 2
     assert len(list(csv.DictReader(open(tmp_path / "pairs.csv")))) == 2
+    assert (tmp_path / "table.txt").read_text().startswith("Interrupted: 2 pairs completed; the table holds those only.\n")
 
 
 def test_baselines_recover_a_dcp_pair(modelnet_root):
