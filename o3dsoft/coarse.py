@@ -9,6 +9,7 @@ model ships inside the package (``o3dsoft/weights/``).
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import warnings
@@ -198,11 +199,14 @@ def export_torchscript(model: SoftAlignNet, config: NetConfig, path: Union[str, 
         scripted = torch.jit.script(model.cpu())
     meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "net": config.to_dict(), "info": info or {}}
     make_folder(path.parent)
+    # Saved into memory first: a file's archive takes its folder name from the file's name, the
+    # temporary one's here, and the same weights would give files of different bytes (and sha256).
+    archive = io.BytesIO()
     try:
-        with atomic_output(path) as tmp, _quiet_jit():
-            torch.jit.save(scripted, str(tmp), _extra_files={META_NAME: json.dumps(meta)})
-    except RuntimeError as e:  # torch reports a failed write (e.g. a full disk) as RuntimeError
-        raise InputError(f"{path}: cannot write the model ({e})") from None
+        with _quiet_jit():
+            torch.jit.save(scripted, archive, _extra_files={META_NAME: json.dumps(meta)})
+        with atomic_output(path) as tmp:  # a failed write (e.g. a full disk): InputError, naming the file
+            tmp.write_bytes(archive.getvalue())
     finally:
         model.to(device).train(was_training)
     return path

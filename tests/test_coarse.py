@@ -158,6 +158,23 @@ def test_a_model_whose_weights_are_not_plausible_numbers_is_refused(tmp_path, va
         load_model(path)
 
 
+def test_the_same_weights_export_to_the_same_bytes_under_any_name(tmp_path):
+    """A model file's sha256 (its card's) names its weights: two runs that end with the same
+    weights give the same file, whatever it is called (a TorchScript archive written to a file
+    takes the file's name inside it)."""
+    from o3dsoft.coarse import export_torchscript, sha256_of
+    from o3dsoft.model import SoftAlignNet
+
+    from .conftest import TINY
+
+    torch.manual_seed(0)
+    net = SoftAlignNet(TINY)
+    a = export_torchscript(net, TINY, tmp_path / "run_a" / "model.pt", {"epochs": 1})
+    b = export_torchscript(net, TINY, tmp_path / "other name.pt", {"epochs": 1})
+    assert sha256_of(a) == sha256_of(b)
+    assert load_model(b).config == TINY
+
+
 def test_shipped_models_are_checked_against_their_card_and_other_files_warn_once(tiny_model_path, tmp_path, monkeypatch):
     import json
 
