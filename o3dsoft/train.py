@@ -642,7 +642,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             state = ckpt["state"]
             init_record = ckpt.get("init")
             torch.set_rng_state(ckpt["torch_rng"])
-        log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
+        if state["epoch"] < config.epochs and (config.max_steps is None or state["global_step"] < config.max_steps):  # else: nothing to train, said below
+            log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
 
     train_pairs, test_pairs = _splits(config, protocol)
     parts = _training_sources(config, train_pairs)

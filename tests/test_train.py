@@ -554,6 +554,10 @@ def test_resuming_a_finished_run_says_there_is_nothing_to_train(modelnet_root, t
     said = []
     train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=said.append)
     assert any("already reached max_steps = 2" in line for line in said), said
+    assert not any("resumed at" in line for line in said), said  # not "resumed at epoch 1" before "nothing to train"
+    said.clear()
+    train(_config(modelnet_root, tmp_path, max_steps=3, eval_pairs=0), resume=True, log=said.append)
+    assert any("resumed at epoch 1, step 2" in line for line in said), said
 
 
 def test_a_card_marks_the_epoch_a_step_limit_cut_short(modelnet_root, tmp_path):
