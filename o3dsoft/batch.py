@@ -192,10 +192,11 @@ def resume_counts(jobs: Sequence[PairJob], rows: Dict[int, dict], results) -> Tu
     their source and target (it failed, or a file changed since), and how many rows name no
     pair of `jobs` and are dropped."""
     kept = len(reusable_rows(jobs, rows, results))
-    named = {_files_key((row["source"], row["target"])) for row in rows.values()}
+    named = [_files_key((row["source"], row["target"])) for row in rows.values()]  # each file's realpath once
     listed = [_files_key((job.source, job.target)) for job in jobs]
-    again = sum(key in named for key in listed) - kept
-    dropped = sum(_files_key((row["source"], row["target"])) not in set(listed) for row in rows.values())
+    in_rows, in_jobs = set(named), set(listed)
+    again = sum(key in in_rows for key in listed) - kept
+    dropped = sum(key not in in_jobs for key in named)
     return kept, again, dropped
 
 
