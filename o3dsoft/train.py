@@ -517,12 +517,15 @@ def _teardown_distributed() -> None:
         dist.destroy_process_group()
 
 
+def _out_of_steps(config: TrainConfig, state: Dict[str, Any]) -> bool:
+    """The run has taken its ``max_steps`` (None: no limit)."""
+    return config.max_steps is not None and state["global_step"] >= config.max_steps
+
+
 def _resume_checkpoint(path: Path, config: TrainConfig, world: int, fingerprints: Dict[str, Optional[str]]) -> dict:
     """The checkpoint to resume from, refused when its run's settings, its data (`fingerprints`:
     :func:`_data_fingerprints` of this run's) or its process count differ."""
-    if not path.is_file():
-        raise InputError(f"{path}: no checkpoint to resume from")
-    ckpt = _load_checkpoint(path)
+    ckpt = _load_checkpoint(path)  # a missing one: train() refused the run before this
     saved = dict(ckpt["config"], net=NetConfig.from_dict(ckpt["config"]["net"]).to_dict())  # with settings added since
     by_content = "data_fingerprints" in ckpt  # the data compared by its files, not by how its path is written
     names = [k for k in RESUME_MUST_MATCH if not (by_content and k in ("data", "extra_data"))]
@@ -642,7 +645,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             state = ckpt["state"]
             init_record = ckpt.get("init")
             torch.set_rng_state(ckpt["torch_rng"])
-        if state["epoch"] < config.epochs and (config.max_steps is None or state["global_step"] < config.max_steps):  # else: nothing to train, said below
+        if not (_out_of_steps(config, state) or state["epoch"] >= config.epochs):  # else: nothing to train, said below
             log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
 
     train_pairs, test_pairs = _splits(config, protocol)
@@ -708,7 +711,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     dataset = _TrainingPairs([train_pairs])
     stop = _StopBetweenSteps(world == 1)
     last_ckpt = started = time.monotonic()
-    done = config.max_steps is not None and state["global_step"] >= config.max_steps
+    done = _out_of_steps(config, state)
     if done or state["epoch"] >= config.epochs:
         reached = f"max_steps = {config.max_steps}" if done else f"its {config.epochs} epochs"
         log(
@@ -756,8 +759,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                     log(f"interrupted: checkpoint after step {state['global_step']} in {ckpt_path} (--resume goes on from there)")
                     export(None)  # the model so far, usable at once (a second Ctrl-C stops without it)
                     raise KeyboardInterrupt
-                out_of_steps = config.max_steps is not None and state["global_step"] >= config.max_steps
-                if out_of_steps or (config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60):
+                if _out_of_steps(config, state) or (config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60):
                     done = True
                     break
             progress.close()
