@@ -194,7 +194,8 @@ def scans_markdown(run: Path) -> str:
         if protocol.endswith(" turned") and protocol[: -len(" turned")] in folders:
             continue  # in its folder's row
         tight, loose = thresholds(doc, protocol)[0], thresholds(doc, protocol)[-1]
-        test = f"{tight['rotation_deg']:g} deg / {tight['translation']:.3g}, {loose['rotation_deg']:g} deg / {loose['translation']:.3g}"
+        unit = folders.get(protocol, {}).get("unit", "m")  # runs that did not record it used bench scans' default
+        test = f"{tight['rotation_deg']:g} deg / {tight['translation']:.3g} {unit}, {loose['rotation_deg']:g} deg / {loose['translation']:.3g} {unit}"
         turned = rows.get((f"{protocol} turned", method))
         values = cells(s) + (cells(turned) if turned else ["", ""] if turns else [])
         kind = folders.get(protocol, {}).get("kind", "")

@@ -922,7 +922,7 @@ def _bench_options(fn):
     return _pipeline_options(_apply_options(options, fn))
 
 
-def _run_bench(name, pairs, count, description, recall=None, titles=None, *, methods, seed, out, overwrite, no_progress, jobs, **pipeline):
+def _run_bench(name, pairs, count, description, recall=None, titles=None, units=None, *, methods, seed, out, overwrite, no_progress, jobs, **pipeline):
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -952,6 +952,7 @@ def _run_bench(name, pairs, count, description, recall=None, titles=None, *, met
         search_model=search_model,
         jobs=jobs,
         titles=titles,
+        units=units,
     )
     click.echo(result.table)
     click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
@@ -1118,7 +1119,7 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common, unit="m"):
         common["methods"] = ("o3dsoft", "fpfh-ransac+icp") + (("kiss-matcher+gicp",) if peers else ())
         if not peers:
             click.echo("Note: KISS-Matcher + small_gicp left out: pip install 'o3dsoft[peers]'", err=True)
-    titles, recall, description = {}, {}, []
+    titles, recall, units, description = {}, {}, {}, []
     for scans in folders:
         name = scans.name
         guess = "" if scans.guessed_from is None else f", from its first scan's size, {scans.guessed_from:.3g} {unit}: --unit or --kind if that is not so"
@@ -1127,10 +1128,10 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common, unit="m"):
             click.echo(f"  {file}: {count} points with a non-finite coordinate left out", err=True)
         if not scans.pairs:
             raise UsageError(f"{name}: no scan pair reaches --min-overlap {min_overlap}")
-        thresholds = " and ".join(f"{d:g} deg / {t:.3g}" for d, t in scans.recall)
+        thresholds = " and ".join(f"{d:g} deg / {t:.3g} {unit}" for d, t in scans.recall)
         titles[name] = f"{name} ({scans.kind}: success within {thresholds})"
-        recall[name] = scans.recall
-        description.append({"folder": name, "kind": scans.kind, "recall": [list(r) for r in scans.recall], "pairs": scans.table})
+        recall[name], units[name] = scans.recall, unit
+        description.append({"folder": name, "kind": scans.kind, "unit": unit, "recall": [list(r) for r in scans.recall], "pairs": scans.table})
     if len(recall) < len(folders):
         raise UsageError("two folders have the same name; give folders of different names")
     pairs = [p for scans in folders for p in scans.pairs]
@@ -1140,7 +1141,7 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common, unit="m"):
         for scans, entry in given:
             name = protocol(scans.name)
             titles[name] = f"{titles[scans.name]}, {title}"
-            recall[name] = scans.recall
+            recall[name], units[name] = scans.recall, unit
             description.append({**{k: v for k, v in entry.items() if k != "pairs"}, "folder": name, **setting})
 
     if turns:
@@ -1151,7 +1152,7 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common, unit="m"):
         variant(lambda name: noise_protocol(name, noise), f"noise {noise:g} x the scene's size on both clouds", {"noise": noise})
         click.echo(f"and every pair again with noise of {noise:g} x the scene's size ({len(pairs)} pairs)", err=True)
     pairs += turned_pairs(pairs, turns, common["seed"]) + noisy_pairs(pairs, noise, common["seed"])
-    _run_bench("scans", iter(pairs), len(pairs), {"benchmark": "scans", "min_overlap": min_overlap, "folders": description}, recall, titles, **common)
+    _run_bench("scans", iter(pairs), len(pairs), {"benchmark": "scans", "min_overlap": min_overlap, "folders": description}, recall, titles, units, **common)
 
 
 if __name__ == "__main__":  # pragma: no cover

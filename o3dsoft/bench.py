@@ -620,10 +620,11 @@ def recall_keys(summary: dict) -> List[str]:
     return [k for k in summary if k.startswith("recall_") and k != "recall_thresholds"]
 
 
-def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = None) -> str:
+def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = None, units: Optional[Dict[str, str]] = None) -> str:
     """The table a person reads: one block per protocol and subset, one row per method, with the
     recall columns of that protocol's thresholds (``recall_thresholds`` of each summary).
-    `titles`: a longer title for some protocols (a folder of scans and its kind)."""
+    `titles`: a longer title for some protocols (a folder of scans and its kind); `units`: the
+    name of some protocols' distance unit (e.g. "m"), else "units"."""
     lines = ["Errors and times: lower is better; recall: higher is better. Translation in the clouds' units."]
     block = None
     for s in summaries:
@@ -638,8 +639,9 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
                 + "".join(f" {f'recall {d:g}d/{t:.3g}':>14s}" for d, t in recall)
                 + f" {'ms median':>9s} {'ms p90':>8s}"
             )
-            units = f"{'':18s} {'':>5s} {'deg':>9s} {'deg':>9s} {'units':>10s} {'deg':>10s}" + "".join(f" {'%':>14s}" for _ in recall) + f" {'':>9s} {'':>8s}"
-            lines += ["", title, head, units]
+            unit = (units or {}).get(s["protocol"], "units")
+            under = f"{'':18s} {'':>5s} {'deg':>9s} {'deg':>9s} {unit:>10s} {'deg':>10s}" + "".join(f" {'%':>14s}" for _ in recall) + f" {'':>9s} {'':>8s}"
+            lines += ["", title, head, under]
         # DCP's Euler measure is ModelNet40's (turns of up to 45 degrees per axis); scans' poses come
         # near its gimbal lock, where a 0.1 degree turn reads as tens of degrees per angle.
         euler = "-" if s["protocol"] in (titles or {}) else f"{s['euler_rmse_deg']:.3g}"
@@ -889,10 +891,12 @@ def run(
     search_model: Optional[CoarseModel] = None,
     jobs: int = 1,
     titles: Optional[Dict[str, str]] = None,
+    units: Optional[Dict[str, str]] = None,
 ) -> BenchRun:
     """Run the methods of `config` on every pair and write the run folder `out` (already created).
 
-    titles: a longer title for some protocols in the table.
+    titles: a longer title for some protocols in the table; units: the distance unit's name of
+    some protocols (:func:`format_table`).
     jobs: pairs run at once, in as many processes (:func:`run_pairs`). Each method's time is
     then measured with that process's share of the CPU, the same for every method.
     On Ctrl-C or SIGTERM, the pairs finished so far are summarised and written, and
@@ -929,7 +933,7 @@ def run(
     finally:
         bar.close()
     summaries = summarise_rows(rows, errors, config)
-    table = format_table(summaries, titles)
+    table = format_table(summaries, titles, units)
     write_csv(out / "pairs.csv", rows)
     summary_doc = {
         "description": description,

@@ -1,6 +1,7 @@
 import csv
 import json
 import os
+import re
 import shutil
 import signal
 
@@ -331,7 +332,12 @@ def test_scans_in_millimetres_are_judged_in_metres(listed_scans):
     in_mm = bench.scan_folder(listed_scans, 0.3, unit="mm")
     assert in_mm.kind == "rgbd" and in_mm.recall == ((2.0, 50.0), (15.0, 300.0))  # 5 cm and 30 cm, in millimetres
     r = _bench(["scans", str(listed_scans), "--unit", "mm", "--method", "icp", "--out", str(listed_scans.parent / "b"), "--no-progress"])
-    assert r.exit_code == 0 and "room (rgbd: success within 2 deg / 50 and 15 deg / 300)" in r.output, r.output
+    assert r.exit_code == 0 and "room (rgbd: success within 2 deg / 50 mm and 15 deg / 300 mm)" in r.output, r.output
+    # the translation columns and the README table say millimetres too
+    assert re.search(r"^ +deg +deg +mm +deg", r.output, re.M), r.output
+    from benchmarks.results_table import scans_markdown
+
+    assert "| 2 deg / 50 mm, 15 deg / 300 mm |" in scans_markdown(listed_scans.parent / "b")
     with pytest.raises(UsageError, match="unknown unit 'ft'"):
         bench.scan_folder(listed_scans, 0.3, unit="ft")
 
@@ -423,10 +429,10 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     methods = ["--method", "icp", "--method", "fpfh-ransac+icp"] + (["--method", "kiss-matcher+gicp"] if bench.peers_installed() else [])
     r = _bench(["scans", str(listed_scans), str(two_scans), *methods, "--out", str(tmp_path / "s"), "--no-progress"])
     assert r.exit_code == 0, r.output
-    assert "room (rgbd: success within 2 deg / 0.05 and 15 deg / 0.3)" in r.output and "recall 15d/0.3" in r.output
+    assert "room (rgbd: success within 2 deg / 0.05 m and 15 deg / 0.3 m)" in r.output and "recall 15d/0.3" in r.output
     icp_row = next(line for line in r.output.splitlines() if line.startswith("icp "))
     assert icp_row.split()[5] == "-"  # DCP's Euler RMSE is ModelNet40's; scans' poses come near its gimbal lock
-    assert "scans (object: success within 1 deg / 0.0022" in r.output
+    assert re.search(r"scans \(object: success within 1 deg / 0\.0022\d* m and 5 deg / 0\.011\d* m\)", r.output)
     assert "room: 1 of 1 pairs (rgbd, from its first scan's size, 4" in r.output and " m: --unit or --kind if that is not so)" in r.output
     summary = json.loads((tmp_path / "s" / "summary.json").read_text())
     assert summary["recall_thresholds"]["room"] == [{"rotation_deg": 2.0, "translation": 0.05}, {"rotation_deg": 15.0, "translation": 0.3}]
@@ -438,10 +444,10 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     from benchmarks.results_table import scans_markdown
 
     table = scans_markdown(tmp_path / "s")  # the README's real-scans table
-    assert "| room (rgbd, 1 pairs) | 2 deg / 0.05, 15 deg / 0.3 | Open3D ICP from the identity |" in table
+    assert "| room (rgbd, 1 pairs) | 2 deg / 0.05 m, 15 deg / 0.3 m | Open3D ICP from the identity |" in table
     r = _bench(["scans", str(listed_scans), "--turns", "2", "--method", "fpfh-ransac+icp", "--out", str(tmp_path / "t"), "--no-progress"])
     assert r.exit_code == 0, r.output
-    assert "room (rgbd: success within 2 deg / 0.05 and 15 deg / 0.3), the source turned 2 times" in r.output
+    assert "room (rgbd: success within 2 deg / 0.05 m and 15 deg / 0.3 m), the source turned 2 times" in r.output
     summary = json.loads((tmp_path / "t" / "summary.json").read_text())
     rows = {s["protocol"]: s for s in summary["summaries"]}
     assert rows["room"]["pairs"] == 1 and rows["room turned"]["pairs"] == 2
@@ -452,7 +458,7 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     assert row.count("|") == 9
     r = _bench(["scans", str(listed_scans), "--noise", "0.003", "--method", "fpfh-ransac+icp", "--out", str(tmp_path / "n"), "--no-progress"])
     assert r.exit_code == 0, r.output
-    assert "room (rgbd: success within 2 deg / 0.05 and 15 deg / 0.3), noise 0.003 x the scene's size on both clouds" in r.output
+    assert "room (rgbd: success within 2 deg / 0.05 m and 15 deg / 0.3 m), noise 0.003 x the scene's size on both clouds" in r.output
     summary = json.loads((tmp_path / "n" / "summary.json").read_text())
     assert {s["protocol"]: s["pairs"] for s in summary["summaries"]} == {"room": 1, "room noise 0.3 %": 1}
     assert summary["recall_thresholds"]["room noise 0.3 %"] == summary["recall_thresholds"]["room"]
