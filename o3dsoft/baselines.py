@@ -20,7 +20,6 @@ from typing import NamedTuple, Optional, Tuple
 import numpy as np
 
 from ._open3d import open3d as o3d
-from .io import quiet_c_output
 from .preprocess import local_origin, stray_points
 from .refine import to_open3d
 from .transforms import in_frame_at, rigid
@@ -173,10 +172,10 @@ def kiss_matcher(
         return None
     magnify = _KISS_VOXEL / voxel
     magnified_voxel = voxel * magnify
-    # It prints warnings about its noise bounds on every call. Its matching's OpenMP threads add
-    # matches in the order they finish, and its answer hangs on that order: one thread, no slower.
-    # (A race between its TBB threads is left: about 1 call in 100 still differs; docs/scans.md.)
-    with quiet_c_output("stdout"), threadpool_limits(1, user_api="openmp"):
+    # Its matching's OpenMP threads add matches in the order they finish, and its answer hangs on
+    # that order: one thread, no slower. (A race between its TBB threads is left: about 1 call in
+    # 100 still differs; docs/scans.md.)
+    with threadpool_limits(1, user_api="openmp"):
         config = km.KISSMatcherConfig(magnified_voxel, use_voxel_sampling=False)
         if normal_radius is not None:
             config.normal_radius = normal_radius * magnified_voxel

@@ -515,8 +515,8 @@ _C_OUTPUT: Dict[int, List[int]] = {}  # file descriptor -> [blocks open across t
 @contextmanager
 def quiet_c_output(name: str = "stderr") -> Iterator[None]:
     """Silence what C code writes to the process's stderr or stdout (`name`) within the block:
-    Open3D's PLY reader prints "RPly: ..." lines for a bad file, KISS-Matcher its warnings;
-    o3dsoft reports problems itself, in one line. The descriptor is the process's: while a block
+    Open3D's PLY reader prints "RPly: ..." lines for a bad file; o3dsoft
+    reports problems itself, in one line. The descriptor is the process's: while a block
     of any thread is open, everything written to it is lost, and it comes back once the last
     block ends."""
     stream = getattr(sys, name)

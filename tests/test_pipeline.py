@@ -36,6 +36,25 @@ def test_register_small_motion_recovered_after_icp(tiny_model_path):
     assert set(res.timings_ms) >= {"clean", "sample_normalise", "coarse", "refine", "score", "total"}
 
 
+def test_the_result_is_rigid_to_float64_precision_and_reads_as_a_summary(tiny_model_path):
+    # The network's rotations are float32 products (orthonormal to about 1e-7): every transform
+    # the result gives is projected onto the rotations.
+    import pickle
+
+    src, tgt, _ = blob_pair(seed=6)
+    res = register(src, tgt, RegisterConfig(weights=str(tiny_model_path), icp=ICPConfig(distance=0.5)))
+    for name in ("transformation", "coarse_transformation", "network_transformation"):
+        R = getattr(res, name)[:3, :3]
+        assert np.abs(R @ R.T - np.eye(3)).max() < 1e-12 and np.linalg.det(R) == pytest.approx(1.0, abs=1e-12), name
+    # Results compare by identity (arrays have no single truth value), hash, and print as a summary.
+    again = pickle.loads(pickle.dumps(res))
+    assert res == res and res != again and res in [res] and len({res, again}) == 2
+    assert np.array_equal(again.transformation, res.transformation)
+    text = repr(res)
+    assert text.startswith("RegistrationResult(trusted; confidence") and "cloud units (lower is better)" in text
+    assert len(text) < 600 and text.count("\n") == 5
+
+
 @pytest.mark.parametrize("units", [1e-3, 1.0, 1e3])
 def test_any_units_and_open3d_input(tiny_model_path, units):
     src, tgt, T = blob_pair(seed=1, units=units)
@@ -86,6 +105,9 @@ def test_deterministic(tiny_model_path):
         (np.random.default_rng(0).normal(size=(5, 3)), "source: 5 distinct finite points; at least 8"),
         (np.outer(np.arange(100.0), [1, 1, 0]), "source: all points lie on one line"),
         (np.zeros((10, 2)), r"source: expected points of shape \(N, 3\)"),
+        ("scan.ply", r"source: got the file name 'scan.ply', not points: read it first, o3dsoft.read_points\(path\)"),
+        # far from the origin float32 merges a cloud's points: the message says why
+        ((1e7 + 0.1 * np.random.default_rng(0).normal(size=(100, 3))).astype(np.float32), "float32 values, whose step at 1e[+]07 is 1, .*pass them as float64"),
     ],
 )
 def test_bad_clouds(tiny_model_path, cloud, match):
@@ -152,9 +174,19 @@ def test_clouds_of_under_min_points_are_flagged_however_well_they_fit(points):
     floor = ConfidenceConfig().min_points
     if points < floor:
         assert res.likely_failed and res.confidence <= 0.5 * points / floor
-        assert f"the smaller cloud has only {points} points" in res.failure_reason
+        assert res.failure_reason.startswith(f"the smaller cloud has only {points} points")
     else:
         assert not res.likely_failed and res.failure_reason is None
+
+
+def test_a_few_points_flagged_for_another_reason_too_say_both(tiny_model_path):
+    # Two samplings of 60 points of a flat patch: the degeneracy test flags them (confidence 0),
+    # and the point count is still said first.
+    rng = np.random.default_rng(4)
+    src, tgt = (np.column_stack([rng.uniform(-1, 1, (60, 2)), np.zeros(60)]) for _ in range(2))
+    res = register(src, apply(random_transform(rng, 10.0, 0.1), tgt), RegisterConfig(weights=str(tiny_model_path)))
+    assert res.likely_failed and res.failure_reason.startswith("the smaller cloud has only 60 points")
+    assert "; also, the clouds " in res.failure_reason and "determine" in res.failure_reason  # the degeneracy test's reason
 
 
 def test_open3d_warnings_are_off_within_o3dsoft_only(capfd):
