@@ -89,7 +89,7 @@ class MultiwayConfig:
             raise InputError(f"init_max_rotation must be in (0, 180] degrees, got {self.init_max_rotation}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # compared by identity: arrays have no single truth value
 class Edge:
     """One registered pair: ``transformation`` (4, 4) is T_target_source (maps scan `source` onto
     scan `target`, indices into the scans).
@@ -136,7 +136,7 @@ class Edge:
         }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # compared by identity: arrays have no single truth value
 class MultiwayResult:
     """Poses of many scans in one frame.
 

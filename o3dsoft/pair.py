@@ -5,6 +5,7 @@ scorers, the FPFH features)."""
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import replace
 from functools import cached_property
 from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union
@@ -46,6 +47,8 @@ SCAN_POINTS = 4096
 def as_points(cloud: CloudLike, name: str) -> np.ndarray:
     """An Open3D PointCloud (legacy or tensor), a torch or Open3D tensor or an (N, 3) array-like
     -> (N, 3) float64 array."""
+    if isinstance(cloud, (str, os.PathLike)):
+        raise InputError(f"{name}: got the file name {str(cloud)!r}, not points: read it first, o3dsoft.read_points(path)")
     if hasattr(cloud, "points") and not isinstance(cloud, np.ndarray):
         return np.asarray(cloud.points, dtype=np.float64)
     if hasattr(cloud, "point") and hasattr(cloud, "to_legacy"):  # open3d.t.geometry.PointCloud

@@ -57,7 +57,7 @@ from .strategies import (
     TurnedPasses,
     kiss_available,
 )
-from .transforms import apply_transform, in_frame_at, rotation_angle_deg
+from .transforms import apply_transform, in_frame_at, nearest_rigid, rotation_angle_deg
 from .verify import Attempt, Verifier, choice_applies
 
 # Scenes whose sizes differ more than this are named in the failure reason: most often one is in
@@ -67,7 +67,7 @@ SIZE_RATIO_NOTE = 20.0
 __all__ = ["register", "RegisterConfig", "RegistrationResult", "SEARCH_MODES", "as_points"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays have no single truth value: results compare (and hash) by identity
 class RegistrationResult:
     """The result of registering a source cloud onto a target cloud.
 
@@ -101,7 +101,8 @@ class RegistrationResult:
             cloud, the share within `tight_distance` (0-1, higher is better; partial overlap does
             not lower it).
         mean_weight: mean of the network's per-point weights w_i = max_j W_ij in its first pass
-            (0-1); None when the network did not run.
+            (between 1/M and 1 for M target points in the network's sample; 1/M where the soft
+            assignment is uniform); None when the network did not run.
         correspondence_distance: the ICP / scoring distance used (cloud units).
         scale: the common scale the clouds were normalised by (cloud units).
         timings_ms: wall time of each stage in milliseconds (lower is better).
@@ -190,6 +191,16 @@ class RegistrationResult:
     search_reason: Optional[str] = None
     target_consistency: Optional[float] = None
 
+    def __repr__(self) -> str:
+        """A few lines: the verdict, the main scores (with units) and the transform."""
+        verdict = f"likely failed: {self.failure_reason}" if self.likely_failed else "trusted"
+        matrix = np.array2string(np.asarray(self.transformation), precision=6, suppress_small=True, max_line_width=100)
+        return (
+            f"RegistrationResult({verdict}; confidence {self.confidence:.3f} (0-1, higher is better), "
+            f"fitness {self.fitness:.3f} (higher is better), inlier_rmse {self.inlier_rmse:.4g} cloud units (lower is better), "
+            f"from {self.estimate_from}, {self.num_source:,} / {self.num_target:,} points)\ntransformation (T_target_source):\n{matrix}"
+        )
+
     def to_dict(self) -> dict:
         """JSON-ready dict (arrays as nested lists)."""
         d = asdict(self)
@@ -223,7 +234,9 @@ def register(
     """Find T_target_source, the rigid transform that maps `source` onto `target`.
 
     Args:
-        source: (N, 3) array, torch tensor or Open3D PointCloud (legacy or tensor), any units and position.
+        source: (N, 3) array, torch tensor or Open3D PointCloud (legacy or tensor), any units and
+            position. Only the positions are read: a cloud's normals and colours are not used
+            (ICP estimates the normals it needs on the clouds it registers).
         target: (M, 3), the same kinds, in the same units as source.
         config: pipeline settings (None: the defaults, ``RegisterConfig()``).
         model: an already loaded model (else loaded from ``config.weights``).
@@ -254,6 +267,8 @@ def register(
                 f"{name} is a loaded network (o3dsoft.coarse.load_model), got the name {str(given)!r}: name a model in RegisterConfig(weights=...)"
             )
     src, tgt = as_points(source, source_name), as_points(target, target_name)
+    finite = src[np.isfinite(src).all(axis=1)]
+    centre = np.median(finite, axis=0) if len(finite) else np.zeros(3)  # a stray point does not move it
     if init is not None:
         init = as_rigid(init, "init")
         src = apply_transform(init, src)
@@ -270,7 +285,10 @@ def register(
         result = _inverted(swapped, fixed, moved)
     else:
         result = _register(src, tgt, config, model, search_model, source_name, target_name, guess)[0]
-    return _started_at(_moved_back(result, origin), init)
+    # Rotations made of float32 network passes are orthonormal to about 1e-7: made rigid to float64
+    # precision, each transform taking the source's median point where it did.
+    result = _started_at(_moved_back(result, origin), init)
+    return _each_transform(result, lambda T: nearest_rigid(T, centre))
 
 
 def _started_at(result: RegistrationResult, init: Optional[np.ndarray]) -> RegistrationResult:
@@ -697,9 +715,13 @@ def _result(
             "of two scans fits from both sides" + (_SEARCHED if search_reason is not None else "")
         )
     fewest, enough = min(len(src), len(tgt)), config.confidence.min_points
-    if fewest < enough and trust >= config.confidence.likely_failed_below * fewest / enough:
-        trust = config.confidence.likely_failed_below * fewest / enough
-        reason = f"the smaller cloud has only {fewest} points: under {enough}, a wrong alignment fits as closely as the right one and scores as high"
+    if fewest < enough:
+        few = f"the smaller cloud has only {fewest} points: under {enough}, a wrong alignment fits as closely as the right one and scores as high"
+        cap = config.confidence.likely_failed_below * fewest / enough
+        if trust >= cap:
+            trust, reason = cap, few
+        else:  # flagged for another reason too: both are said
+            reason = f"{few}; also, {reason}" if reason else few
     if reason and search_reason is not None and pair.scans and config.search.kiss and not kiss_available():
         reason += "; KISS-Matcher, which the search tries first on scans, is not installed: pip install 'o3dsoft[peers]'"
     if reason and pair.size_ratio > SIZE_RATIO_NOTE:

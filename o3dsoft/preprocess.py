@@ -37,6 +37,19 @@ STRAY_PERCENTILE = 90.0  # the reach is twice the distance from the median withi
 MAX_COORDINATE = 1e12
 
 
+def _float32_note(points: np.ndarray, duplicates: int) -> str:
+    """Where duplicates left too few (K, 3) points, every coordinate is a float32 value and the
+    points span under 1,000 of float32's steps at their magnitude (far from the origin it merges
+    nearby points): how coarse float32 is there; else ""."""
+    if not duplicates or len(points) == 0 or not np.array_equal(points.astype(np.float32), points):
+        return ""
+    largest = float(np.abs(points).max())
+    step = float(np.spacing(np.float32(largest)))
+    if float(np.ptp(points, axis=0).max()) > 1000 * step:
+        return ""
+    return f"; the points are float32 values, whose step at {largest:.3g} is {step:.3g}, which merges closer points: pass them as float64"
+
+
 def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -> CleanReport:
     """Drop rows with NaN/inf, exact duplicate points and strays (:data:`STRAY_REACH`); reject
     degenerate clouds and coordinates beyond :data:`MAX_COORDINATE`.
@@ -68,7 +81,7 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
     if len(pts) < min_points:
         removed = f"{non_finite} rows with NaN/inf, {duplicates} duplicates" + (f" and {strays} strays" if strays else "")
         detail = f" ({removed} removed)" if non_finite or duplicates or strays else ""
-        raise InputError(f"{name}: {len(pts)} distinct finite points{detail}; at least {min_points} are needed")
+        raise InputError(f"{name}: {len(pts)} distinct finite points{detail}; at least {min_points} are needed{_float32_note(pts, duplicates)}")
     largest = float(np.abs(pts).max())
     if largest > MAX_COORDINATE:
         raise InputError(

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from o3dsoft.metrics import input_chamfer_distance, modified_chamfer_distance, pair_errors, rotation_error_deg, summarise
-from o3dsoft.transforms import euler_to_matrix, matrix_to_euler_deg, random_rotation
+from o3dsoft.transforms import euler_to_matrix, matrix_to_euler_deg, nearest_rigid, random_rotation, rigid
 
 from .conftest import apply, blob
 
@@ -133,3 +133,20 @@ def test_euler_errors_do_not_flip_across_the_gimbal_lock():
     T_gt, T_est = np.eye(4), np.eye(4)
     T_gt[:3, :3], T_est[:3, :3] = truth, estimate
     assert np.allclose(pair_errors(T_est, T_gt).euler_abs_deg, [0.0, 0.1, 0.0], atol=1e-6)
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 1e-5))
+def test_nearest_rigid_is_a_rotation_within_the_perturbation(seed, eps):
+    rng = np.random.default_rng(seed)
+    R = random_rotation(rng)
+    t = rng.normal(size=3)
+    E = eps * rng.normal(size=(3, 3))
+    c = 1e6 * rng.normal(size=3)  # far from the origin, as georeferenced scans are
+    T = nearest_rigid(rigid(R + E, t), c)
+    off = np.abs((R + E) @ (R + E).T - np.eye(3)).max()
+    assert np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() < (1e-14 if off > 1e-9 else 1e-9) and np.linalg.det(T[:3, :3]) > 0
+    if off <= 1e-9:  # rigid to float64 products' precision: as it was
+        assert np.array_equal(T[:3, :3], R + E)
+    # no rotation is nearer the perturbed matrix than the projection, so it is within 2 |E| of R
+    assert np.linalg.norm(T[:3, :3] - R) <= 2 * np.linalg.norm(E) + 1e-14 and np.array_equal(T[3], [0, 0, 0, 1])
+    assert np.allclose(T[:3, :3] @ c + T[:3, 3], (R + E) @ c + t, rtol=0, atol=1e-9)  # the centre goes where it went
