@@ -24,7 +24,7 @@ from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple, 
 import numpy as np
 
 from .errors import InputError, UsageError, first_line
-from .transforms import apply_transform
+from .transforms import apply_transform, nearest_rigid
 
 PathLike = Union[str, Path]
 
@@ -1052,13 +1052,7 @@ def _rigid_as_read(T: np.ndarray, where: str, about: Optional[np.ndarray] = None
     downstream hold); the translation keeps where the point `about` (3,) goes (None: the origin)."""
     T = _with_last_row(T)
     check_rigid(T, where, tol=READ_TOLERANCE)
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    nearest = U @ Vt  # the nearest rotation (det +1, as checked)
-    if about is not None:
-        T[:3, 3] += (T[:3, :3] - nearest) @ np.asarray(about, dtype=np.float64)
-    T[:3, :3] = nearest
-    T[3] = [0.0, 0.0, 0.0, 1.0]
-    return T
+    return nearest_rigid(T, about, keep_within=0.0)
 
 
 def _parse_matrix_text(path: Path) -> np.ndarray:

@@ -6,7 +6,7 @@ Conventions: a transform is a (4, 4) float64 array T_target_source, p_target = R
 from __future__ import annotations
 
 import math
-from typing import List
+from typing import List, Optional
 
 import numpy as np
 
@@ -19,20 +19,22 @@ def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
-def nearest_rigid(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """(4, 4) float64: `T` with its rotation block R replaced by the nearest rotation R' (Frobenius
-    norm; SVD), the translation changed so that the (3,) point `centre` goes where `T` takes it
-    (t' = t + (R - R') centre: far from the origin a turn of 1e-7 would move the points). Products
-    of float32 network rotations are orthonormal only to about 1e-7; projected, R R^T = I to
-    float64 precision. A `T` whose R R^T is within 1e-9 of I (float64 products) comes back as it is."""
+def nearest_rigid(T: np.ndarray, centre: Optional[np.ndarray] = None, keep_within: float = 1e-9) -> np.ndarray:
+    """(4, 4) float64 rigid transform nearest (4, 4) or (3, 4) `T`: its rotation block R replaced
+    by the nearest rotation R' (Frobenius norm; SVD), the translation changed so that the (3,)
+    point `centre` goes where `T` takes it (t' = t + (R - R') centre: far from the origin a turn
+    of 1e-7 would move the points; None: the origin), the last row exact. Products of float32
+    network rotations are orthonormal only to about 1e-7; projected, R R^T = I to float64
+    precision. A rotation whose R R^T is within `keep_within` of I (float64 products) is kept."""
     T = np.asarray(T, dtype=np.float64)
-    if np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() <= 1e-9 and np.linalg.det(T[:3, :3]) > 0:
-        return T.copy()
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    if np.linalg.det(U @ Vt) < 0:
-        U[:, -1] = -U[:, -1]
-    R = U @ Vt
-    return rigid(R, T[:3, 3] + (T[:3, :3] - R) @ np.asarray(centre, dtype=np.float64))
+    R = T[:3, :3]
+    if not (np.abs(R @ R.T - np.eye(3)).max() <= keep_within and np.linalg.det(R) > 0):
+        U, _, Vt = np.linalg.svd(R)
+        if np.linalg.det(U @ Vt) < 0:
+            U[:, -1] = -U[:, -1]
+        R = U @ Vt
+    shift = np.zeros(3) if centre is None else (T[:3, :3] - R) @ np.asarray(centre, dtype=np.float64)
+    return rigid(R, T[:3, 3] + shift)
 
 
 def in_frame_at(T: np.ndarray, origin: np.ndarray) -> np.ndarray:
