@@ -702,6 +702,115 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
         sys.exit(3)
 
 
+@main.command()
+@click.argument("sweeps", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True, help="Folder for poses.json and poses.txt (created if missing).")
+@click.option(
+    "--map-sweeps",
+    type=click.IntRange(min=1),
+    default=10,
+    show_default=True,
+    help="Sweeps in the local map each sweep is registered onto (1: the previous one alone, frame to frame).",
+)
+@click.option(
+    "--gt",
+    "gt_path",
+    type=click.Path(path_type=Path),
+    help="Reference poses world_T_sweep (a poses.json, or text with one pose per sweep, 12 numbers (KITTI's 3x4) or 16): print the steps' errors and the drift.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the result (poses, each step's confidence) as JSON instead of a summary.")
+@click.option("--strict", is_flag=True, help="Exit with status 3 when a step is flagged likely failed.")
+@click.option("--no-progress", is_flag=True, help="No progress bar.")
+@_pipeline_options
+@_friendly_errors
+def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress, **pipeline):
+    """The poses of SWEEPS (files in the order they were taken, e.g. a LiDAR's or a depth camera's
+    frames; a shell glob sorts them by name) in the frame of the first: each sweep registered onto
+    the last --map-sweeps sweeps from a constant-velocity guess.
+
+    Writes OUT/poses.json (world_T_sweep per sweep, each step's confidence) and OUT/poses.txt (one
+    3x4 pose per line, as KITTI's files; multiway --init reads it to close loops). A flagged step
+    is named on stderr (exit status 3 with --strict).
+    """
+    from tqdm import tqdm
+
+    from .. import io
+    from ..odometry import OdometryConfig
+    from ..odometry import odometry as run_odometry
+
+    seen: dict = {}
+    for p in sweeps:
+        key = p.resolve()
+        if key in seen:
+            raise click.UsageError(f"{p}: given twice (as {seen[key]} too); each sweep once")
+        seen[key] = p
+    if len(sweeps) < 2:
+        raise click.UsageError(f"{sweeps[0]}: one sweep; odometry needs at least two")
+    names = [str(p) for p in sweeps]
+    clouds = [io.read_points(p) for p in sweeps]
+    reference = io.read_poses(gt_path, names) if gt_path is not None else None
+    missing = [n for n, pose in zip(names, reference or ()) if pose is None]
+    if missing:
+        raise click.UsageError(f"--gt {gt_path}: no pose for {len(missing)} sweep(s): {', '.join(missing[:5])}")
+    io.check_outputs_apart(
+        {"--out's poses": out_dir / "poses.json", "--out's KITTI poses": out_dir / "poses.txt"}, {**{f"the sweep {p}": p for p in sweeps}, "--gt": gt_path}
+    )
+    io.make_folder(out_dir)  # after the sweeps are read: a bad file leaves no folder behind
+    for p in (out_dir / "poses.json", out_dir / "poses.txt"):
+        io.check_writable(p)
+    config = OdometryConfig(map_sweeps=map_sweeps, register=_register_config(**pipeline))
+    bar = tqdm(total=len(clouds), initial=1, unit="sweep", disable=True if no_progress else None, dynamic_ncols=True)
+    try:
+        result = run_odometry(clouds, config, names=names, progress=lambda done, total: bar.update(done - bar.n))
+    finally:
+        bar.close()
+    payload = result.to_dict()
+    with io.atomic_output(out_dir / "poses.json") as tmp:
+        tmp.write_text(json.dumps(payload, indent=2))
+    with io.atomic_output(out_dir / "poses.txt") as tmp:
+        tmp.write_text("".join(" ".join(f"{v:.9g}" for v in pose[:3].reshape(-1)) + "\n" for pose in result.poses))
+    click.echo(json.dumps(payload, indent=2) if as_json else _format_odometry(result, out_dir, reference))
+    flagged = [f"{n} (confidence {s.confidence:.3f}: {s.failure_reason})" for n, s, f in zip(names, result.steps, result.flagged) if f]
+    if flagged:
+        click.echo(f"Warning: {len(flagged)} step(s) flagged likely failed; their poses and those after them may be off: " + "; ".join(flagged), err=True)
+        if strict:
+            sys.exit(3)
+
+
+def _format_odometry(result, out_dir: Path, reference=None) -> str:
+    """A summary: the sweeps, the flagged steps, the path and the time; against `reference` poses
+    (world_T_sweep per sweep) the steps' errors and the final drift."""
+    import numpy as np
+
+    from ..metrics import pair_errors
+
+    motions = [step.transformation for step in result.steps[1:]]
+    path = sum(float(np.linalg.norm(T[:3, 3])) for T in motions)
+    seconds = [step.timings_ms.get("total", 0.0) / 1000.0 for step in result.steps[1:]]
+    lines = [
+        f"o3dsoft odometry  {len(result.names)} sweeps, world frame: {result.names[0]}",
+        f"Path: {_tidy(path):.4g} units in all (the motions' lengths summed); the last sweep {_tidy(float(np.linalg.norm(result.poses[-1][:3, 3]))):.4g} units from the first.",
+        f"Steps flagged likely failed: {sum(result.flagged)} of {len(motions)}.",
+    ]
+    if reference is not None:
+        base = np.linalg.inv(reference[0])
+        truth = [base @ P for P in reference]
+        errors = [pair_errors(T, np.linalg.inv(truth[k]) @ truth[k + 1]) for k, T in enumerate(motions)]
+        rotation, translation = np.array([e.rotation_deg for e in errors]), np.array([e.translation for e in errors])
+        drift = pair_errors(result.poses[-1], truth[-1])
+        lines.append(
+            f"Against --gt (lower is better): step errors median {np.median(rotation):.3g} deg / {np.median(translation):.3g} units, "
+            f"largest {rotation.max():.3g} deg / {translation.max():.3g} units; the last sweep {drift.rotation_deg:.3g} deg / {drift.translation:.3g} units off"
+            + (f" ({100 * drift.translation / path:.2g} % of the path)" if path > 0 else "")
+            + "."
+        )
+    lines += [
+        f"Time (s, lower is better): {result.timings_s['total']:.1f} in all, {np.median(seconds):.3f} per sweep (median).",
+        f"Wrote {out_dir / 'poses.json'} and {out_dir / 'poses.txt'} (one 3x4 pose per line).",
+    ]
+    return "\n".join(lines)
+
+
 def _format_multiway(result, out_dir: Path, merged_points: int, frame_file: Optional[Path] = None) -> str:
     """The result as a table; `frame_file`: the --init file that holds the world scan's pose."""
     import numpy as np

@@ -42,6 +42,9 @@ _LAZY = {
     "multiway": "multiway",
     "MultiwayConfig": "multiway",
     "MultiwayResult": "multiway",
+    "odometry": "odometry",
+    "OdometryConfig": "odometry",
+    "OdometryResult": "odometry",
     "read_scans": "io",
     "ICPConfig": "refine",
     "ConfidenceConfig": "confidence",
@@ -56,6 +59,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
     from .io import read_points, read_poses, read_scans, read_transform, write_points, write_transform
     from .metrics import pair_errors, rotation_error_deg
     from .multiway import MultiwayConfig, MultiwayResult, multiway
+    from .odometry import OdometryConfig, OdometryResult, odometry
     from .pipeline import RegistrationResult, register
     from .refine import ICPConfig
     from .search import FeatureMatchConfig
@@ -99,6 +103,9 @@ __all__ = [
     "multiway",
     "MultiwayConfig",
     "MultiwayResult",
+    "odometry",
+    "OdometryConfig",
+    "OdometryResult",
     "read_scans",
     "pair_errors",
     "read_points",

@@ -17,14 +17,13 @@ relative to the nearest joined scan (unverified); otherwise they have no pose.
 
 from __future__ import annotations
 
-import sys
 import time
-import types
 from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ._modules import callable_as_its_function
 from ._open3d import quietly
 from .config import RegisterConfig
 from .errors import InputError, UsageError
@@ -545,13 +544,4 @@ def merged_cloud(
     return Merged(points, label, color)
 
 
-class _CallableModule(types.ModuleType):
-    """This module, callable as :func:`multiway`: importing ``o3dsoft.multiway`` (for
-    :class:`MultiwayConfig`) binds the package's ``multiway`` to the module, and
-    ``o3dsoft.multiway(clouds)`` must still register them."""
-
-    def __call__(self, *args, **kwargs) -> MultiwayResult:
-        return multiway(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule
+callable_as_its_function(__name__)

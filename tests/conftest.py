@@ -102,3 +102,24 @@ def tetra_off(i: int, header: str = "OFF\n4 4 0\n") -> str:
     """An OFF file of a tetrahedron stretched to x = i + 2 (`header`: the first line(s), counts
     included), for ModelNet40-like folders of meshes (<category>/<split>/*.off)."""
     return header + f"0 0 0\n{i + 2} 0 0\n0 1 0\n0 0 1\n" + "3 0 1 2\n3 0 1 3\n3 0 2 3\n3 1 2 3\n"
+
+
+def ring_sweep(T_world_sensor: np.ndarray, rng: np.random.Generator, elevations_deg=(-15.0, -10.0, -5.0, 0.0, 5.0)) -> np.ndarray:
+    """(N, 3) a spinning LiDAR's sweep of rings at `elevations_deg` (0.5 degrees between rays, 1 cm
+    range noise) in its own frame, ray-cast from pose T into a room: a floor 1.7 below, walls at
+    x = +-20 and y = +-12, and a box's face at x = 6."""
+    az, el = np.meshgrid(np.radians(np.arange(0, 360, 0.5)), np.radians(elevations_deg))
+    rays = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
+    origin, world = T_world_sensor[:3, 3], rays @ T_world_sensor[:3, :3].T
+    hit = np.full(len(rays), np.inf)
+    for normal, offset in [((0, 0, 1), -1.7), ((1, 0, 0), 20), ((1, 0, 0), -20), ((0, 1, 0), 12), ((0, 1, 0), -12), ((1, 0, 0), 6)]:
+        along = world @ np.asarray(normal, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):  # rays along a plane never meet it
+            t = (offset - origin @ np.asarray(normal, dtype=float)) / along
+            point = origin + t[:, None] * world
+        ok = t > 0.5
+        if offset == 6:  # the box: 4 m wide, 2.7 m high
+            ok &= (np.abs(point[:, 1] - 3) < 2) & (point[:, 2] < 1.0)
+        hit = np.where(ok & (t < hit), t, hit)
+    seen = np.isfinite(hit)
+    return rays[seen] * (hit[seen] + rng.normal(0.0, 0.01, seen.sum()))[:, None]

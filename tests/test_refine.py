@@ -11,7 +11,7 @@ from o3dsoft.pipeline import register
 from o3dsoft.refine import ICPConfig, downsample, icp
 from o3dsoft.transforms import euler_to_matrix, rigid
 
-from .conftest import blob, random_transform
+from .conftest import blob, random_transform, ring_sweep
 from .fakes import record_open3d_icp
 
 
@@ -237,27 +237,6 @@ def test_points_whose_neighbours_within_follow_a_line_take_their_nearest_plane()
     assert _tilt_deg(n, T[:3, 2]).max() < 1.0
 
 
-def _ring_sweep(T_world_sensor: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """(N, 3) a spinning LiDAR's sweep of 5 rings 5 degrees apart (0.5 degrees between rays, 1 cm
-    range noise) in its own frame, ray-cast from pose T into a room: a floor 1.7 below, walls at
-    x = +-20 and y = +-12, and a box's face at x = 6."""
-    az, el = np.meshgrid(np.radians(np.arange(0, 360, 0.5)), np.radians([-15.0, -10.0, -5.0, 0.0, 5.0]))
-    rays = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
-    origin, world = T_world_sensor[:3, 3], rays @ T_world_sensor[:3, :3].T
-    hit = np.full(len(rays), np.inf)
-    for normal, offset in [((0, 0, 1), -1.7), ((1, 0, 0), 20), ((1, 0, 0), -20), ((0, 1, 0), 12), ((0, 1, 0), -12), ((1, 0, 0), 6)]:
-        along = world @ np.asarray(normal, dtype=float)
-        with np.errstate(divide="ignore", invalid="ignore"):  # rays along a plane never meet it
-            t = (offset - origin @ np.asarray(normal, dtype=float)) / along
-            point = origin + t[:, None] * world
-        ok = t > 0.5
-        if offset == 6:  # the box: 4 m wide, 2.7 m high
-            ok &= (np.abs(point[:, 1] - 3) < 2) & (point[:, 2] < 1.0)
-        hit = np.where(ok & (t < hit), t, hit)
-    seen = np.isfinite(hit)
-    return rays[seen] * (hit[seen] + rng.normal(0.0, 0.01, seen.sum()))[:, None]
-
-
 def test_point_to_plane_icp_keeps_a_sparse_sweeps_rings_apart():
     """On a sweep of few rings the nearest 20 points of a point lie along its ring, whose plane
     turns freely about it: with such normals ICP from the truth slid one sweep's rings onto the
@@ -266,7 +245,7 @@ def test_point_to_plane_icp_keeps_a_sparse_sweeps_rings_apart():
 
     rng = np.random.default_rng(3)
     moved = rigid(euler_to_matrix(np.array([0.0, 0.0, 4.0])), np.array([1.3, 0.2, 0.0]))
-    source, target = _ring_sweep(moved, rng), _ring_sweep(np.eye(4), rng)
+    source, target = ring_sweep(moved, rng), ring_sweep(np.eye(4), rng)
     result = icp(source, target, moved, 3.0, ICPConfig(method="plane"))
     errors = pair_errors(result.transformation, moved)
     assert errors.rotation_deg < 0.5 and errors.translation < 0.1

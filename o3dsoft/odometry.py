@@ -1,0 +1,157 @@
+"""``odometry``: the poses of a sequence of sweeps (LiDAR, depth frames), one after another.
+
+    for each sweep after the first:
+    -> a local map: the last few sweeps (those not flagged) in the previous sweep's frame
+    -> register the sweep onto it (:func:`o3dsoft.register`) from a constant-velocity guess (the
+       previous motion again; where ICP from it is trusted, nothing else runs)
+    -> its pose: the previous pose followed by that motion.
+
+Registering onto several sweeps instead of the last one alone (the scheme of KISS-ICP) gives ICP
+denser surfaces to slide against: sparse sweeps of few rings drift less (docs/multiway.md). The
+poses are those of the sweeps' own frames in the first sweep's frame; nothing closes loops (for
+that, ``multiway --init`` from these poses).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ._modules import callable_as_its_function
+from .config import RegisterConfig
+from .errors import InputError, UsageError
+from .pair import CloudLike, as_points
+from .pipeline import RegistrationResult, register
+from .transforms import apply_transform
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """Settings of :func:`odometry`.
+
+    Attributes:
+        map_sweeps: how many of the last sweeps make the local map each sweep is registered onto
+            (1: the previous sweep alone, frame to frame); flagged sweeps are left out of it.
+        constant_velocity: start each sweep at the previous motion repeated (else at the
+            previous sweep's pose, the identity motion).
+        register: the registration's settings (the same for every sweep).
+    """
+
+    map_sweeps: int = 10
+    constant_velocity: bool = True
+    register: RegisterConfig = field(default_factory=RegisterConfig)
+
+    def validate(self) -> None:
+        if not isinstance(self.map_sweeps, int) or self.map_sweeps < 1:
+            raise UsageError(f"map_sweeps must be a whole number of at least 1, got {self.map_sweeps!r}")
+        if not isinstance(self.register, RegisterConfig):
+            raise UsageError(f"register must be an o3dsoft.RegisterConfig, got {type(self.register).__name__}")
+
+
+@dataclass(frozen=True, eq=False)  # compared by identity: arrays have no single truth value
+class OdometryResult:
+    """Poses of a sequence of sweeps.
+
+    Attributes:
+        names: the sweeps' names, in order.
+        poses: (4, 4) world_T_sweep per sweep (maps the sweep's points into the first sweep's
+            frame; the first is the identity).
+        steps: per sweep, its registration onto its local map (None for the first), whose
+            ``transformation`` is the motion previous_T_sweep.
+        timings_s: "total" (s, lower is better).
+    """
+
+    names: Tuple[str, ...]
+    poses: Tuple[np.ndarray, ...]
+    steps: Tuple[Optional[RegistrationResult], ...]
+    timings_s: Dict[str, float]
+
+    @property
+    def flagged(self) -> Tuple[bool, ...]:
+        """Per sweep: its registration is flagged likely failed (its pose, and those after it, may be off)."""
+        return tuple(step is not None and step.likely_failed for step in self.steps)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict: per sweep its pose, and its step's confidence, flag and reason."""
+
+        def sweep(name: str, pose: np.ndarray, step: Optional[RegistrationResult]) -> dict:
+            entry: dict = {"name": name, "world_T_sweep": pose.tolist()}
+            if step is not None:
+                entry.update(
+                    confidence=step.confidence,
+                    likely_failed=step.likely_failed,
+                    failure_reason=step.failure_reason,
+                    estimate_from=step.estimate_from,
+                    seconds=round(step.timings_ms.get("total", 0.0) / 1000.0, 4),
+                )
+            return entry
+
+        return {
+            "world": self.names[0],
+            "sweeps": [sweep(n, p, s) for n, p, s in zip(self.names, self.poses, self.steps)],
+            "timings_s": self.timings_s,
+        }
+
+
+def odometry(
+    sweeps: Sequence[CloudLike],
+    config: Optional[OdometryConfig] = None,
+    names: Optional[Sequence[str]] = None,
+    model=None,
+    progress: Optional[Callable[[int, int], None]] = None,
+) -> OdometryResult:
+    """The pose of every sweep of a sequence in the first sweep's frame.
+
+    Args:
+        sweeps: the sweeps in the order they were taken, (N_i, 3) arrays or Open3D point clouds,
+            each in its sensor's frame, all in the same units.
+        config: the settings (None: the defaults).
+        names: how to call the sweeps (file names); default sweep0, sweep1, ...
+        model: an already loaded network (else loaded once from ``config.register.weights``).
+        progress: called as progress(sweeps done, sweeps in all) after each sweep.
+    Returns:
+        OdometryResult.
+    Raises:
+        InputError: fewer than two sweeps, or a sweep that cannot be registered (empty, degenerate).
+    """
+    from .coarse import cached_model
+
+    config = OdometryConfig() if config is None else config
+    if not isinstance(config, OdometryConfig):
+        raise UsageError(f"config must be an o3dsoft.OdometryConfig (its register field holds a RegisterConfig), got {type(config).__name__}")
+    config.validate()
+    names = tuple(names) if names is not None else tuple(f"sweep{i}" for i in range(len(sweeps)))
+    if len(names) != len(sweeps):
+        raise InputError(f"{len(names)} names for {len(sweeps)} sweeps")
+    if len(sweeps) < 2:
+        raise InputError(f"odometry needs at least two sweeps, got {len(sweeps)}")
+    points = [as_points(s, n) for s, n in zip(sweeps, names)]
+    model = model if model is not None else cached_model(config.register.weights, config.register.device)
+    start = time.perf_counter()
+    poses: List[np.ndarray] = [np.eye(4)]
+    steps: List[Optional[RegistrationResult]] = [None]
+    motion = np.eye(4)  # previous_T_sweep of the last step
+    for k in range(1, len(points)):
+        local_map = _local_map(points, poses, steps, k, config.map_sweeps)
+        guess = motion if config.constant_velocity else np.eye(4)
+        step = register(points[k], local_map, config.register, model=model, source_name=names[k], target_name=f"the map before {names[k]}", init=guess)
+        motion = step.transformation
+        poses.append(poses[-1] @ motion)
+        steps.append(step)
+        if progress is not None:
+            progress(k + 1, len(points))
+    return OdometryResult(names, tuple(poses), tuple(steps), {"total": round(time.perf_counter() - start, 3)})
+
+
+def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], k: int, size: int) -> np.ndarray:
+    """(M, 3) the last `size` sweeps before sweep k that are not flagged (the previous one
+    whatever its flag), in sweep k-1's frame."""
+    into = np.linalg.inv(poses[k - 1])
+    chosen = [j for j in range(max(0, k - size), k - 1) if steps[j] is None or not steps[j].likely_failed] + [k - 1]
+    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in chosen])
+
+
+callable_as_its_function(__name__)

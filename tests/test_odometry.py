@@ -1,0 +1,92 @@
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import o3dsoft
+from o3dsoft.cli.main import main
+from o3dsoft.errors import InputError, UsageError
+from o3dsoft.odometry import OdometryConfig, _local_map, odometry
+from o3dsoft.transforms import euler_to_matrix, rigid
+
+from .conftest import ring_sweep
+
+RINGS = tuple(np.arange(-15.0, 8.0, 1.5))  # 16 rings
+
+
+def _sequence(count: int, seed: int = 0):
+    """`count` sweeps of a sensor driving along x in the room of ring_sweep, 0.6 units and 1.5
+    degrees of yaw per sweep, and their world_T_sweep (the first the identity)."""
+    rng = np.random.default_rng(seed)
+    step = rigid(euler_to_matrix([0.0, 0.0, 1.5]), np.array([0.6, 0.1, 0.0]))
+    poses = [np.eye(4)]
+    for _ in range(count - 1):
+        poses.append(poses[-1] @ step)
+    start = rigid(np.eye(3), np.array([-8.0, -4.0, 0.0]))  # in the room, facing the box
+    return [ring_sweep(start @ P, rng, RINGS) for P in poses], poses
+
+
+def test_odometry_follows_a_sequence_of_sweeps():
+    sweeps, truth = _sequence(6)
+    result = o3dsoft.odometry(sweeps, o3dsoft.OdometryConfig(map_sweeps=3))
+    assert np.array_equal(result.poses[0], np.eye(4)) and result.steps[0] is None
+    assert result.flagged == (False,) * 6
+    for pose, true in zip(result.poses, truth):
+        e = o3dsoft.pair_errors(pose, true)
+        assert e.rotation_deg < 0.3 and e.translation < 0.05, e
+    doc = json.loads(json.dumps(result.to_dict()))
+    assert doc["world"] == "sweep0" and len(doc["sweeps"]) == 6 and "confidence" in doc["sweeps"][1] and "confidence" not in doc["sweeps"][0]
+
+
+def test_the_local_map_leaves_flagged_sweeps_out_but_the_previous_one():
+    points = [np.full((k + 1, 3), float(k)) for k in range(6)]  # sweep k has k + 1 points
+    poses = [np.eye(4)] * 6
+    steps = [None] + [SimpleNamespace(likely_failed=k in (2, 4)) for k in range(1, 6)]
+    assert len(_local_map(points, poses, steps, 5, 3)) == 4 + 5  # sweeps 3 and 4 (flagged, but the previous one); 2 (flagged) left out
+    assert len(_local_map(points, poses, steps, 4, 3)) == 2 + 4  # sweeps 1 and 3; 2 (flagged) left out
+    assert len(_local_map(points, poses, steps, 1, 5)) == 1  # the first alone
+    moved = [rigid(np.eye(3), np.array([k, 0.0, 0.0])) for k in range(6)]  # world_T_sweep: in sweep k-1's frame
+    assert np.array_equal(_local_map(points, moved, steps, 4, 1), points[3])
+    assert np.allclose(_local_map(points, moved, steps, 4, 3)[:2], points[1] + [-2.0, 0.0, 0.0])
+
+
+def test_odometry_refuses_what_it_cannot_use():
+    sweeps, _ = _sequence(2)
+    with pytest.raises(UsageError, match="map_sweeps must be a whole number of at least 1"):
+        odometry(sweeps, OdometryConfig(map_sweeps=0))
+    with pytest.raises(InputError, match="at least two sweeps, got 1"):
+        odometry(sweeps[:1])
+    with pytest.raises(InputError, match="3 names for 2 sweeps"):
+        odometry(sweeps, names=["a", "b", "c"])
+    with pytest.raises(UsageError, match="config must be an o3dsoft.OdometryConfig"):
+        odometry(sweeps, o3dsoft.RegisterConfig())
+
+
+def test_odometry_command_writes_poses_multiway_reads(tmp_path):
+    sweeps, truth = _sequence(4, seed=1)
+    files = []
+    for k, sweep in enumerate(sweeps):
+        files.append(tmp_path / f"frame_{k:03d}.ply")
+        o3dsoft.write_points(files[-1], sweep)
+    gt = tmp_path / "gt.txt"
+    gt.write_text("".join(" ".join(f"{v:.12g}" for v in P[:3].reshape(-1)) + "\n" for P in truth))
+    out = tmp_path / "odo"
+    r = CliRunner().invoke(main, ["odometry", *map(str, files), "--out", str(out), "--gt", str(gt), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert "o3dsoft odometry  4 sweeps" in r.output and "Steps flagged likely failed: 0 of 3." in r.output
+    assert "Against --gt (lower is better): step errors median" in r.output
+    rows = (out / "poses.txt").read_text().splitlines()
+    assert len(rows) == 4 and all(len(row.split()) == 12 for row in rows)
+    poses = o3dsoft.read_poses(out / "poses.txt", [str(f) for f in files])  # multiway --init's reader
+    doc = json.loads((out / "poses.json").read_text())
+    for pose, entry, true in zip(poses, doc["sweeps"], truth):
+        assert np.allclose(pose, entry["world_T_sweep"], atol=1e-8)
+        assert o3dsoft.pair_errors(pose, true).translation < 0.05
+    # bad input: one sweep, a reference with a pose too few
+    r = CliRunner().invoke(main, ["odometry", str(files[0]), "--out", str(tmp_path / "one")])
+    assert r.exit_code == 2 and "odometry needs at least two" in r.output and not (tmp_path / "one").exists()
+    gt.write_text("".join(gt.read_text().splitlines(keepends=True)[:3]))
+    r = CliRunner().invoke(main, ["odometry", *map(str, files), "--out", str(tmp_path / "bad"), "--gt", str(gt)])
+    assert r.exit_code == 1 and "gt.txt: 3 poses for 4 scans" in r.output and "Traceback" not in r.output and not (tmp_path / "bad").exists()
