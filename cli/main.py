@@ -729,13 +729,15 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     the last --map-sweeps sweeps from a constant-velocity guess.
 
     Writes OUT/poses.json (world_T_sweep per sweep, each step's confidence) and OUT/poses.txt (one
-    3x4 pose per line, as KITTI's files; multiway --init reads it to close loops). A flagged step
-    is named on stderr (exit status 3 with --strict).
+    3x4 pose per line, as KITTI's files; multiway --init reads either to close loops). A flagged
+    step is named on stderr (exit status 3 with --strict), and later sweeps are registered
+    without its sweep.
     """
     from tqdm import tqdm
 
     from .. import io
-    from ..odometry import OdometryConfig
+    from ..coarse import cached_model
+    from ..odometry import OdometryConfig, check_sweeps
     from ..odometry import odometry as run_odometry
 
     seen: dict = {}
@@ -748,20 +750,22 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
         raise click.UsageError(f"{sweeps[0]}: one sweep; odometry needs at least two")
     names = [str(p) for p in sweeps]
     clouds = [io.read_points(p) for p in sweeps]
-    reference = io.read_poses(gt_path, names) if gt_path is not None else None
+    reference = io.read_poses(gt_path, names, what="sweeps") if gt_path is not None else None
     missing = [n for n, pose in zip(names, reference or ()) if pose is None]
     if missing:
         raise click.UsageError(f"--gt {gt_path}: no pose for {len(missing)} sweep(s): {', '.join(missing[:5])}")
     io.check_outputs_apart(
         {"--out's poses": out_dir / "poses.json", "--out's KITTI poses": out_dir / "poses.txt"}, {**{f"the sweep {p}": p for p in sweeps}, "--gt": gt_path}
     )
-    io.make_folder(out_dir)  # after the sweeps are read: a bad file leaves no folder behind
+    config = OdometryConfig(map_sweeps=map_sweeps, register=_register_config(**pipeline))
+    model = cached_model(config.register.weights, config.register.device)
+    check_sweeps(clouds, names, model.config.k)
+    io.make_folder(out_dir)  # after the sweeps are read and checked: a bad one leaves no folder behind
     for p in (out_dir / "poses.json", out_dir / "poses.txt"):
         io.check_writable(p)
-    config = OdometryConfig(map_sweeps=map_sweeps, register=_register_config(**pipeline))
     bar = tqdm(total=len(clouds), initial=1, unit="sweep", disable=True if no_progress else None, dynamic_ncols=True)
     try:
-        result = run_odometry(clouds, config, names=names, progress=lambda done, total: bar.update(done - bar.n))
+        result = run_odometry(clouds, config, names=names, model=model, progress=lambda done, total: bar.update(done - bar.n))
     finally:
         bar.close()
     payload = result.to_dict()
@@ -772,7 +776,11 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     click.echo(json.dumps(payload, indent=2) if as_json else _format_odometry(result, out_dir, reference))
     flagged = [f"{n} (confidence {s.confidence:.3f}: {s.failure_reason})" for n, s, f in zip(names, result.steps, result.flagged) if f]
     if flagged:
-        click.echo(f"Warning: {len(flagged)} step(s) flagged likely failed; their poses and those after them may be off: " + "; ".join(flagged), err=True)
+        click.echo(
+            f"Warning: {len(flagged)} step(s) flagged likely failed; their poses may be off (the sweeps after them are registered without them): "
+            + "; ".join(flagged),
+            err=True,
+        )
         if strict:
             sys.exit(3)
 
@@ -798,10 +806,11 @@ def _format_odometry(result, out_dir: Path, reference=None) -> str:
         errors = [pair_errors(T, np.linalg.inv(truth[k]) @ truth[k + 1]) for k, T in enumerate(motions)]
         rotation, translation = np.array([e.rotation_deg for e in errors]), np.array([e.translation for e in errors])
         drift = pair_errors(result.poses[-1], truth[-1])
+        travelled = sum(float(np.linalg.norm(truth[k + 1][:3, 3] - truth[k][:3, 3])) for k in range(len(truth) - 1))
         lines.append(
             f"Against --gt (lower is better): step errors median {np.median(rotation):.3g} deg / {np.median(translation):.3g} units, "
             f"largest {rotation.max():.3g} deg / {translation.max():.3g} units; the last sweep {drift.rotation_deg:.3g} deg / {drift.translation:.3g} units off"
-            + (f" ({100 * drift.translation / path:.2g} % of the path)" if path > 0 else "")
+            + (f" ({100 * drift.translation / travelled:.2g} % of the reference path, {travelled:.4g} units)" if travelled > 0 else "")
             + "."
         )
     lines += [

@@ -1085,13 +1085,15 @@ def _number_lines(path: Path, counts: Tuple[int, ...], expected: str) -> List[Tu
     return rows
 
 
-def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np.ndarray]] = None) -> List[Optional[np.ndarray]]:
-    """Initial poses (4, 4) world_T_scan of the scans `names`, None where the file has none.
+def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np.ndarray]] = None, what: str = "scans") -> List[Optional[np.ndarray]]:
+    """Initial poses (4, 4) world_T_scan of the scans `names`, None where the file has none
+    (`what`: what the clouds are called in messages, plural).
 
     Two layouts:
         ``.json``: ``{"scans": [{"name": ..., "world_T_scan": 4x4 or null}, ...]}``, the
-            poses.json that ``o3dsoft multiway`` writes; a scan is found by its name, else by its
-            file name.
+            poses.json that ``o3dsoft multiway`` writes, or ``{"sweeps": [{"name": ...,
+            "world_T_sweep": 4x4}, ...]}``, that of ``o3dsoft odometry``; a scan is found by its
+            name, else by its file name.
         text (any other extension): one pose per line in the scans' order, 12 numbers (a 3x4
             [R | t] row by row, as KITTI's pose files) or 16 (4x4 row by row).
     Rotations within 1e-3 of orthonormal are replaced by the nearest rotation, as
@@ -1109,7 +1111,7 @@ def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np
     else:
         lines = _number_lines(path, (12, 16), "one pose per line, 12 or 16 numbers")
         if len(lines) != len(names):
-            raise InputError(f"{path}: {len(lines)} poses for {len(names)} scans; expected one line per scan, in the order the scans are given")
+            raise InputError(f"{path}: {len(lines)} poses for {len(names)} {what}; expected one line per {what[:-1]}, in the order the {what} are given")
         found = {k: (f"{path}, line {lineno}", np.array(row, dtype=np.float64).reshape(-1, 4)) for k, (lineno, row) in enumerate(lines)}
     poses: List[Optional[np.ndarray]] = [None] * len(names)
     for k, (where, T) in found.items():
@@ -1124,9 +1126,14 @@ def _poses_by_name(path: Path, names: Sequence[str]) -> Dict[int, Tuple[str, np.
         record = json.loads(path.read_text())
     except (UnicodeDecodeError, ValueError, RecursionError) as e:
         raise InputError(f"{path}: not a JSON file ({first_line(e)}); expected o3dsoft multiway's poses.json") from None
+    if isinstance(record, dict) and "scans" not in record and isinstance(record.get("sweeps"), list):  # o3dsoft odometry's
+        record = {"scans": [{**e, "world_T_scan": e.get("world_T_sweep")} if isinstance(e, dict) else e for e in record["sweeps"]]}
     entries = record.get("scans") if isinstance(record, dict) else None
     if not isinstance(entries, list) or not all(isinstance(e, dict) and isinstance(e.get("name"), str) for e in entries):
-        raise InputError(f'{path}: expected {{"scans": [{{"name": ..., "world_T_scan": ...}}, ...]}}, as o3dsoft multiway writes')
+        raise InputError(
+            f'{path}: expected {{"scans": [{{"name": ..., "world_T_scan": ...}}, ...]}}, as o3dsoft multiway writes, '
+            f'or {{"sweeps": [{{"name": ..., "world_T_sweep": ...}}, ...]}}, as o3dsoft odometry writes'
+        )
     entries = [e for e in entries if e.get("world_T_scan") is not None]
     index = {name: k for k, name in enumerate(names)}
     exact = [e for e in entries if e["name"] in index]

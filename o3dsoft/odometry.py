@@ -1,10 +1,10 @@
 """``odometry``: the poses of a sequence of sweeps (LiDAR, depth frames), one after another.
 
     for each sweep after the first:
-    -> a local map: the last few sweeps (those not flagged) in the previous sweep's frame
+    -> a local map: the last few sweeps whose steps were not flagged, in the previous sweep's frame
     -> register the sweep onto it (:func:`o3dsoft.register`) from a constant-velocity guess (the
-       previous motion again; where ICP from it is trusted, nothing else runs)
-    -> its pose: the previous pose followed by that motion.
+       last trusted motion again; where ICP from it is trusted, nothing else runs)
+    -> its pose: the previous pose followed by the motion found.
 
 Registering onto several sweeps instead of the last one alone (the scheme of KISS-ICP) gives ICP
 denser surfaces to slide against: sparse sweeps of few rings drift less (docs/multiway.md). The
@@ -14,6 +14,7 @@ that, ``multiway --init`` from these poses).
 
 from __future__ import annotations
 
+import numbers
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -25,6 +26,7 @@ from .config import RegisterConfig
 from .errors import InputError, UsageError
 from .pair import CloudLike, as_points
 from .pipeline import RegistrationResult, register
+from .preprocess import clean_points
 from .transforms import apply_transform
 
 
@@ -34,9 +36,10 @@ class OdometryConfig:
 
     Attributes:
         map_sweeps: how many of the last sweeps make the local map each sweep is registered onto
-            (1: the previous sweep alone, frame to frame); flagged sweeps are left out of it.
-        constant_velocity: start each sweep at the previous motion repeated (else at the
-            previous sweep's pose, the identity motion).
+            (1: the previous sweep alone, frame to frame); sweeps whose step was flagged are left
+            out of it (it reaches back to the last ones that were not).
+        constant_velocity: start each sweep at the last motion repeated (else where the previous
+            sweep is); after a flagged step, from the last trusted sweep's pose and motion.
         register: the registration's settings (the same for every sweep).
     """
 
@@ -45,8 +48,10 @@ class OdometryConfig:
     register: RegisterConfig = field(default_factory=RegisterConfig)
 
     def validate(self) -> None:
-        if not isinstance(self.map_sweeps, int) or self.map_sweeps < 1:
+        if isinstance(self.map_sweeps, bool) or not isinstance(self.map_sweeps, numbers.Integral) or self.map_sweeps < 1:
             raise UsageError(f"map_sweeps must be a whole number of at least 1, got {self.map_sweeps!r}")
+        if not isinstance(self.constant_velocity, (bool, np.bool_)):
+            raise UsageError(f"constant_velocity must be True or False, got {self.constant_velocity!r}")
         if not isinstance(self.register, RegisterConfig):
             raise UsageError(f"register must be an o3dsoft.RegisterConfig, got {type(self.register).__name__}")
 
@@ -115,7 +120,9 @@ def odometry(
     Returns:
         OdometryResult.
     Raises:
-        InputError: fewer than two sweeps, or a sweep that cannot be registered (empty, degenerate).
+        InputError: fewer than two sweeps, or a sweep that cannot be registered (too few
+            distinct points, degenerate): every sweep is checked before the first is registered.
+        UsageError: `config` is not an OdometryConfig, or a setting is invalid.
     """
     from .coarse import cached_model
 
@@ -123,35 +130,63 @@ def odometry(
     if not isinstance(config, OdometryConfig):
         raise UsageError(f"config must be an o3dsoft.OdometryConfig (its register field holds a RegisterConfig), got {type(config).__name__}")
     config.validate()
+    sweeps = list(sweeps)  # any iterable of sweeps
     names = tuple(names) if names is not None else tuple(f"sweep{i}" for i in range(len(sweeps)))
     if len(names) != len(sweeps):
         raise InputError(f"{len(names)} names for {len(sweeps)} sweeps")
     if len(sweeps) < 2:
         raise InputError(f"odometry needs at least two sweeps, got {len(sweeps)}")
-    points = [as_points(s, n) for s, n in zip(sweeps, names)]
     model = model if model is not None else cached_model(config.register.weights, config.register.device)
+    points = check_sweeps(sweeps, names, model.config.k)
     start = time.perf_counter()
     poses: List[np.ndarray] = [np.eye(4)]
     steps: List[Optional[RegistrationResult]] = [None]
-    motion = np.eye(4)  # previous_T_sweep of the last step
     for k in range(1, len(points)):
         local_map = _local_map(points, poses, steps, k, config.map_sweeps)
-        guess = motion if config.constant_velocity else np.eye(4)
+        guess = _guess(poses, steps, k, config.constant_velocity)
         step = register(points[k], local_map, config.register, model=model, source_name=names[k], target_name=f"the map before {names[k]}", init=guess)
-        motion = step.transformation
-        poses.append(poses[-1] @ motion)
+        poses.append(poses[-1] @ step.transformation)
         steps.append(step)
         if progress is not None:
             progress(k + 1, len(points))
     return OdometryResult(names, tuple(poses), tuple(steps), {"total": round(time.perf_counter() - start, 3)})
 
 
+def check_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> List[np.ndarray]:
+    """The (N_i, 3) points of each sweep, each checked to hold `min_points` distinct finite points
+    and not to be degenerate (:func:`o3dsoft.preprocess.clean_points`): a bad sweep late in a long
+    sequence fails before the first is registered."""
+    points = [as_points(s, str(n)) for s, n in zip(sweeps, names)]
+    for p, n in zip(points, names):
+        clean_points(p, str(n), min_points=min_points)
+    return points
+
+
+def _trusted(steps: Sequence[Optional[RegistrationResult]], k: int) -> List[int]:
+    """The sweeps before k whose step was not flagged (the first always)."""
+    return [j for j in range(k) if steps[j] is None or not steps[j].likely_failed]
+
+
 def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], k: int, size: int) -> np.ndarray:
-    """(M, 3) the last `size` sweeps before sweep k that are not flagged (the previous one
-    whatever its flag), in sweep k-1's frame."""
+    """(M, 3) the last `size` sweeps before sweep k whose steps were not flagged, in sweep k-1's
+    frame (its pose's: the motion found from there composes back to the right pose whatever
+    that pose is)."""
     into = np.linalg.inv(poses[k - 1])
-    chosen = [j for j in range(max(0, k - size), k - 1) if steps[j] is None or not steps[j].likely_failed] + [k - 1]
-    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in chosen])
+    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in _trusted(steps, k)[-size:]])
+
+
+def _guess(poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], k: int, constant_velocity: bool) -> np.ndarray:
+    """(4, 4) the guess of sweep k-1 _T_ sweep k: the last trusted sweep's pose carried on, once
+    per sweep since, by the last motion between two trusted sweeps (constant velocity; the
+    identity without it or before any): a flagged step's pose and motion are not repeated."""
+    trusted = _trusted(steps, k)
+    velocity = np.eye(4)
+    if constant_velocity:
+        moves = [j for j in trusted if j >= 1 and (j - 1) in trusted]
+        if moves:
+            velocity = steps[moves[-1]].transformation  # type: ignore[union-attr]
+    last = trusted[-1]
+    return np.linalg.inv(poses[k - 1]) @ poses[last] @ np.linalg.matrix_power(velocity, k - last)
 
 
 callable_as_its_function(__name__)

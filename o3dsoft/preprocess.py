@@ -38,16 +38,16 @@ MAX_COORDINATE = 1e12
 
 
 def _float32_note(points: np.ndarray, duplicates: int) -> str:
-    """Where duplicates left too few (K, 3) points, every coordinate is a float32 value and the
-    points span under 1,000 of float32's steps at their magnitude (far from the origin it merges
-    nearby points): how coarse float32 is there; else ""."""
+    """Where duplicates left too few (K, 3) points, every coordinate is a float32 value, the
+    points lie over 10,000 units from the origin and span under 1,000 of float32's steps there
+    (far from the origin float32 merges nearby points): how coarse float32 is there; else ""."""
     if not duplicates or len(points) == 0 or not np.array_equal(points.astype(np.float32), points):
         return ""
     largest = float(np.abs(points).max())
     step = float(np.spacing(np.float32(largest)))
-    if float(np.ptp(points, axis=0).max()) > 1000 * step:
+    if largest < 1e4 or float(np.ptp(points, axis=0).max()) > 1000 * step:
         return ""
-    return f"; the points are float32 values, whose step at {largest:.3g} is {step:.3g}, which merges closer points: pass them as float64"
+    return f"; if these coordinates went through float32, its step at {largest:.3g} is {step:.3g}, which merges closer points: keep them in float64"
 
 
 def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -> CleanReport:

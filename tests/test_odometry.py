@@ -1,3 +1,4 @@
+import importlib
 import json
 from types import SimpleNamespace
 
@@ -8,7 +9,7 @@ from click.testing import CliRunner
 import o3dsoft
 from o3dsoft.cli.main import main
 from o3dsoft.errors import InputError, UsageError
-from o3dsoft.odometry import OdometryConfig, _local_map, odometry
+from o3dsoft.odometry import OdometryConfig, _guess, _local_map, odometry
 from o3dsoft.transforms import euler_to_matrix, rigid
 
 from .conftest import ring_sweep
@@ -40,19 +41,40 @@ def test_odometry_follows_a_sequence_of_sweeps():
     assert doc["world"] == "sweep0" and len(doc["sweeps"]) == 6 and "confidence" in doc["sweeps"][1] and "confidence" not in doc["sweeps"][0]
 
 
-def test_the_local_map_leaves_flagged_sweeps_out_but_the_previous_one():
+def test_the_local_map_and_the_guess_leave_flagged_steps_out():
     points = [np.full((k + 1, 3), float(k)) for k in range(6)]  # sweep k has k + 1 points
     poses = [np.eye(4)] * 6
-    steps = [None] + [SimpleNamespace(likely_failed=k in (2, 4)) for k in range(1, 6)]
-    assert len(_local_map(points, poses, steps, 5, 3)) == 4 + 5  # sweeps 3 and 4 (flagged, but the previous one); 2 (flagged) left out
-    assert len(_local_map(points, poses, steps, 4, 3)) == 2 + 4  # sweeps 1 and 3; 2 (flagged) left out
+    steps = [None] + [SimpleNamespace(likely_failed=k in (2, 4), transformation=np.eye(4)) for k in range(1, 6)]
+    assert len(_local_map(points, poses, steps, 5, 3)) == 1 + 2 + 4  # sweeps 0, 1 and 3: 2 and 4 flagged
+    assert len(_local_map(points, poses, steps, 4, 2)) == 2 + 4  # sweeps 1 and 3
     assert len(_local_map(points, poses, steps, 1, 5)) == 1  # the first alone
     moved = [rigid(np.eye(3), np.array([k, 0.0, 0.0])) for k in range(6)]  # world_T_sweep: in sweep k-1's frame
     assert np.array_equal(_local_map(points, moved, steps, 4, 1), points[3])
-    assert np.allclose(_local_map(points, moved, steps, 4, 3)[:2], points[1] + [-2.0, 0.0, 0.0])
+    assert np.allclose(_local_map(points, moved, steps, 4, 2)[:2], points[1] + [-2.0, 0.0, 0.0])
+    # The guess: sweep 5 after the flagged step 4 is the last trusted sweep (3) carried on twice by
+    # the last motion between two trusted sweeps (0 -> 1; 2 -> 3 follows a flagged one).
+    velocity = rigid(euler_to_matrix([0.0, 0.0, 2.0]), np.array([1.0, 0.0, 0.0]))
+    steps[1].transformation, steps[3].transformation, steps[4].transformation = velocity, np.eye(4), rigid(np.eye(3), np.array([50.0, 0, 0]))
+    poses = [np.eye(4), velocity, velocity, velocity @ rigid(np.eye(3), np.array([0.0, 3.0, 0.0])), np.eye(4) * 7]
+    poses[4][3, 3] = 1.0
+    guess = _guess(poses, steps, 5, True)
+    assert np.allclose(poses[4] @ guess, poses[3] @ velocity @ velocity)
+    assert np.allclose(poses[4] @ _guess(poses, steps, 5, False), poses[3])  # without constant velocity: where sweep 3 is
 
 
-def test_odometry_refuses_what_it_cannot_use():
+@pytest.mark.parametrize("size", [1, 3])
+def test_a_sweep_in_other_units_is_flagged_and_the_next_ones_stay_right(size):
+    # Its step flagged, it stays out of the next map and its motion out of the next guess.
+    sweeps, truth = _sequence(6, seed=2)
+    sweeps[3] = 1000.0 * sweeps[3]  # millimetres among metres
+    result = o3dsoft.odometry(sweeps, o3dsoft.OdometryConfig(map_sweeps=size))
+    assert result.flagged == (False, False, False, True, False, False)
+    for k in (4, 5):
+        e = o3dsoft.pair_errors(result.poses[k], truth[k])
+        assert e.rotation_deg < 0.3 and e.translation < 0.05, (k, e)
+
+
+def test_odometry_refuses_what_it_cannot_use(monkeypatch):
     sweeps, _ = _sequence(2)
     with pytest.raises(UsageError, match="map_sweeps must be a whole number of at least 1"):
         odometry(sweeps, OdometryConfig(map_sweeps=0))
@@ -62,6 +84,17 @@ def test_odometry_refuses_what_it_cannot_use():
         odometry(sweeps, names=["a", "b", "c"])
     with pytest.raises(UsageError, match="config must be an o3dsoft.OdometryConfig"):
         odometry(sweeps, o3dsoft.RegisterConfig())
+    with pytest.raises(UsageError, match="map_sweeps must be a whole number"):
+        odometry(sweeps, OdometryConfig(map_sweeps=True))
+    with pytest.raises(UsageError, match="constant_velocity must be True or False, got 'no'"):
+        odometry(sweeps, OdometryConfig(constant_velocity="no"))  # type: ignore[arg-type]
+    OdometryConfig(map_sweeps=np.int64(3)).validate()
+    # A bad sweep anywhere fails before the first is registered.
+    registered = []
+    monkeypatch.setattr(importlib.import_module("o3dsoft.odometry"), "register", lambda *a, **k: registered.append(1))
+    with pytest.raises(InputError, match="sweep2: 1 distinct finite points"):
+        odometry(iter([sweeps[0], sweeps[1], np.zeros((50, 3))]))  # any iterable
+    assert not registered
 
 
 def test_odometry_command_writes_poses_multiway_reads(tmp_path):
@@ -84,9 +117,16 @@ def test_odometry_command_writes_poses_multiway_reads(tmp_path):
     for pose, entry, true in zip(poses, doc["sweeps"], truth):
         assert np.allclose(pose, entry["world_T_sweep"], atol=1e-8)
         assert o3dsoft.pair_errors(pose, true).translation < 0.05
-    # bad input: one sweep, a reference with a pose too few
+    assert "% of the reference path" in r.output
+    # its poses.json is read as --gt (and by multiway --init) as its poses.txt is
+    again = o3dsoft.read_poses(out / "poses.json", [str(f) for f in files])
+    assert all(np.allclose(a, b, atol=1e-8) for a, b in zip(again, poses))
+    # bad input: a sweep that cannot be registered, one sweep, a reference with a pose too few
+    np.save(tmp_path / "empty.npy", np.full((40, 3), np.nan))
+    r = CliRunner().invoke(main, ["odometry", *map(str, files), str(tmp_path / "empty.npy"), "--out", str(tmp_path / "late")])
+    assert r.exit_code == 1 and "empty.npy: 0 distinct finite points" in r.output and not (tmp_path / "late").exists()
     r = CliRunner().invoke(main, ["odometry", str(files[0]), "--out", str(tmp_path / "one")])
     assert r.exit_code == 2 and "odometry needs at least two" in r.output and not (tmp_path / "one").exists()
     gt.write_text("".join(gt.read_text().splitlines(keepends=True)[:3]))
     r = CliRunner().invoke(main, ["odometry", *map(str, files), "--out", str(tmp_path / "bad"), "--gt", str(gt)])
-    assert r.exit_code == 1 and "gt.txt: 3 poses for 4 scans" in r.output and "Traceback" not in r.output and not (tmp_path / "bad").exists()
+    assert r.exit_code == 1 and "gt.txt: 3 poses for 4 sweeps" in r.output and "Traceback" not in r.output and not (tmp_path / "bad").exists()
