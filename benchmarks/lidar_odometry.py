@@ -10,8 +10,9 @@ and meshed (Open3D's Poisson reconstruction, depth 10, trimmed where no scan poi
 1.8 m over the ground plane (a RANSAC fit), moves 0.5-2.0 m per sweep and turns up to 4 degrees
 about the vertical. A sweep: rings from -25 to +15 degrees of elevation (32; 16 and 8 keep every
 2nd and 4th), 0.2 degrees between rays, 2 cm range noise, returns from 1 to 60 m, in the
-sensor's frame. Errors against the poses the sweeps were cast from; a step is wrong beyond 1
-degree or 0.3 m. Run it alone on the machine: the times are medians of its own run.
+sensor's frame. Errors against the poses the sweeps were cast from: a step (a sweep's pose
+relative to the previous one's) is wrong beyond 1 degree or 0.3 m. Run it alone on the machine:
+the times are medians of its own run.
 """
 
 from __future__ import annotations

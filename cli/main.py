@@ -749,6 +749,13 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     if len(sweeps) < 2:
         raise click.UsageError(f"{sweeps[0]}: one sweep; odometry needs at least two")
     names = [str(p) for p in sweeps]
+    numbered = sorted(names, key=lambda n: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", n)])
+    if names == sorted(names) and numbered != names:  # a shell glob's order: frame_10 before frame_2
+        early, late = next((a, b) for a, b in zip(names, numbered) if a != b)
+        click.echo(
+            f"Warning: the sweeps are in name order, so {early} comes before {late}: give them in the order taken (`ls -v`, or names with leading zeros)",
+            err=True,
+        )
     clouds = [io.read_points(p) for p in sweeps]
     reference = io.read_poses(gt_path, names, what="sweeps") if gt_path is not None else None
     missing = [n for n, pose in zip(names, reference or ()) if pose is None]

@@ -1,9 +1,9 @@
 """``odometry``: the poses of a sequence of sweeps (LiDAR, depth frames), one after another.
 
     for each sweep after the first:
-    -> a local map: the last few sweeps whose steps were not flagged, in the previous sweep's frame
+    -> a local map: the last few sweeps (not those flagged that fit it poorly), in the previous sweep's frame
     -> register the sweep onto it (:func:`o3dsoft.register`) from a constant-velocity guess (the
-       last trusted motion again; where ICP from it is trusted, nothing else runs)
+       last motion again; where ICP from it is trusted, nothing else runs)
     -> its pose: the previous pose followed by the motion found.
 
 Registering onto several sweeps instead of the last one alone (the scheme of KISS-ICP) gives ICP
@@ -29,6 +29,11 @@ from .pipeline import RegistrationResult, register
 from .preprocess import clean_points
 from .transforms import apply_transform
 
+# A flagged step whose sweep has at least this share of its points within ICP's distance of the
+# map stays in it: on sparse sweeps the confidence flags right steps, and a map without them loses
+# its way (docs/multiway.md).
+MAP_MIN_FITNESS = 0.5
+
 
 @dataclass(frozen=True)
 class OdometryConfig:
@@ -36,10 +41,10 @@ class OdometryConfig:
 
     Attributes:
         map_sweeps: how many of the last sweeps make the local map each sweep is registered onto
-            (1: the previous sweep alone, frame to frame); sweeps whose step was flagged are left
-            out of it (it reaches back to the last ones that were not).
+            (1: the previous sweep alone, frame to frame); a sweep whose step was flagged and
+            fits the map poorly (:data:`MAP_MIN_FITNESS`) is left out of it (it reaches back past).
         constant_velocity: start each sweep at the last motion repeated (else where the previous
-            sweep is); after a flagged step, from the last trusted sweep's pose and motion.
+            sweep is); after a step left out of the map, from the last kept sweep's pose and motion.
         register: the registration's settings (the same for every sweep).
     """
 
@@ -162,30 +167,32 @@ def check_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: 
     return points
 
 
-def _trusted(steps: Sequence[Optional[RegistrationResult]], k: int) -> List[int]:
-    """The sweeps before k whose step was not flagged (the first always)."""
-    return [j for j in range(k) if steps[j] is None or not steps[j].likely_failed]
+def _kept(steps: Sequence[Optional[RegistrationResult]], k: int) -> List[int]:
+    """The sweeps before k that the map keeps (the first always): those whose step was trusted,
+    or flagged with at least :data:`MAP_MIN_FITNESS` of its points on the map it was registered
+    onto (on sparse sweeps the confidence flags right steps)."""
+    return [j for j in range(k) if steps[j] is None or not steps[j].likely_failed or steps[j].fitness >= MAP_MIN_FITNESS]
 
 
 def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], k: int, size: int) -> np.ndarray:
-    """(M, 3) the last `size` sweeps before sweep k whose steps were not flagged, in sweep k-1's
+    """(M, 3) the last `size` sweeps before sweep k that the map keeps (:func:`_kept`), in sweep k-1's
     frame (its pose's: the motion found from there composes back to the right pose whatever
     that pose is)."""
     into = np.linalg.inv(poses[k - 1])
-    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in _trusted(steps, k)[-size:]])
+    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in _kept(steps, k)[-size:]])
 
 
 def _guess(poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], k: int, constant_velocity: bool) -> np.ndarray:
-    """(4, 4) the guess of sweep k-1 _T_ sweep k: the last trusted sweep's pose carried on, once
-    per sweep since, by the last motion between two trusted sweeps (constant velocity; the
-    identity without it or before any): a flagged step's pose and motion are not repeated."""
-    trusted = _trusted(steps, k)
+    """(4, 4) the guess of sweep k-1 _T_ sweep k: the last kept sweep's pose (:func:`_kept`)
+    carried on, once per sweep since, by the last motion between two kept sweeps (constant
+    velocity; the identity without it or before any): a step left out of the map is not repeated."""
+    kept = _kept(steps, k)
     velocity = np.eye(4)
     if constant_velocity:
-        moves = [j for j in trusted if j >= 1 and (j - 1) in trusted]
+        moves = [j for j in kept if j >= 1 and (j - 1) in kept]
         if moves:
             velocity = steps[moves[-1]].transformation  # type: ignore[union-attr]
-    last = trusted[-1]
+    last = kept[-1]
     return np.linalg.inv(poses[k - 1]) @ poses[last] @ np.linalg.matrix_power(velocity, k - last)
 
 

@@ -41,10 +41,11 @@ def test_odometry_follows_a_sequence_of_sweeps():
     assert doc["world"] == "sweep0" and len(doc["sweeps"]) == 6 and "confidence" in doc["sweeps"][1] and "confidence" not in doc["sweeps"][0]
 
 
-def test_the_local_map_and_the_guess_leave_flagged_steps_out():
+def test_the_local_map_and_the_guess_leave_flagged_steps_that_fit_poorly_out():
     points = [np.full((k + 1, 3), float(k)) for k in range(6)]  # sweep k has k + 1 points
     poses = [np.eye(4)] * 6
-    steps = [None] + [SimpleNamespace(likely_failed=k in (2, 4), transformation=np.eye(4)) for k in range(1, 6)]
+    # steps 2 and 4 flagged, their sweeps off the map; step 1 flagged on the map (kept)
+    steps = [None] + [SimpleNamespace(likely_failed=k in (1, 2, 4), fitness=0.9 if k == 1 else 0.2, transformation=np.eye(4)) for k in range(1, 6)]
     assert len(_local_map(points, poses, steps, 5, 3)) == 1 + 2 + 4  # sweeps 0, 1 and 3: 2 and 4 flagged
     assert len(_local_map(points, poses, steps, 4, 2)) == 2 + 4  # sweeps 1 and 3
     assert len(_local_map(points, poses, steps, 1, 5)) == 1  # the first alone
@@ -64,7 +65,7 @@ def test_the_local_map_and_the_guess_leave_flagged_steps_out():
 
 @pytest.mark.parametrize("size", [1, 3])
 def test_a_sweep_in_other_units_is_flagged_and_the_next_ones_stay_right(size):
-    # Its step flagged, it stays out of the next map and its motion out of the next guess.
+    # Its step flagged and off the map, it stays out of the next map and its motion out of the next guess.
     sweeps, truth = _sequence(6, seed=2)
     sweeps[3] = 1000.0 * sweeps[3]  # millimetres among metres
     result = o3dsoft.odometry(sweeps, o3dsoft.OdometryConfig(map_sweeps=size))
@@ -121,6 +122,12 @@ def test_odometry_command_writes_poses_multiway_reads(tmp_path):
     # its poses.json is read as --gt (and by multiway --init) as its poses.txt is
     again = o3dsoft.read_poses(out / "poses.json", [str(f) for f in files])
     assert all(np.allclose(a, b, atol=1e-8) for a, b in zip(again, poses))
+    # sweeps numbered without leading zeros, in a shell glob's order: said
+    named = [tmp_path / name for name in ("f0.ply", "f1.ply", "f10.ply", "f2.ply")]
+    for src, dst in zip(files, named):
+        dst.write_bytes(src.read_bytes())
+    r = CliRunner().invoke(main, ["odometry", *map(str, named), "--out", str(tmp_path / "glob"), "--no-progress"])
+    assert r.exit_code == 0 and f"so {named[2]} comes before {named[3]}: give them in the order taken" in r.output
     # bad input: a sweep that cannot be registered, one sweep, a reference with a pose too few
     np.save(tmp_path / "empty.npy", np.full((40, 3), np.nan))
     r = CliRunner().invoke(main, ["odometry", *map(str, files), str(tmp_path / "empty.npy"), "--out", str(tmp_path / "late")])
