@@ -70,7 +70,8 @@ class OdometryResult:
         poses: (4, 4) world_T_sweep per sweep (maps the sweep's points into the first sweep's
             frame; the first is the identity).
         steps: per sweep, its registration onto its local map (None for the first), whose
-            ``transformation`` is the motion previous_T_sweep.
+            ``transformation`` is the motion previous_T_sweep from the previous sweep's pose as
+            found (poses[k] = poses[k-1] @ steps[k].transformation).
         timings_s: "total" (s, lower is better).
     """
 
@@ -81,7 +82,8 @@ class OdometryResult:
 
     @property
     def flagged(self) -> Tuple[bool, ...]:
-        """Per sweep: its registration is flagged likely failed (its pose, and those after it, may be off)."""
+        """Per sweep: its registration is flagged likely failed (its pose may be off; where it also fits
+        the map poorly, the sweeps after it are registered without it)."""
         return tuple(step is not None and step.likely_failed for step in self.steps)
 
     def to_dict(self) -> dict:
