@@ -43,7 +43,8 @@ class MultiwayConfig:
     Attributes:
         neighbours: which pairs are registered: "all" (every pair), "sequence" (each scan with the
             next `window` scans, for scans taken in order), "near" (each scan with its `near`
-            nearest by centroid, for scans already roughly placed, e.g. georeferenced), or "auto"
+            nearest by centroid, for scans already roughly placed, e.g. georeferenced; where those
+            pairs leave groups of scans apart, the nearest pair across is added), or "auto"
             (default: "all" up to `all_up_to` scans; beyond, "near" where every scan has an
             initial pose, else "sequence").
         all_up_to: "auto" registers every pair of at most this many scans (default 12: 66 pairs).
@@ -205,7 +206,31 @@ def choose_pairs(clouds: Sequence[np.ndarray], config: MultiwayConfig, init_pose
     for i in range(n):
         for j in np.argsort(d[i])[1 : config.near + 1]:
             pairs.add((min(i, int(j)), max(i, int(j))))
-    return sorted(pairs)
+    return sorted(pairs | _joining(d, pairs))
+
+
+def _joining(d: np.ndarray, pairs: set) -> set:
+    """The pairs, nearest first, that join the groups `pairs` leaves apart into one (Kruskal's
+    rule over the (n, n) centroid distances `d`): the nearest neighbours of the scans on either
+    side of a gap in a sequence all lie on their own side."""
+    n = len(d)
+    group = list(range(n))
+
+    def root(i: int) -> int:
+        while group[i] != i:
+            group[i] = group[group[i]]
+            i = group[i]
+        return i
+
+    for i, j in pairs:
+        group[root(i)] = root(j)
+    added = set()
+    for flat in np.argsort(d, axis=None, kind="stable"):
+        i, j = divmod(int(flat), n)
+        if i < j and root(i) != root(j):
+            group[root(i)] = root(j)
+            added.add((i, j))
+    return added
 
 
 @quietly

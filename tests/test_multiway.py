@@ -58,17 +58,29 @@ def test_pairs_all_sequence_and_near():
     clouds = [np.zeros((3, 3)) + [x, 0, 0] for x in (0.0, 10.0, 1.0, 11.0)]
     assert choose_pairs(clouds, MultiwayConfig(neighbours="all")) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
     assert choose_pairs(clouds, MultiwayConfig(neighbours="sequence", window=1)) == [(0, 1), (1, 2), (2, 3)]
-    assert choose_pairs(clouds, MultiwayConfig(neighbours="near", near=1)) == [(0, 2), (1, 3)]
+    # the nearest of each pair lie in their own group (x 0 and 1, 10 and 11): the nearest pair between the groups joins them
+    assert choose_pairs(clouds, MultiwayConfig(neighbours="near", near=1)) == [(0, 2), (1, 2), (1, 3)]
     many = [np.zeros((3, 3))] * 14
     assert len(choose_pairs(many, MultiwayConfig())) == 13 * 3 - 3  # auto: sequence beyond 12 scans, window 3
+
+
+def test_near_pairs_of_a_sequence_with_a_gap_stay_one_group():
+    # Scans 1 m apart along a line, with an 11 m gap after the tenth: each scan's 4 nearest lie on its
+    # own side, and one pair, the nearest across the gap, joins the two sides.
+    x = np.concatenate([np.arange(10.0), 20.0 + np.arange(10.0)])
+    clouds = [blob(np.random.default_rng(0), 20)] * 20
+    guesses = [rigid(np.eye(3), [v, 0.0, 0.0]) for v in x]
+    pairs = choose_pairs(clouds, MultiwayConfig(neighbours="near"), guesses)
+    assert [(i, j) for i, j in pairs if i < 10 <= j] == [(9, 10)]
+    assert len(pairs) == len(set(pairs))
 
 
 def test_near_pairs_scans_where_their_initial_poses_put_them():
     clouds = [blob(np.random.default_rng(k), 50) for k in range(4)]  # four clouds about the origin
     guesses = [rigid(np.eye(3), [x, 0.0, 0.0]) for x in (0.0, 5.0, 1.0, 6.0)]
-    assert choose_pairs(clouds, MultiwayConfig(neighbours="near", near=1), guesses) == [(0, 2), (1, 3)]
+    assert choose_pairs(clouds, MultiwayConfig(neighbours="near", near=1), guesses) == [(0, 2), (1, 2), (1, 3)]
     # Beyond all_up_to, "auto" pairs by position where every scan has a pose, else in sequence.
-    assert choose_pairs(clouds, MultiwayConfig(all_up_to=2, near=1), guesses) == [(0, 2), (1, 3)]
+    assert choose_pairs(clouds, MultiwayConfig(all_up_to=2, near=1), guesses) == [(0, 2), (1, 2), (1, 3)]
     assert choose_pairs(clouds, MultiwayConfig(all_up_to=2, window=1), guesses[:3] + [None]) == [(0, 1), (1, 2), (2, 3)]
 
 
