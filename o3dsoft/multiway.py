@@ -215,22 +215,23 @@ def _joining(d: np.ndarray, pairs: set) -> set:
     side of a gap in a sequence all lie on their own side."""
     n = len(d)
     group = list(range(n))
-
-    def root(i: int) -> int:
-        while group[i] != i:
-            group[i] = group[group[i]]
-            i = group[i]
-        return i
-
     for i, j in pairs:
-        group[root(i)] = root(j)
+        group[_root(group, i)] = _root(group, j)
     added = set()
     for flat in np.argsort(d, axis=None, kind="stable"):
         i, j = divmod(int(flat), n)
-        if i < j and root(i) != root(j):
-            group[root(i)] = root(j)
+        if i < j and _root(group, i) != _root(group, j):
+            group[_root(group, i)] = _root(group, j)
             added.add((i, j))
     return added
+
+
+def _root(group: List[int], i: int) -> int:
+    """The root of item i in the union-find forest `group` (parent per item), halving the path."""
+    while group[i] != i:
+        group[i] = group[group[i]]
+        i = group[i]
+    return i
 
 
 @quietly
@@ -432,18 +433,11 @@ def _tree(group: Sequence[int], root: int, edges: Sequence[Edge]) -> Dict[int, T
 def _group_of(n: int, edges: Sequence[Edge]) -> List[int]:
     """Per scan, a label of its group: scans joined through the trusted ones of `edges` share it
     (union-find)."""
-    root = list(range(n))
-
-    def find(a: int) -> int:
-        while root[a] != a:
-            root[a] = root[root[a]]
-            a = root[a]
-        return a
-
+    group = list(range(n))
     for e in edges:
         if not e.likely_failed:
-            root[find(e.source)] = find(e.target)
-    return [find(k) for k in range(n)]
+            group[_root(group, e.source)] = _root(group, e.target)
+    return [_root(group, k) for k in range(n)]
 
 
 def units_note(clouds: Sequence[np.ndarray], names: Sequence[str]) -> Optional[str]:
