@@ -86,20 +86,18 @@ def sequence(rays, plane: np.ndarray, rings: int, sweeps: int, seed: int):
 def measure(clouds: List[np.ndarray], truth: List[np.ndarray], map_sweeps: int, model) -> dict:
     """One odometry run: its step errors, final drift, wrong and trusted-wrong steps, time per sweep."""
     import o3dsoft
+    from o3dsoft.odometry import errors_against
 
     start = time.perf_counter()
     result = o3dsoft.odometry(clouds, o3dsoft.OdometryConfig(map_sweeps=map_sweeps), model=model)
     seconds = (time.perf_counter() - start) / (len(clouds) - 1)
-    base = np.linalg.inv(truth[0])
-    steps = [o3dsoft.pair_errors(s.transformation, np.linalg.inv(truth[k]) @ truth[k + 1]) for k, s in enumerate(result.steps[1:])]
-    rotation, translation = np.array([e.rotation_deg for e in steps]), np.array([e.translation for e in steps])
+    rotation, translation, drift, path = errors_against(result, truth)
     wrong, flagged = (rotation > 1.0) | (translation > 0.3), np.array(result.flagged[1:])
-    path = float(sum(np.linalg.norm((np.linalg.inv(truth[k]) @ truth[k + 1])[:3, 3]) for k in range(len(truth) - 1)))
     return {
         "path_m": path,
         "step_rotation_deg_median": float(np.median(rotation)),
         "step_translation_m_median": float(np.median(translation)),
-        "drift_m": float(np.linalg.norm(result.poses[-1][:3, 3] - (base @ truth[-1])[:3, 3])),
+        "drift_m": drift.translation,
         "wrong": int(wrong.sum()),
         "trusted_wrong": int((wrong & ~flagged).sum()),
         "flagged": int(flagged.sum()),

@@ -14,7 +14,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import click
 
@@ -629,12 +629,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     from ..multiway import multiway as run_multiway
     from ..preprocess import local_origin
 
-    seen: dict = {}
-    for p in scans:
-        key = p.resolve()
-        if key in seen:
-            raise click.UsageError(f"{p}: given twice (as {seen[key]} too); each scan once")
-        seen[key] = p
+    _each_once(scans, "scan")
     if render_path is not None and render_path.suffix.lower() != ".png":
         raise click.UsageError(f"--render {render_path}: give a .png file name")
     names, clouds, files = [], [], []
@@ -702,6 +697,16 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
         sys.exit(3)
 
 
+def _each_once(paths: Sequence[Path], what: str) -> None:
+    """Refuse a file given twice among `paths` (under any name), calling each a `what`."""
+    seen: dict = {}
+    for p in paths:
+        key = p.resolve()
+        if key in seen:
+            raise click.UsageError(f"{p}: given twice (as {seen[key]} too); each {what} once")
+        seen[key] = p
+
+
 @main.command()
 @click.argument("sweeps", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True, help="Folder for poses.json and poses.txt (created if missing).")
@@ -736,16 +741,10 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     from tqdm import tqdm
 
     from .. import io
-    from ..coarse import cached_model
-    from ..odometry import OdometryConfig, check_sweeps
+    from ..odometry import OdometryConfig
     from ..odometry import odometry as run_odometry
 
-    seen: dict = {}
-    for p in sweeps:
-        key = p.resolve()
-        if key in seen:
-            raise click.UsageError(f"{p}: given twice (as {seen[key]} too); each sweep once")
-        seen[key] = p
+    _each_once(sweeps, "sweep")
     if len(sweeps) < 2:
         raise click.UsageError(f"{sweeps[0]}: one sweep; odometry needs at least two")
     names = [str(p) for p in sweeps]
@@ -765,14 +764,17 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
         {"--out's poses": out_dir / "poses.json", "--out's KITTI poses": out_dir / "poses.txt"}, {**{f"the sweep {p}": p for p in sweeps}, "--gt": gt_path}
     )
     config = OdometryConfig(map_sweeps=map_sweeps, register=_register_config(**pipeline))
-    model = cached_model(config.register.weights, config.register.device)
-    check_sweeps(clouds, names, model.config.k)
-    io.make_folder(out_dir)  # after the sweeps are read and checked: a bad one leaves no folder behind
-    for p in (out_dir / "poses.json", out_dir / "poses.txt"):
-        io.check_writable(p)
-    bar = tqdm(total=len(clouds), initial=1, unit="sweep", disable=True if no_progress else None, dynamic_ncols=True)
+    bar = tqdm(total=len(clouds), unit="sweep", disable=True if no_progress else None, dynamic_ncols=True)
+
+    def progress(done: int, total: int) -> None:
+        if done == 1:  # the sweeps are checked: a bad one has left no folder behind
+            io.make_folder(out_dir)
+            for p in (out_dir / "poses.json", out_dir / "poses.txt"):
+                io.check_writable(p)
+        bar.update(done - bar.n)
+
     try:
-        result = run_odometry(clouds, config, names=names, model=model, progress=lambda done, total: bar.update(done - bar.n))
+        result = run_odometry(clouds, config, names=names, progress=progress)
     finally:
         bar.close()
     payload = result.to_dict()
@@ -797,7 +799,7 @@ def _format_odometry(result, out_dir: Path, reference=None) -> str:
     (world_T_sweep per sweep) the steps' errors and the final drift."""
     import numpy as np
 
-    from ..metrics import pair_errors
+    from ..odometry import errors_against
 
     motions = [step.transformation for step in result.steps[1:]]
     path = sum(float(np.linalg.norm(T[:3, 3])) for T in motions)
@@ -808,12 +810,7 @@ def _format_odometry(result, out_dir: Path, reference=None) -> str:
         f"Steps flagged likely failed: {sum(result.flagged)} of {len(motions)}.",
     ]
     if reference is not None:
-        base = np.linalg.inv(reference[0])
-        truth = [base @ P for P in reference]
-        errors = [pair_errors(T, np.linalg.inv(truth[k]) @ truth[k + 1]) for k, T in enumerate(motions)]
-        rotation, translation = np.array([e.rotation_deg for e in errors]), np.array([e.translation for e in errors])
-        drift = pair_errors(result.poses[-1], truth[-1])
-        travelled = sum(float(np.linalg.norm(truth[k + 1][:3, 3] - truth[k][:3, 3])) for k in range(len(truth) - 1))
+        rotation, translation, drift, travelled = errors_against(result, reference)
         lines.append(
             f"Against --gt (lower is better): step errors median {np.median(rotation):.3g} deg / {np.median(translation):.3g} units, "
             f"largest {rotation.max():.3g} deg / {translation.max():.3g} units; the last sweep {drift.rotation_deg:.3g} deg / {drift.translation:.3g} units off"

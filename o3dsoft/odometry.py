@@ -17,13 +17,14 @@ from __future__ import annotations
 import numbers
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
 from ._modules import callable_as_its_function
 from .config import RegisterConfig
 from .errors import InputError, UsageError
+from .metrics import PairErrors, pair_errors
 from .pair import CloudLike, as_points
 from .pipeline import RegistrationResult, register
 from .preprocess import clean_points
@@ -123,7 +124,8 @@ def odometry(
         config: the settings (None: the defaults).
         names: how to call the sweeps (file names); default sweep0, sweep1, ...
         model: an already loaded network (else loaded once from ``config.register.weights``).
-        progress: called as progress(sweeps done, sweeps in all) after each sweep.
+        progress: called as progress(sweeps done, sweeps in all) once every sweep is checked
+            (1: the first, which needs no registration), then after each sweep.
     Returns:
         OdometryResult.
     Raises:
@@ -144,7 +146,9 @@ def odometry(
     if len(sweeps) < 2:
         raise InputError(f"odometry needs at least two sweeps, got {len(sweeps)}")
     model = model if model is not None else cached_model(config.register.weights, config.register.device)
-    points = check_sweeps(sweeps, names, model.config.k)
+    points = _checked_sweeps(sweeps, names, model.config.k)
+    if progress is not None:
+        progress(1, len(points))
     start = time.perf_counter()
     poses: List[np.ndarray] = [np.eye(4)]
     steps: List[Optional[RegistrationResult]] = [None]
@@ -159,7 +163,32 @@ def odometry(
     return OdometryResult(names, tuple(poses), tuple(steps), {"total": round(time.perf_counter() - start, 3)})
 
 
-def check_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> List[np.ndarray]:
+class OdometryErrors(NamedTuple):
+    """An odometry result against reference poses (lower is better in every field).
+
+    rotation_deg, translation: (K-1,) each step's motion previous_T_sweep against the reference's
+        (degrees, sweep units).
+    drift: the last sweep's pose against the reference's (:class:`~o3dsoft.metrics.PairErrors`).
+    path: the reference's path, its positions' steps summed (sweep units).
+    """
+
+    rotation_deg: np.ndarray
+    translation: np.ndarray
+    drift: PairErrors
+    path: float
+
+
+def errors_against(result: OdometryResult, reference: Sequence[np.ndarray]) -> OdometryErrors:
+    """`result` against (4, 4) reference poses world_T_sweep per sweep, in any world frame (taken
+    relative to the first sweep's, as the result's are)."""
+    base = np.linalg.inv(reference[0])
+    truth = [base @ P for P in reference]
+    steps = [pair_errors(step.transformation, np.linalg.inv(truth[k]) @ truth[k + 1]) for k, step in enumerate(result.steps[1:])]  # type: ignore[union-attr]
+    path = sum(float(np.linalg.norm(truth[k + 1][:3, 3] - truth[k][:3, 3])) for k in range(len(truth) - 1))
+    return OdometryErrors(np.array([e.rotation_deg for e in steps]), np.array([e.translation for e in steps]), pair_errors(result.poses[-1], truth[-1]), path)
+
+
+def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> List[np.ndarray]:
     """The (N_i, 3) points of each sweep, each checked to hold `min_points` distinct finite points
     and not to be degenerate (:func:`o3dsoft.preprocess.clean_points`): a bad sweep late in a long
     sequence fails before the first is registered."""

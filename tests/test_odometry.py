@@ -31,7 +31,9 @@ def _sequence(count: int, seed: int = 0):
 
 def test_odometry_follows_a_sequence_of_sweeps():
     sweeps, truth = _sequence(6)
-    result = o3dsoft.odometry(sweeps, o3dsoft.OdometryConfig(map_sweeps=3))
+    done = []
+    result = o3dsoft.odometry(sweeps, o3dsoft.OdometryConfig(map_sweeps=3), progress=lambda k, total: done.append((k, total)))
+    assert done == [(k, 6) for k in range(1, 7)]  # the first once all are checked, then each registered
     assert np.array_equal(result.poses[0], np.eye(4)) and result.steps[0] is None
     assert result.flagged == (False,) * 6
     for pose, true in zip(result.poses, truth):
