@@ -14,7 +14,9 @@ lost) over the result's own. Points that fill a volume, or a ball, fit about as 
 turn (0.85-1.0); surfaces that fix the pose lose most of their fit (0.2-0.55 on real scans).
 
 Clouds that share their points (benchmark pairs cut from one point set) are held to neither:
-their points fix the pose where the surface alone does not, so neither is measured there.
+their points fix the pose where the surface alone does not, so neither is measured there. Evenly
+spaced clouds (a depth camera's pixels on a wall, cells of a voxel grid) are never taken to share
+their points: on a lattice, points coincide at many poses, so coinciding says nothing.
 """
 
 from __future__ import annotations
@@ -43,6 +45,9 @@ class DegeneracyConfig:
         shared_below: the clouds are taken to share points when the confidence's spacing ratio
             (median distance to the nearest partner over the point spacing) is below this: 0
             for identical points, about 1 for two samplings of one surface.
+        regular_below: a cloud whose nearest-neighbour distances vary by less than this
+            (standard deviation over mean) is a lattice, and the spacing ratio does not make
+            it share points (0.07 on a depth camera's wall, 0.4-0.6 on ModelNet40's shapes).
         neighbours: points of a local plane (its normal).
         line_neighbours: points of a local line of a flat cloud's outline (its normal within
             the plane): fewer, so that two walls of a corridor a few spacings apart stay apart.
@@ -56,6 +61,7 @@ class DegeneracyConfig:
     max_flatness: float = 0.85
     turn_deg: float = 30.0
     shared_below: float = 0.5
+    regular_below: float = 0.2
     neighbours: int = 20
     line_neighbours: int = 6
     max_points: int = 5000
@@ -95,14 +101,14 @@ def assess(
         distance: points farther than this (cloud units) from the other cloud are not matched.
         scale: the pair's scale (cloud units), which makes rotations and translations comparable.
         spacing_ratio: the confidence's spacing ratio at `transformation`: below
-            ``config.shared_below`` the clouds share their points, and :data:`SHARED_POINTS` is
-            returned without measuring.
+            ``config.shared_below``, on clouds that are not lattices (:func:`is_lattice`), the
+            clouds share their points, and :data:`SHARED_POINTS` is returned without measuring.
         config: thresholds and sizes.
         make_scorer: returns the confidence's measurements of an alignment of these clouds, e.g.
             a scorer built already (default: a new :class:`~o3dsoft.confidence.Scorer`); called
             only where the clouds do not share their points.
     """
-    if spacing_ratio < config.shared_below:
+    if spacing_ratio < config.shared_below and not (is_lattice(source, config.regular_below) or is_lattice(target, config.regular_below)):
         return SHARED_POINTS
     source = refine_stage.downsample(np.asarray(source, dtype=np.float64), config.max_points)
     target = refine_stage.downsample(np.asarray(target, dtype=np.float64), config.max_points)
@@ -241,6 +247,17 @@ def _kept_fit(moved: Features, base: Features) -> float:
     """The consistency of the source moved away from the result (`moved`), scaled by the share of
     the result's overlap it keeps, over the result's (`base`, whose consistency is positive)."""
     return moved.consistency * min(1.0, moved.overlap / max(base.overlap, 1e-12)) / base.consistency
+
+
+def is_lattice(points: np.ndarray, regular_below: float = DegeneracyConfig.regular_below) -> bool:
+    """Whether the (N, 3) points are evenly spaced: their nearest-neighbour distances' standard
+    deviation over their mean is below `regular_below` (0 on a grid; about 0.5 for points drawn
+    at random on a surface)."""
+    if len(points) < 3:
+        return False
+    distances = cKDTree(points).query(points, k=2)[0][:, 1]
+    mean = float(distances.mean())
+    return mean > 0 and float(distances.std()) < regular_below * mean
 
 
 def _slide(scorer: Callable[[np.ndarray], Features], transformation: np.ndarray, base: Features, plane: np.ndarray) -> Tuple[float, float, np.ndarray]:

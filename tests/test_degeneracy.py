@@ -113,6 +113,48 @@ def test_clouds_that_share_their_points_are_fixed_by_them_not_by_the_surface():
     assert not r.likely_failed and r.constraint is None and r.flatness is None
 
 
+def wall_patch(rng, x0, x1, spacing=0.03, offset=(0.0, 0.0), depth_noise=0.002):
+    """A wall from x0 to x1 (1.2 high) as a depth camera facing it sees it: its pixels an evenly
+    spaced grid (`offset` within a cell), with noise in depth. (N, 3), metres."""
+    xs, ys = np.arange(x0 + offset[0], x1, spacing), np.arange(offset[1], 1.2, spacing)
+    grid = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    return np.c_[grid, rng.normal(0, depth_noise, len(grid))]
+
+
+@settings(max_examples=10, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**16))
+def test_evenly_spaced_clouds_are_lattices_and_random_samplings_are_not(seed):
+    rng = np.random.default_rng(seed)
+    T = random_transform(rng, max_angle=180.0, max_t=5.0)
+    assert degeneracy.is_lattice(apply_transform(T, wall_patch(rng, 0.0, 1.0, offset=rng.uniform(0, 0.03, 2))))
+    assert not degeneracy.is_lattice(apply_transform(T, square(rng, 1000)))
+    assert not degeneracy.is_lattice(apply_transform(T, sphere(rng, 1000)))
+
+
+def test_on_a_lattice_coinciding_points_do_not_make_the_clouds_share_them():
+    # On a grid, points coincide at every pose that moves it by whole cells: a spacing ratio below
+    # shared_below says nothing there, and the surface is measured.
+    rng = np.random.default_rng(4)
+    wall, along = wall_patch(rng, 0.0, 2.0), wall_patch(rng, 0.6, 2.6, offset=(0.011, 0.017))
+    assert "slide" in degeneracy.assess(wall, along, np.eye(4), 0.1, 1.2, spacing_ratio=0.3).reason
+    plate = square(rng, 1500)
+    assert degeneracy.assess(plate, plate, np.eye(4), 0.1, 1.0, spacing_ratio=0.3) == degeneracy.SHARED_POINTS
+
+
+@pytest.mark.parametrize("case", ["two views of a wall", "a grid onto its turned copy"])
+def test_a_depth_camera_facing_a_wall_is_flagged(case):
+    # Two views of one wall (the second 0.6 m along it) fit anywhere along it; a grid's turned copy
+    # is held by its outline only, which ICP on a grid does not reach.
+    rng = np.random.default_rng(5)
+    if case == "two views of a wall":
+        source, target = wall_patch(rng, 0.0, 2.0), wall_patch(rng, 0.6, 2.6, offset=(0.011, 0.017))
+    else:
+        source = wall_patch(rng, 0.0, 2.0, spacing=2 / 59, depth_noise=0.0)
+        target = apply_transform(rigid(euler_to_matrix(np.array([10.0, 5.0, 0.0])), np.array([0.3, -0.2, 0.1])), source)
+    r = o3dsoft.register(source, target)
+    assert r.likely_failed and "slide" in r.failure_reason and r.constraint is not None
+
+
 def test_without_partners_within_the_distance_the_geometry_is_not_measured():
     rng = np.random.default_rng(3)
     a, b = box_surface(rng, 800), box_surface(rng, 800)
