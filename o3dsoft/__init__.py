@@ -16,7 +16,7 @@ from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
 
-from .errors import InputError, O3dsoftError, UsageError
+from .errors import InputError, O3dsoftError, UntrustedModelWarning, UsageError
 
 # The public names and the module of each, imported at first use: torch and Open3D take seconds
 # to import, which `o3dsoft --help` and `--version` do not need.
@@ -48,6 +48,7 @@ _LAZY = {
     "read_scans": "io",
     "ICPConfig": "refine",
     "ConfidenceConfig": "confidence",
+    "DegeneracyConfig": "degeneracy",
     "FeatureMatchConfig": "search",
     "SymmetryConfig": "symmetry",
 }
@@ -56,6 +57,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
     from .coarse import CoarseModel, load_model
     from .confidence import ConfidenceConfig
     from .config import FeatureSearchConfig, RegisterConfig, RestartConfig, ScreenConfig, SearchConfig, StartsConfig, VotesConfig
+    from .degeneracy import DegeneracyConfig
     from .io import read_points, read_poses, read_scans, read_transform, write_points, write_transform
     from .metrics import pair_errors, rotation_error_deg
     from .multiway import MultiwayConfig, MultiwayResult, multiway
@@ -86,6 +88,7 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 __all__ = [
     "CoarseModel",
     "ConfidenceConfig",
+    "DegeneracyConfig",
     "FeatureMatchConfig",
     "FeatureSearchConfig",
     "ICPConfig",
@@ -98,6 +101,7 @@ __all__ = [
     "SearchConfig",
     "StartsConfig",
     "SymmetryConfig",
+    "UntrustedModelWarning",
     "UsageError",
     "load_model",
     "multiway",

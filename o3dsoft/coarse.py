@@ -12,6 +12,7 @@ import hashlib
 import io
 import json
 import os
+import threading
 import warnings
 import zipfile
 from contextlib import contextmanager, nullcontext
@@ -23,7 +24,7 @@ from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Tu
 import numpy as np
 import torch
 
-from .errors import InputError, UsageError, first_line
+from .errors import InputError, UntrustedModelWarning, UsageError, caller_stacklevel, first_line
 from .io import atomic_output, make_folder
 from .model import NetConfig, SoftAlignNet, ball_query
 from .transforms import apply_transform, rigid
@@ -54,10 +55,6 @@ def _one_thread_after_fork() -> None:
 # a network). With one thread the child runs every operation itself, as torch's DataLoader
 # workers do. Forks of a process where o3dsoft ran no torch keep their threads.
 os.register_at_fork(after_in_child=_one_thread_after_fork)
-
-
-class UntrustedModelWarning(UserWarning):
-    """A model file that is not one of the shipped models was loaded: it is a program."""
 
 
 _WARNED: set = set()
@@ -108,7 +105,7 @@ def _check_origin(path: Path) -> None:
             warnings.warn(
                 f"{path}: a model file is a TorchScript program that runs when used; load only files from a trusted source",
                 UntrustedModelWarning,
-                stacklevel=3,
+                stacklevel=caller_stacklevel(),
             )
     elif card.get("sha256") and sha256_of(path) != card["sha256"]:
         raise InputError(f"{path}: the shipped model file does not match the sha256 of its card (modified or damaged); reinstall o3dsoft")
@@ -372,6 +369,7 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
 
 
 _LOADED: Dict[Tuple[str, str, int], CoarseModel] = {}
+_LOADING = threading.Lock()
 
 
 def cached_model(path: Union[str, Path, None] = None, device: str = "cpu") -> CoarseModel:
@@ -380,9 +378,10 @@ def cached_model(path: Union[str, Path, None] = None, device: str = "cpu") -> Co
     name = str(path) if path is not None else "default"
     file = Path(name) if Path(name).is_file() else None
     key = (name, str(device), file.stat().st_mtime_ns if file else 0)
-    if key not in _LOADED:
-        _LOADED[key] = load_model(path, device)
-    return _LOADED[key]
+    with _LOADING:  # threads making their first call at once load the file once
+        if key not in _LOADED:
+            _LOADED[key] = load_model(path, device)
+        return _LOADED[key]
 
 
 def _check_contract(model: CoarseModel) -> None:

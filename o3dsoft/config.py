@@ -11,6 +11,8 @@ import typing
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Optional, Tuple, Union
 
+import numpy as np
+
 from .confidence import ConfidenceConfig
 from .degeneracy import DegeneracyConfig
 from .errors import InputError, UsageError
@@ -339,7 +341,7 @@ class RegisterConfig:
 
     def validate(self, k: int) -> None:
         """Raise InputError for settings the network (neighbourhood size `k`) cannot run with."""
-        _check_numbers(self, "")
+        _check_types(self, "")
         search = self.search
         if search.mode not in SEARCH_MODES:
             raise InputError(f"search.mode={search.mode!r}; valid: {', '.join(SEARCH_MODES)}")
@@ -354,6 +356,17 @@ class RegisterConfig:
             raise InputError(f"data_voxel must be in [0, 1), got {self.data_voxel}")
         if not 0 <= self.icp.normal_within < float("inf"):
             raise InputError(f"icp.normal_within must be finite and at least 0, got {self.icp.normal_within}")
+        schedule = self.icp.schedule
+        if not schedule or not all(0 < factor < math.inf for factor in schedule):
+            raise InputError(f"icp.schedule must hold at least one positive, finite distance factor, got {schedule}")
+        for name, value in (
+            ("icp.max_iterations", self.icp.max_iterations),
+            ("icp.max_points", self.icp.max_points),
+            ("degeneracy.max_points", self.degeneracy.max_points),
+            ("search.screen.points", search.screen.points),
+        ):
+            if value < 1:
+                raise InputError(f"{name} must be at least 1, got {value}")
         if self.icp.normal_neighbours < 3:
             raise InputError(f"icp.normal_neighbours must be at least 3 (a plane), got {self.icp.normal_neighbours}")
         for name in ("isolated_radius", "isolated_spacings"):
@@ -423,25 +436,49 @@ class RegisterConfig:
             not 0 <= degeneracy.min_constraint < 1
             or min(degeneracy.neighbours, degeneracy.line_neighbours) < 3
             or degeneracy.shared_below < 0
+            or degeneracy.regular_below < 0
             or not degeneracy.max_flatness > 0
         ):
             raise InputError(
-                "degeneracy: min_constraint must be in [0, 1), neighbours and line_neighbours at least 3, shared_below not negative and max_flatness positive; "
-                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.line_neighbours}, {degeneracy.shared_below}, {degeneracy.max_flatness}"
+                "degeneracy: min_constraint must be in [0, 1), neighbours and line_neighbours at least 3, shared_below and regular_below not negative and max_flatness positive; "
+                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.line_neighbours}, {degeneracy.shared_below}, "
+                f"{degeneracy.regular_below}, {degeneracy.max_flatness}"
             )
 
 
-def _check_numbers(settings, prefix: str) -> None:
+def _check_types(settings, prefix: str) -> None:
     """Raise InputError naming the first field of the frozen dataclass `settings` (and of those
-    nested in it) declared a number (int, float, Optional of one) that holds something else."""
+    nested in it) that holds something other than its declared type: a stage's config (not a
+    dict), True or False, an integer count (not negative), a number, a string, a tuple of
+    numbers; None only where the field is Optional."""
     hints = typing.get_type_hints(type(settings))
     for f in fields(settings):
         value, hint, name = getattr(settings, f.name), hints.get(f.name), f"{prefix}{f.name}"
-        if is_dataclass(value):
-            _check_numbers(value, f"{name}.")
-            continue
+        optional = typing.get_origin(hint) is Union and type(None) in typing.get_args(hint)
         kinds = tuple(k for k in typing.get_args(hint) if k is not type(None)) if typing.get_origin(hint) is Union else (hint,)
-        if value is None or not kinds or not all(k in (int, float) for k in kinds):
-            continue
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            raise InputError(f"{name} must be a number, got {value!r} ({type(value).__name__})")
+        kind = kinds[0] if len(kinds) == 1 else None
+        got = f"got {value!r} ({type(value).__name__})"
+        if value is None:
+            if not optional and kind is not None:
+                raise InputError(f"{name} must not be None")
+        elif isinstance(kind, type) and is_dataclass(kind):
+            if not isinstance(value, kind):
+                raise InputError(f"{name} must be an o3dsoft.{kind.__name__}, {got}")
+            _check_types(value, f"{name}.")
+        elif kind is bool:
+            if not isinstance(value, (bool, np.bool_)):
+                raise InputError(f"{name} must be True or False, {got}")
+        elif kind is int:
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral):
+                raise InputError(f"{name} must be a whole number, {got}")
+            if value < 0:
+                raise InputError(f"{name} must not be negative, got {value}")
+        elif kind is float:
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+                raise InputError(f"{name} must be a number, {got}")
+        elif kind is str:
+            if not isinstance(value, str):
+                raise InputError(f"{name} must be a string, {got}")
+        elif typing.get_origin(kind) is tuple:
+            if not isinstance(value, (tuple, list)) or not all(isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) for v in value):
+                raise InputError(f"{name} must be a tuple of numbers, {got}")

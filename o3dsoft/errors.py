@@ -10,6 +10,7 @@ from __future__ import annotations
 import multiprocessing.context
 import os
 import signal
+import sys
 import threading
 from contextlib import contextmanager
 from typing import Callable, Iterator, Union
@@ -29,6 +30,20 @@ class UsageError(O3dsoftError, ValueError):
     """The input cannot even be opened as asked (unknown extension, missing file); CLI exit 2."""
 
     exit_code = 2
+
+
+class UntrustedModelWarning(UserWarning):
+    """A model file that is not one of the shipped models was loaded: it is a program."""
+
+
+def caller_stacklevel() -> int:
+    """The ``stacklevel`` of :func:`warnings.warn`, called in the function that calls this, that
+    names the first line outside the o3dsoft package: the user's call, however deep the warning."""
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame, level = sys._getframe(1), 1
+    while frame.f_back is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def first_line(error: BaseException) -> str:

@@ -200,6 +200,23 @@ def test_shipped_models_are_checked_against_their_card_and_other_files_warn_once
     assert len([w for w in caught if w.category is UntrustedModelWarning]) == 1
 
 
+def test_the_untrusted_model_warning_names_the_users_line(tiny_model_path, tmp_path):
+    # However deep inside o3dsoft the file is loaded, the warning points at the caller's line,
+    # where a warnings filter by module or line can silence it.
+    import o3dsoft
+
+    rng = np.random.default_rng(0)
+    cloud = rng.normal(size=(300, 3))
+    for i, call in enumerate(
+        (load_model, lambda p: o3dsoft.register(cloud, cloud, o3dsoft.RegisterConfig(weights=str(p), search=o3dsoft.SearchConfig(mode="off"))))
+    ):
+        other = _copy(tiny_model_path, tmp_path / f"downloaded{i}.pt")
+        with pytest.warns(o3dsoft.UntrustedModelWarning) as caught:
+            call(other)
+        (warning,) = [w for w in caught if w.category is o3dsoft.UntrustedModelWarning]
+        assert warning.filename == __file__
+
+
 class _Echo(torch.nn.Module):
     def forward(self, source: torch.Tensor, target: torch.Tensor):
         return source, target, source

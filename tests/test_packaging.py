@@ -19,6 +19,7 @@ def test_wheel_contents(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     assert "o3dsoft/cli/main.py" in names and "o3dsoft/strategies/votes.py" in names
     assert "o3dsoft/weights/o3dsoft_default.pt" in names and "o3dsoft/weights/o3dsoft_default.json" in names
+    assert "o3dsoft/py.typed" in names  # type checkers read the package's annotations
     assert not [n for n in names if n.split("/")[0] in ("cli", "weights", "tests", "benchmarks", "examples")]
     entry_points = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("entry_points.txt"))).decode()
     assert "o3dsoft = o3dsoft.cli.main:main" in entry_points

@@ -453,7 +453,7 @@ def test_voxel_grid_evens_out_the_clouds_before_registering():
     res = register(src, tgt, RegisterConfig(voxel=0.2), model=NearSightedModel(T[:3, :3]))
     assert res.num_source < 3000 and res.num_target < 3000
     assert pair_errors(res.transformation, T).rotation_deg < 1.0
-    with pytest.raises(InputError, match=r"source: \d+ points left on a voxel grid of 50 units, fewer than the 8 needed"):
+    with pytest.raises(InputError, match=r"source: \d+ points? left on a voxel grid of 50 units, fewer than the 8 needed"):
         register(src, tgt, RegisterConfig(voxel=50.0), model=NearSightedModel(T[:3, :3]))
 
 
@@ -608,6 +608,24 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         ),
         (lambda s, t: o3dsoft.multiway([s, t], RegisterConfig()), UsageError, "config must be an o3dsoft.MultiwayConfig"),
         (lambda s, t: o3dsoft.multiway([s, t], names=["a", "a"]), InputError, "two scans share the name 'a'"),
+        (lambda s, t: register(s, t, RegisterConfig(seed=-1)), InputError, "seed must not be negative, got -1"),
+        (lambda s, t: register(s, t, RegisterConfig(num_points=100.5)), InputError, "num_points must be a whole number, got 100.5 \\(float\\)"),
+        (lambda s, t: register(s, t, RegisterConfig(seed=None)), InputError, "seed must not be None"),
+        (lambda s, t: register(s, t, RegisterConfig(refine="no")), InputError, "refine must be True or False, got 'no' \\(str\\)"),
+        (
+            lambda s, t: register(s, t, RegisterConfig(icp={"method": "point"})),
+            InputError,
+            "icp must be an o3dsoft.ICPConfig, got \\{'method': 'point'\\} \\(dict\\)",
+        ),
+        (lambda s, t: register(s, t, RegisterConfig(icp=ICPConfig(schedule=()))), InputError, "icp.schedule must hold at least one positive"),
+        (lambda s, t: register(s, t, RegisterConfig(icp=ICPConfig(max_iterations=0))), InputError, "icp.max_iterations must be at least 1, got 0"),
+        (lambda s, t: register(s, t, RegisterConfig(icp=ICPConfig(max_points=0))), InputError, "icp.max_points must be at least 1, got 0"),
+        (
+            lambda s, t: register(s, t, RegisterConfig(search=o3dsoft.SearchConfig(screen=o3dsoft.ScreenConfig(points=0)))),
+            InputError,
+            "search.screen.points must be at least 1, got 0",
+        ),
+        (lambda s, t: register(s, t, RegisterConfig(icp=ICPConfig(noise_rounds=-1))), InputError, "icp.noise_rounds must not be negative, got -1"),
     ],
     ids=[
         "config-dict",
@@ -620,6 +638,16 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         "threshold-0.9",
         "multiway-config",
         "multiway-names",
+        "seed-negative",
+        "int-float",
+        "seed-none",
+        "bool-str",
+        "stage-dict",
+        "schedule-empty",
+        "icp-iterations-0",
+        "icp-points-0",
+        "screen-points-0",
+        "noise-rounds-negative",
     ],
 )
 def test_library_misuse_is_one_clear_o3dsoft_error(call, error, message):
