@@ -65,22 +65,27 @@ def _check_readable(path: Path) -> None:
         raise InputError(f"{path}: permission denied")
 
 
-_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2}
-_PLY_SIZES.update({"int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8})
+_PLY_NUMPY = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2"}
+_PLY_NUMPY.update({"int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"})
+_PLY_SIZES = {kind: int(code[1]) for kind, code in _PLY_NUMPY.items()}
+# Open3D's PLY reader moves on to the next point at the last property of each of these as it
+# names them (z, nz, blue): a file that stores that one before the others has its points mixed.
+_OPEN3D_TRIPLES = (("x", "y", "z"), ("nx", "ny", "nz"), ("red", "green", "blue"))
+
+PlyElement = Tuple[str, int, List[Tuple[str, str, List[str]]]]  # name, count, [(type, name, a list's types), ...]
 
 
-def _check_ply(path: Path) -> None:
-    """Raise InputError where a PLY's vertices lack an x, y or z property, or where the file ends
-    before its last vertex (Open3D reads the missing values as whatever memory held, or zeros) or
-    face (Open3D samples the faces it read: a part of the surface). A file whose header cannot be
-    read is left to Open3D's reader (which reports it)."""
+def _ply_header(path: Path) -> Optional[Tuple[str, List[PlyElement], int]]:
+    """A PLY's format ("ascii", "binary_little_endian", ...), its elements and the byte offset
+    of its data; None where the header cannot be read (Open3D's reader reports it)."""
     with open(path, "rb") as f:
         head = f.read(65536)
     end = head.find(b"end_header")
     data_start = head.find(b"\n", end) + 1
     if not head.startswith(b"ply") or end < 0 or data_start == 0:
-        return
-    form, elements = "", []  # elements: [name, count, [(type, name, a list's count and item types), ...]]
+        return None
+    form = ""
+    elements: List[PlyElement] = []
     for line in head[:end].decode("ascii", errors="replace").splitlines():
         words = line.split()
         if words[:1] == ["format"] and len(words) >= 2:
@@ -89,6 +94,58 @@ def _check_ply(path: Path) -> None:
             elements.append((words[1], int(words[2]), []))
         elif words[:1] == ["property"] and len(words) >= 3 and elements:
             elements[-1][2].append((words[1], words[-1], words[2:-1]))
+    return form, elements, data_start
+
+
+def _open3d_misreads_ply(elements: List[PlyElement]) -> bool:
+    """Whether the vertices store z before x or y (nz, blue likewise), which Open3D mixes up."""
+    vertex = next((properties for name, _, properties in elements if name == "vertex"), [])
+    order = [name for _, name, _ in vertex]
+    for triple in _OPEN3D_TRIPLES:
+        if all(name in order for name in triple) and order.index(triple[2]) < max(order.index(triple[0]), order.index(triple[1])):
+            return True
+    return False
+
+
+def _ply_vertex_columns(path: Path) -> Optional[Dict[str, np.ndarray]]:
+    """Every scalar property of a PLY's vertices, by name, (N,) each as stored; None where the
+    vertices are not the file's first element or hold a list (not read here)."""
+    header = _ply_header(path)
+    if header is None:
+        return None
+    form, elements, data_start = header
+    if not elements or elements[0][0] != "vertex" or any(kind not in _PLY_NUMPY for kind, _, _ in elements[0][2]):
+        return None
+    _, count, properties = elements[0]
+    if form == "ascii":
+        with open(path, "rb") as f:
+            header_lines = f.read(data_start).count(b"\n")
+        table = np.loadtxt(path, dtype=np.float64, skiprows=header_lines, max_rows=count, ndmin=2)
+        return {name: table[:, i] for i, (_, name, _) in enumerate(properties)}
+    order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(form)
+    if order is None:
+        return None
+    record = np.dtype([(name, order + _PLY_NUMPY[kind]) for kind, name, _ in properties])
+    table = np.fromfile(path, dtype=record, count=count, offset=data_start)
+    return {name: table[name] for name in record.names}
+
+
+def _ply_vertex_types(path: Path) -> Dict[str, str]:
+    """The type of each scalar property of a PLY's vertices ("float", "uchar", ...), by name."""
+    header = _ply_header(path)
+    vertex = next((properties for name, _, properties in header[1] if name == "vertex"), []) if header else []
+    return {name: kind for kind, name, _ in vertex if kind != "list"}
+
+
+def _check_ply(path: Path) -> None:
+    """Raise InputError where a PLY's vertices lack an x, y or z property, or where the file ends
+    before its last vertex (Open3D reads the missing values as whatever memory held, or zeros) or
+    face (Open3D samples the faces it read: a part of the surface). A file whose header cannot be
+    read is left to Open3D's reader (which reports it)."""
+    header = _ply_header(path)
+    if header is None:
+        return
+    form, elements, data_start = header
     names = [i for i, element in enumerate(elements) if element[0] == "vertex"]
     if not names:
         return
@@ -376,6 +433,10 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
         if len(wide) == 0:
             raise InputError(f"{path}: parsed to 0 points; is it a valid PCD point cloud?")
         return wide
+    if ext == ".ply":
+        header = _ply_header(path)
+        if header is not None and _open3d_misreads_ply(header[1]):
+            return _read_ply_in_any_order(path, header[1], mesh_points, seed)
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
         with _open3d_quietly():
             mesh = o3d.io.read_triangle_mesh(str(path))
@@ -405,6 +466,17 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
     if bad:  # a line Open3D skipped: the cloud would be read in part
         raise InputError(f"{path}: {len(points)} points read, but not every line.{bad}")
     return points
+
+
+def _read_ply_in_any_order(path: Path, elements: List[PlyElement], mesh_points: int, seed: int) -> np.ndarray:
+    """A PLY whose vertices store z before x or y: its faces sampled where it has some (read by
+    trimesh), else its vertices read here."""
+    if any(name == "face" and count > 0 for name, count, _ in elements):
+        return _sampled(path, *_trimesh_mesh(path), mesh_points, seed)
+    columns = _ply_vertex_columns(path)
+    if columns is None:
+        raise InputError(f"{path}: its vertices store z before x or y, and come after another element or hold a list; save x, y, z first, in that order")
+    return np.stack([columns[axis] for axis in "xyz"], axis=1).astype(np.float64)
 
 
 def _sampled(path: Path, vertices: np.ndarray, faces: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -924,6 +996,15 @@ def read_attributes(path: PathLike, count: int, scan: Optional[int] = None) -> P
         return _e57_colours(path, count, scan)
     if ext not in (".ply", ".pcd", ".xyzn", ".xyzrgb", ".pts"):
         return PointAttributes()
+    if ext == ".ply":
+        header = _ply_header(path)
+        if header is not None and any(name == "face" and count > 0 for name, count, _ in header[1]):
+            return PointAttributes()
+        types = _ply_vertex_types(path)
+        if header is not None and (
+            _open3d_misreads_ply(header[1]) or any(types.get(c) in ("float", "float32", "double", "float64") for c in ("red", "green", "blue"))
+        ):
+            return _ply_attributes(path, count, types)
     o3d = _o3d()
     with _open3d_quietly():
         if ext == ".ply" and len(o3d.io.read_triangle_mesh(str(path)).triangles) > 0:
@@ -935,6 +1016,24 @@ def read_attributes(path: PathLike, count: int, scan: Optional[int] = None) -> P
         np.asarray(cloud.colors, dtype=np.float64) if cloud.has_colors() else None,
         np.asarray(cloud.normals, dtype=np.float64) if cloud.has_normals() else None,
     )
+
+
+def _ply_attributes(path: Path, count: int, types: Dict[str, str]) -> PointAttributes:
+    """A PLY's colours and normals read here (where Open3D mixes up the points, or scales float
+    colours in 0-1 down by 255): colours stored as floats are taken as 0-1 where none exceeds 1,
+    else over 255; integer ones over their type's largest value."""
+    columns = _ply_vertex_columns(path)
+    if columns is None or len(columns["x"]) != count:
+        return PointAttributes()
+    colors = normals = None
+    if all(c in columns for c in ("red", "green", "blue")):
+        rgb = np.stack([columns[c] for c in ("red", "green", "blue")], axis=1).astype(np.float64)
+        kind = np.dtype(_PLY_NUMPY[types["red"]])
+        limit = (1.0 if np.nanmax(rgb, initial=0.0) <= 1.0 else 255.0) if kind.kind == "f" else float(np.iinfo(kind).max)
+        colors = np.clip(np.nan_to_num(rgb / limit), 0.0, 1.0)
+    if all(n in columns for n in ("nx", "ny", "nz")):
+        normals = np.stack([columns[n] for n in ("nx", "ny", "nz")], axis=1).astype(np.float64)
+    return PointAttributes(colors, normals)
 
 
 def _e57_colours(path: Path, count: int, scan: Optional[int]) -> PointAttributes:

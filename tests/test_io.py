@@ -129,6 +129,61 @@ def test_a_ply_without_y_or_z_is_refused(tmp_path, pts):
     assert np.allclose(read_points(tmp_path / "written.ply"), pts)
 
 
+def _ply(path, columns, types, form="binary_little_endian", faces=None):
+    """Write a PLY whose vertices hold `columns` (name -> (N,) values) in that order, of `types`."""
+    n = len(next(iter(columns.values())))
+    header = f"ply\nformat {form} 1.0\nelement vertex {n}\n" + "".join(f"property {types[c]} {c}\n" for c in columns)
+    if faces is not None:
+        header += f"element face {len(faces)}\nproperty list uchar int vertex_indices\n"
+    header += "end_header\n"
+    codes = {"float": "f4", "double": "f8", "uchar": "u1", "ushort": "u2"}
+    with open(path, "wb") as f:
+        f.write(header.encode())
+        if form == "ascii":
+            for row in zip(*columns.values()):
+                f.write((" ".join(repr(float(v)) if types[c] in ("float", "double") else str(int(v)) for c, v in zip(columns, row)) + "\n").encode())
+            for face in faces if faces is not None else []:
+                f.write(("3 " + " ".join(map(str, face)) + "\n").encode())
+        else:
+            order = ">" if "big" in form else "<"
+            record = np.empty(n, dtype=[(c, order + codes[types[c]]) for c in columns])
+            for c, values in columns.items():
+                record[c] = values
+            f.write(record.tobytes())
+            for face in faces if faces is not None else []:
+                f.write(np.uint8(3).tobytes() + np.asarray(face, dtype=order + "i4").tobytes())
+
+
+@pytest.mark.parametrize("form", ["binary_little_endian", "binary_big_endian", "ascii"])
+def test_a_ply_in_any_property_order_is_read_as_written(tmp_path, pts, form):
+    # Open3D's reader moves to the next point at z (nz, blue): a file storing z before x or y had
+    # its points mixed up, silently.
+    rng = np.random.default_rng(1)
+    rgb, normals = rng.integers(0, 256, (len(pts), 3)), rng.normal(size=(len(pts), 3))
+    values = {"intensity": rng.uniform(size=len(pts)), "z": pts[:, 2], "blue": rgb[:, 2], "x": pts[:, 0], "nz": normals[:, 2]}
+    values.update({"green": rgb[:, 1], "y": pts[:, 1], "red": rgb[:, 0], "nx": normals[:, 0], "ny": normals[:, 1]})
+    types = dict.fromkeys(values, "float") | {"red": "uchar", "green": "uchar", "blue": "uchar"}
+    _ply(tmp_path / "any_order.ply", values, types, form)
+    got = read_points(tmp_path / "any_order.ply")
+    assert np.allclose(got, pts, atol=1e-6)
+    attributes = read_attributes(tmp_path / "any_order.ply", len(got))
+    assert np.allclose(attributes.colors, rgb / 255) and np.allclose(attributes.normals, normals, atol=1e-6)
+    # A mesh in that order is sampled on the faces it holds.
+    corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    _ply(tmp_path / "mesh.ply", {"z": corners[:, 2], "x": corners[:, 0], "y": corners[:, 1]}, dict.fromkeys("xyz", "float"), form, faces=[(0, 1, 2)])
+    sampled = read_points(tmp_path / "mesh.ply", mesh_points=100)
+    assert len(sampled) == 100 and np.allclose(sampled[:, 2], 0) and (sampled[:, :2].sum(axis=1) <= 1 + 1e-9).all()
+
+
+@pytest.mark.parametrize("scale", [1.0, 255.0])
+def test_float_colours_are_read_in_their_range(tmp_path, pts, scale):
+    # Open3D divides every PLY colour by 255: floats in 0-1 came out nearly black.
+    rgb = np.random.default_rng(2).uniform(size=(len(pts), 3))
+    columns = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "red": rgb[:, 0] * scale, "green": rgb[:, 1] * scale, "blue": rgb[:, 2] * scale}
+    _ply(tmp_path / "float_colours.ply", columns, dict.fromkeys(columns, "float"))
+    assert np.allclose(read_attributes(tmp_path / "float_colours.ply", len(pts)).colors, rgb, atol=1e-6)
+
+
 @pytest.mark.parametrize("ext, ascii", [(".ply", False), (".ply", True), (".pcd", False), (".pcd", True)])
 def test_a_file_cut_short_is_refused(tmp_path, pts, ext, ascii):
     # Open3D reads the missing points of a cut PLY, and of a cut ascii PCD, as zeros.
