@@ -14,7 +14,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import List, Optional, Sequence
 
 import click
 
@@ -273,7 +273,11 @@ def _register_config(
 )
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON instead of a table.")
-@click.option("--no-refine", is_flag=True, help="Skip ICP: report the network's estimate alone.")
+@click.option(
+    "--no-refine",
+    is_flag=True,
+    help="Skip ICP: every estimate as proposed (the network's, and the search's where it runs; with --search off, the network's alone).",
+)
 @click.option("--points", "num_points", type=click.IntRange(min=1), default=1024, show_default=True, help="Points sampled from each cloud for the network.")
 @click.option("--mesh-points", type=click.IntRange(min=1), default=20000, show_default=True, help="Points sampled on the faces of mesh inputs.")
 @click.option(
@@ -501,6 +505,14 @@ def _cleaning_lines(removed: dict, isolated: str) -> list:
     return lines
 
 
+def _matrix_lines(T) -> List[str]:
+    """The rows of a (4, 4) transform with 12 decimals, aligned: enough to apply it to
+    georeferenced clouds (millions of units from the origin) to 1e-5 units."""
+    cells = [[f"{_tidy(float(v)):.12f}" for v in row] for row in T]
+    width = max(len(cell) for row in cells for cell in row)
+    return ["  " + " ".join(cell.rjust(width) for cell in row) for row in cells]
+
+
 def _tidy(value: float) -> float:
     """0 for a value within float rounding of it (the world scan's pose is the identity up to 1e-20)."""
     return 0.0 if abs(value) < 1e-12 else value
@@ -533,7 +545,7 @@ def _format_result(source, target, result, errors, model_info, config, read=None
         + (f"; second network: {weights_file(config.second_network.weights)}" if "second_network" in result.timings_ms else ""),
         "",
         "T_target_source (maps the source onto the target):",
-        *("  " + " ".join(f"{v: .6f}" for v in row) for row in T),
+        *_matrix_lines(T),
         "",
         f"  fitness      {result.fitness:.4f}   share of source points within {result.correspondence_distance:.4g} units of the target (0-1, higher is better)",
         f"  inlier RMSE  {result.inlier_rmse:.4g}   units, over those points (lower is better)",
@@ -541,7 +553,7 @@ def _format_result(source, target, result, errors, model_info, config, read=None
         + ("  LIKELY FAILED" if result.likely_failed else ""),
         *(
             [
-                f"  constraint   {result.constraint:.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below 0.002: not determined)",
+                f"  constraint   {result.constraint:<6.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below 0.002: not determined)",
                 f"  flatness     {result.flatness:.3f}   fit 30 degrees away over the result's (0-1, lower is better; from 0.85: not determined)",
             ]
             if result.constraint is not None

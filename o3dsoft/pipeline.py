@@ -131,8 +131,8 @@ class RegistrationResult:
         constraint: how firmly the geometry fixes the pose: smallest over largest eigenvalue of
             the point-to-plane normal equations at the result (0-1, higher is better; below
             ``degeneracy.min_constraint`` the result is flagged with confidence 0). None where the
-            clouds share their points (spacing ratio under ``degeneracy.shared_below``): their
-            points fix the pose, and it is not measured.
+            clouds share their points (spacing ratio under ``degeneracy.shared_below``, on clouds
+            that are not evenly spaced grids): their points fix the pose, and it is not measured.
         flatness: how well the clouds still fit with the source turned 30 degrees, over the
             result's fit (0-1, lower is better; from ``degeneracy.max_flatness`` = 0.85 the result
             is flagged with confidence 0). None where the clouds share their points.
@@ -256,6 +256,9 @@ def register(
         InputError: a cloud is degenerate (too few points, identical or collinear points), the
             weights file is unusable, `init` is not a rigid 4x4 transform, or a setting of
             `config` is invalid (see its ``validate``).
+        UsageError: what cannot run as asked: a missing weights file, an unknown device,
+            ``num_points`` below the network's neighbourhood size. Both are
+            :class:`o3dsoft.O3dsoftError` (and ``ValueError``).
     """
     config = RegisterConfig() if config is None else config
     if not isinstance(config, RegisterConfig):
@@ -652,9 +655,9 @@ def _apart_reason(best: Attempt, config: RegisterConfig) -> Optional[str]:
     bound = config.max_rotation
     turn = rotation_angle_deg(best.fine.transformation[:3, :3])
     if bound is not None and turn > bound:
-        return f"it rotates the source by {turn:.1f} degrees, beyond max_rotation {bound:g}"
+        return f"it rotates the source by {turn:.1f} degrees, beyond the {bound:g} degrees of max_rotation (--max-rotation)"
     if bound is not None and best.trust == 0.0 and best.scored.overlap >= config.confidence.min_overlap:
-        return f"ICP leaves max_rotation {bound:g} from every estimate, so the pose as given is returned unrefined"
+        return f"ICP leaves the {bound:g} degrees of max_rotation (--max-rotation) from every estimate, so the pose as given is returned unrefined"
     if best.scored.overlap < config.confidence.min_overlap:
         return f"the clouds barely touch: the points near the other cloud are {100 * best.scored.overlap:.0f} % of the smaller one"
     return None

@@ -176,7 +176,9 @@ def voxel_downsample(points: np.ndarray, voxel: float, name: str = "cloud", min_
 
     down = np.asarray(to_open3d(points).voxel_down_sample(voxel).points)
     if len(down) < min_points:
-        raise InputError(f"{name}: {len(down)} points left on a voxel grid of {voxel:g} units, fewer than the {min_points} needed; use a smaller voxel")
+        raise InputError(
+            f"{name}: {len(down)} point{'' if len(down) == 1 else 's'} left on a voxel grid of {voxel:g} units, fewer than the {min_points} needed; use a smaller voxel"
+        )
     return down
 
 
