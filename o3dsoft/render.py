@@ -74,15 +74,19 @@ def render_registration(
         share = 100.0 * float(np.mean(near < distance / 3))
         ax.set_title(f"({chr(96 + i)}) {title}: {share:.0f} % of the source within {distance / 3:.3g} units", fontsize=8)
         ax.tick_params(labelsize=6)
+        ax.set_xlabel("along the plane's first axis (cloud units)", fontsize=6)
         if i == 1:
-            ax.legend(loc="upper left", fontsize=7, markerscale=8)
-    fig.subplots_adjust(left=0.04, right=0.9, bottom=0.1, top=0.92, wspace=0.15)
-    cbar = fig.colorbar(shown, ax=fig.axes, shrink=0.8, pad=0.01)
-    cbar.set_label("source point's distance to the target (cloud units, lower is better)", fontsize=7)
+            ax.set_ylabel("along its second axis (cloud units)", fontsize=6)
+            legend = ax.legend(loc="upper left", fontsize=7, markerscale=8)
+            legend.legend_handles[1].set_color(shown.cmap(0.0))  # a near point's colour, not an arbitrary one
+            legend.get_texts()[1].set_text("source (colour: distance)")
+    fig.subplots_adjust(left=0.05, right=0.9, bottom=0.12, top=0.92, wspace=0.2)
+    cbar = fig.colorbar(shown, ax=fig.axes, shrink=0.8, pad=0.01, extend="max")
+    cbar.set_label(f"source point's distance to the target\n(cloud units, lower is better; from {distance:.3g}: the top colour)", fontsize=7)
     cbar.ax.tick_params(labelsize=6)
     fig.text(0.01, 0.01, "View: the target's principal plane. Shares of the source near the target: higher is better. " + caption, fontsize=7)
     with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
+        fig.savefig(tmp, dpi=dpi, format="png", bbox_inches="tight", pad_inches=0.1)  # no margin left by the equal-aspect panels
     return Path(path)
 
 
@@ -117,7 +121,9 @@ def render_merged(path: Union[str, Path], points: np.ndarray, labels: np.ndarray
     ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=7, markerscale=12)
     ax.set_title("merged scans, one colour per scan", fontsize=9)
     fig.subplots_adjust(left=0.06, right=0.75, bottom=0.08, top=0.94)
+    ax.set_xlabel("along the plane's first axis (cloud units)", fontsize=6)
+    ax.set_ylabel("along its second axis (cloud units)", fontsize=6)
     fig.text(0.01, 0.01, "View: the merged cloud's principal plane. " + caption, fontsize=7)
     with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
+        fig.savefig(tmp, dpi=dpi, format="png", bbox_inches="tight", pad_inches=0.1)
     return Path(path)
