@@ -130,10 +130,9 @@ def _ply_vertex_columns(path: Path) -> Optional[Dict[str, np.ndarray]]:
     return {name: table[name] for name in record.names}
 
 
-def _ply_vertex_types(path: Path) -> Dict[str, str]:
+def _ply_vertex_types(elements: List[PlyElement]) -> Dict[str, str]:
     """The type of each scalar property of a PLY's vertices ("float", "uchar", ...), by name."""
-    header = _ply_header(path)
-    vertex = next((properties for name, _, properties in header[1] if name == "vertex"), []) if header else []
+    vertex = next((properties for name, _, properties in elements if name == "vertex"), [])
     return {name: kind for kind, name, _ in vertex if kind != "list"}
 
 
@@ -996,14 +995,10 @@ def read_attributes(path: PathLike, count: int, scan: Optional[int] = None) -> P
         return _e57_colours(path, count, scan)
     if ext not in (".ply", ".pcd", ".xyzn", ".xyzrgb", ".pts"):
         return PointAttributes()
-    if ext == ".ply":
-        header = _ply_header(path)
-        if header is not None and any(name == "face" and count > 0 for name, count, _ in header[1]):
-            return PointAttributes()
-        types = _ply_vertex_types(path)
-        if header is not None and (
-            _open3d_misreads_ply(header[1]) or any(types.get(c) in ("float", "float32", "double", "float64") for c in ("red", "green", "blue"))
-        ):
+    header = _ply_header(path) if ext == ".ply" else None
+    if header is not None and not any(name == "face" and n > 0 for name, n, _ in header[1]):  # a mesh's points are sampled
+        types = _ply_vertex_types(header[1])
+        if _open3d_misreads_ply(header[1]) or any(types.get(c) in ("float", "float32", "double", "float64") for c in ("red", "green", "blue")):
             return _ply_attributes(path, count, types)
     o3d = _o3d()
     with _open3d_quietly():
