@@ -27,7 +27,7 @@ from . import baselines
 from . import refine as refine_stage
 from .coarse import CoarseModel, sha256_of, weights_file
 from .data import DEFAULT_POINTS_PER_SHAPE, get_protocol, load_pairs
-from .errors import InputError, O3dsoftError, UsageError, release_interrupt, spawn_context, terminate_as_interrupt
+from .errors import InputError, O3dsoftError, UsageError, first_line, release_interrupt, spawn_context, terminate_as_interrupt
 from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, input_chamfer_distance, modified_chamfer_distance, pair_errors, summarise, within
 from .pipeline import RegisterConfig, register
@@ -424,6 +424,7 @@ class MethodResult(NamedTuple):
     confidence: Optional[float] = None
     searched: Optional[bool] = None
     search_reason: Optional[str] = None
+    error: Optional[str] = None  # why the method raised on this pair: then the pose as given (identity) is scored
 
 
 def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel], search_model: Optional[CoarseModel] = None) -> List[MethodResult]:
@@ -438,7 +439,20 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
     def clock() -> float:
         return time.perf_counter() * 1000.0
 
-    if {"o3dsoft", "o3dsoft-coarse"} & set(methods):
+    def each(names: Sequence[str], run: Callable[[], None]) -> None:
+        """run() adds the results of the methods `names` (those asked) to `out`; where it raises on
+        this pair, each of them is scored as the pose as given, with the error."""
+        asked = [m for m in names if m in methods]
+        if not asked:
+            return
+        t0 = clock()
+        try:
+            run()
+        except (O3dsoftError, RuntimeError) as e:
+            for m in asked:  # o3dsoft gave no answer to trust: confidence 0
+                out[m] = MethodResult(m, np.eye(4), {"total": clock() - t0}, 0.0 if m == "o3dsoft" else None, error=first_line(e))
+
+    def o3dsoft_methods() -> None:
         t0 = clock()
         result = register(src, tgt, config.register, model=model, search_model=search_model)
         wall_ms = clock() - t0  # the whole call: its stages and what lies between them (the degeneracy test, the result)
@@ -452,15 +466,18 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         out["o3dsoft"] = MethodResult(
             "o3dsoft", result.transformation, {**coarse_ms, "icp": fine_ms, "total": wall_ms}, result.confidence, result.searched, result.search_reason
         )
-    if "oracle" in methods:
+
+    def oracle() -> None:
         t0 = clock()
         T = refine_stage.icp(src, tgt, pair.transform, icp_distance, config.register.icp).transformation
         out["oracle"] = MethodResult("oracle", T, {"icp": clock() - t0, "total": clock() - t0})
-    if "icp" in methods:
+
+    def icp() -> None:
         t0 = clock()
         T = refine_stage.icp(src, tgt, np.eye(4), config.identity_icp.distance_for(scale), config.identity_icp).transformation
         out["icp"] = MethodResult("icp", T, {"icp": clock() - t0, "total": clock() - t0})
-    if {"fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp"} & set(methods):
+
+    def feature_methods() -> None:
         t0 = clock()
         fs = baselines.fpfh_features(src, scale, config.global_)
         ft = baselines.fpfh_features(tgt, scale, config.global_)
@@ -483,7 +500,8 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
                 out[f"{name}+icp"] = MethodResult(
                     f"{name}+icp", T_fine, {"features": features_ms, stage: solve_ms, "icp": icp_ms, "total": features_ms + solve_ms + icp_ms}
                 )
-    if set(PEER_METHODS) & set(methods):
+
+    def peer_methods() -> None:
         voxel = config.kiss.voxel * max(scene_size(src), scene_size(tgt))
         t0 = clock()
         T = baselines.kiss_matcher(src, tgt, voxel)
@@ -495,6 +513,15 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
             T_fine = baselines.small_gicp(src, tgt, T, voxel, config.kiss)
             gicp_ms = clock() - t0
             out["kiss-matcher+gicp"] = MethodResult("kiss-matcher+gicp", T_fine, {"kiss": kiss_ms, "icp": gicp_ms, "total": kiss_ms + gicp_ms})
+
+    each(("o3dsoft-coarse", "o3dsoft"), o3dsoft_methods)
+    each(("oracle",), oracle)
+    each(("icp",), icp)
+    each(("fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp"), feature_methods)
+    each(PEER_METHODS, peer_methods)
+    errors = {r.error for r in out.values()}
+    if None not in errors:  # no method could run on the pair: the pair, not a method, is at fault
+        raise InputError(next(iter(errors)) or "no method ran")
     return [out[m] for m in methods]
 
 
@@ -523,6 +550,7 @@ def score(pair: BenchPair, result: MethodResult) -> Tuple[dict, PairErrors]:
         "confidence": "" if result.confidence is None else result.confidence,
         "searched": "" if result.searched is None else result.searched,
         "search_reason": result.search_reason or "",
+        "error": result.error or "",
     }
     for stage in STAGES:
         row[f"time_{stage}_ms"] = result.times_ms.get(stage, "")
@@ -562,6 +590,7 @@ def summarise_rows(rows: Sequence[dict], errors: Sequence[PairErrors], config: B
                 recall = config.recall_for(protocol)
                 summary = {"protocol": protocol, "subset": subset, "method": method, "recall_thresholds": [list(r) for r in recall]}
                 summary.update(summarise([errors[i] for i in sel], recall))
+                summary["raised"] = sum(1 for i in sel if rows[i]["error"])  # pairs scored as the pose as given
                 summary["chamfer_mean"] = float(np.mean([rows[i]["chamfer"] for i in sel]))
                 summary["time_ms_median"] = float(np.median(total))
                 summary["time_ms_p90"] = float(np.percentile(total, 90))
@@ -651,6 +680,8 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
             + "".join(f" {100 * s[k]:>14.1f}" for k in recall_keys(s))
             + f" {s['time_ms_median']:>9.1f} {s['time_ms_p90']:>8.1f}"
         )
+        if s.get("raised"):
+            lines.append(f"{'':18s} raised an error on {_count(s['raised'], 'pair')}: scored as the pose as given (identity); pairs.csv says why")
         if "confidence_auc" in s:
             d5, t5 = recall[-1]
             auc = "n/a (no failures or no successes)" if s["confidence_auc"] is None else f"{s['confidence_auc']:.3f}"
@@ -668,6 +699,11 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
                     f"ROC AUC without them: {distinct} (higher is better)"
                 )
     return "\n".join(lines)
+
+
+def _count(n: int, noun: str) -> str:
+    """ "1 pair", "3 pairs"."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 def source_commit(here: Optional[Path] = None) -> Optional[str]:
@@ -956,7 +992,7 @@ def run(
     with atomic_output(out / "config.json") as tmp:
         tmp.write_text(json.dumps({**description, "bench": config.to_dict()}, indent=2))
     if interrupted:  # a table read later says it is a part of the run
-        table = f"Interrupted: {summary_doc['pairs_completed']} pairs completed; the table holds those only.\n\n{table}"
+        table = f"Interrupted: {_count(summary_doc['pairs_completed'], 'pair')} completed; the table holds those only.\n\n{table}"
     with atomic_output(out / "table.txt") as tmp:
         tmp.write_text(table + "\n")
     plot(out, rows, config)

@@ -212,6 +212,28 @@ def test_an_unusable_pair_is_reported_and_skipped(tmp_path, jobs):
     assert result.summaries[0]["pairs"] == 2
 
 
+def test_a_method_that_raises_on_a_pair_is_scored_there_and_the_others_keep_the_pair(tmp_path):
+    # The pair counts for every method: a method's recall must not depend on which others ran.
+    import csv
+
+    from o3dsoft.coarse import load_model
+
+    rng = np.random.default_rng(0)
+    good = rng.normal(size=(300, 3))
+    few = good[:20]  # ICP runs; o3dsoft refuses a cloud of fewer points than the network's K
+    pairs = [bench.BenchPair("x", i, c, c, np.eye(4), "blob") for i, c in enumerate((good, few, good))]
+    config = bench.BenchConfig(methods=("icp", "o3dsoft"))
+    result = bench.run(iter(pairs), 3, config, load_model(), tmp_path, {}, progress=False, log=lambda m: None)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["pairs_completed"] == 3 and summary["pairs_failed"] == []
+    by_method = {s["method"]: s for s in result.summaries}
+    assert by_method["o3dsoft"]["raised"] == 1 and by_method["icp"]["raised"] == 0 and by_method["icp"]["pairs"] == 3
+    rows = list(csv.DictReader(open(tmp_path / "pairs.csv")))
+    (failed,) = [r for r in rows if r["error"]]
+    assert failed["method"] == "o3dsoft" and failed["index"] == "1" and "points" in failed["error"] and float(failed["confidence"]) == 0.0
+    assert "raised an error on 1 pair: scored as the pose as given" in (tmp_path / "table.txt").read_text()
+
+
 def test_bad_names_and_data(tmp_path, monkeypatch):
     r = _bench(["modelnet40", "--protocol", "dcpp"])
     assert r.exit_code == 2 and "unknown protocol 'dcpp'; valid: paper, dcp" in r.output
@@ -1043,8 +1065,10 @@ def test_modelnet40_runs_a_protocol_given_twice_once_and_fails_where_no_pair_run
     r = _bench([*twice, "--out", str(tmp_path / "a")])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "a" / "summary.json").read_text())["pairs_completed"] == 2
-    r = _bench([*twice, "--method", "o3dsoft", "--points-per-shape", "10", "--out", str(tmp_path / "b")])  # too few points for the network
+    r = _bench([*twice[:-2], "--method", "o3dsoft", "--points-per-shape", "10", "--out", str(tmp_path / "b")])  # too few points for the network
     assert r.exit_code == 1 and "skipped" in r.output and "Error: no pair could run" in r.output
+    r = _bench([*twice, "--method", "o3dsoft", "--points-per-shape", "10", "--out", str(tmp_path / "d")])  # ICP runs there: o3dsoft fails them
+    assert r.exit_code == 0 and "raised an error on 2 pairs" in (tmp_path / "d" / "table.txt").read_text()
     r = _bench([*twice, "--seed", "-1", "--out", str(tmp_path / "c")])
     assert r.exit_code == 2 and "Invalid value for '--seed'" in r.output
 
