@@ -34,7 +34,7 @@ def read_config(path: PathLike, cls: type) -> Dict[str, Any]:
     if not path.is_file():
         raise UsageError(f"{path}: no such config file")
     try:
-        node = yaml.compose(path.read_text(), Loader=yaml.SafeLoader)
+        node = yaml.compose(path.read_text(encoding="utf-8-sig"), Loader=yaml.SafeLoader)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""

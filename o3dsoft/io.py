@@ -532,7 +532,7 @@ def _read_table(path: Path) -> np.ndarray:
     any header lines. Where the last header line names columns x, y and z (any case, quoted or
     not, CloudCompare's "//X"), those are read; otherwise the first three. Every later non-blank
     line must hold them."""
-    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
     found = _first_numbers(lines, _DELIMITERS)
     if found is None:  # decimal commas (a spreadsheet's export in many locales: "1,5;2,5;3,5"): read as points
         lines = [line.replace(",", ".") for line in lines]
@@ -1160,7 +1160,7 @@ def _number_lines(path: Path, counts: Tuple[int, ...], expected: str) -> List[Tu
     """The (line number, numbers) of a text file's lines that hold any, each holding one of
     `counts` numbers (whitespace or comma separated; '#' starts a comment)."""
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise InputError(f"{path}: not a text file; expected {expected}") from None
     per_line = " or ".join(map(str, counts))
@@ -1217,7 +1217,7 @@ def _poses_by_name(path: Path, names: Sequence[str]) -> Dict[int, Tuple[str, np.
     """{index of the scan in `names`: (where, (4, 4) pose)} from a poses.json: each entry with a
     pose goes to the scan of its name, else to the one scan of its file name that no entry named."""
     try:
-        record = json.loads(path.read_text())
+        record = json.loads(path.read_text(encoding="utf-8-sig"))
     except (UnicodeDecodeError, ValueError, RecursionError) as e:
         raise InputError(f"{path}: not a JSON file ({first_line(e)}); expected o3dsoft multiway's poses.json") from None
     if isinstance(record, dict) and "scans" not in record and isinstance(record.get("sweeps"), list):  # o3dsoft odometry's

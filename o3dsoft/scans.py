@@ -98,7 +98,7 @@ def pair_lines(path: Union[str, Path], counts: Tuple[int, ...] = (3,), options: 
     expected = "source target transform" if counts == (3,) else "source target [transform]"
     expected += "".join(f" [{name}=transform]" for name in options)
     lines = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    for lineno, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), start=1):
         files, named = [], {}
         for field in _fields(line, f"{path}, line {lineno}"):
             key, sep, value = field.partition("=")
@@ -149,11 +149,13 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
     """Scan name -> (4, 4) T_world_scan from a ``.conf`` file.
 
     Raises:
-        InputError: a ``bmesh`` line without 7 numbers after the name (names the line).
+        InputError: a ``bmesh`` line without 7 finite numbers after the name, a quaternion of
+            length 0, or a scan given twice (names the line).
     """
     path = Path(path)
     poses: Dict[str, np.ndarray] = {}
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    lines: Dict[str, int] = {}  # the line of each scan's pose
+    for lineno, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), start=1):
         parts = line.split()
         if not parts or parts[0] != "bmesh":
             continue
@@ -163,6 +165,11 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
             tx, ty, tz, qx, qy, qz, qw = (float(v) for v in parts[2:])
         except ValueError:
             raise InputError(f"{path}, line {lineno}: non-numeric pose values") from None
+        if not all(np.isfinite([tx, ty, tz, qx, qy, qz, qw])) or np.linalg.norm([qx, qy, qz, qw]) == 0:
+            raise InputError(f"{path}, line {lineno}: expected finite numbers and a quaternion of non-zero length, got {' '.join(parts[2:])}")
+        if parts[1] in lines:
+            raise InputError(f"{path}, line {lineno}: {parts[1]} has a pose at line {lines[parts[1]]} already")
+        lines[parts[1]] = lineno
         poses[parts[1]] = rigid(quaternion_to_matrix(qx, qy, qz, qw).T, np.array([tx, ty, tz]))
     if not poses:
         raise InputError(f"{path}: no 'bmesh' lines")

@@ -323,6 +323,37 @@ def test_scan_pairs_from_a_conf(two_scans):
         bench.scan_folder(two_scans, 0.3)
 
 
+def test_a_conf_or_pairs_file_saved_with_a_byte_order_mark_reads_whole(two_scans, tmp_path):
+    # Windows editors start UTF-8 text with a byte order mark; the first line had been dropped.
+    conf = two_scans / "bun.conf"
+    conf.write_bytes(b"\xef\xbb\xbf" + conf.read_text().replace("camera 0 0 0 0 0 0 1\n", "").encode())
+    assert [p.category for p in bench.scan_folder(two_scans, 0.3).pairs] == ["bun000->bun045", "bun045->bun000"]
+    from o3dsoft.scans import read_pairs_file
+
+    (two_scans / "gt.txt").write_bytes(b"\xef\xbb\xbf" + "\n".join(" ".join(map(str, row)) for row in np.eye(4)).encode())
+    (two_scans / "pairs.txt").write_bytes(b"\xef\xbb\xbfbun045.ply bun000.ply gt.txt\n")
+    assert [e.line for e in read_pairs_file(two_scans / "pairs.txt")] == [1]
+    from o3dsoft.io import read_transform
+
+    assert np.array_equal(read_transform(two_scans / "gt.txt"), np.eye(4))
+
+
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        ("bmesh bun045.ply 0 0 0 0 0 0 0", "line 2: expected finite numbers and a quaternion of non-zero length"),
+        ("bmesh bun045.ply 0 0 nan 0 0 0 1", "line 2: expected finite numbers"),
+        ("bmesh bun000.ply 0 0 0 0 0 0 1", "line 2: bun000.ply has a pose at line 1 already"),
+    ],
+)
+def test_a_conf_line_that_gives_no_pose_is_refused_by_its_line(tmp_path, line, message):
+    from o3dsoft.scans import read_conf
+
+    (tmp_path / "bun.conf").write_text(f"bmesh bun000.ply 0 0 0 0 0 0 1\n{line}\n")
+    with pytest.raises(InputError, match=message):
+        read_conf(tmp_path / "bun.conf")
+
+
 @pytest.fixture
 def listed_scans(tmp_path):
     """A folder in the pairs.txt layout of real scans: one pair, in metres magnified to a room."""
