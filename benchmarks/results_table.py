@@ -87,16 +87,26 @@ def run_lines(doc: dict) -> List[str]:
     return [
         f"Command: `{desc.get('command', 'o3dsoft bench modelnet40')}`"
         + (f" (first {limit} test pairs per protocol)" if limit else " (the whole ModelNet40 test split)")
-        + f"; {doc['pairs_completed']} pairs in {doc['seconds'] / 60:.1f} min"
-        + (" (interrupted)" if doc["interrupted"] else "")
-        + ".",
+        + f"; {_size(doc)}.",
         f"Machine: {v['machine']}; o3dsoft {v['o3dsoft']}{commit}, torch {v['torch']}, Open3D {v['open3d']}. "
         f"Weights sha256 `{((doc.get('weights') or {}).get('sha256') or '-')[:12]}`.",
     ]
 
 
+def _size(doc: dict) -> str:
+    """ "208 pairs in 8.9 min", with what cut the run short or left pairs and methods out."""
+    n, failed = doc["pairs_completed"], len(doc.get("pairs_failed") or [])
+    text = f"{n} pair{'' if n == 1 else 's'} in {doc['seconds'] / 60:.1f} min" + (" (interrupted)" if doc["interrupted"] else "")
+    if failed:
+        text += f"; {failed} pair{' was' if failed == 1 else 's were'} left out: no method could run on {'it' if failed == 1 else 'them'}"
+    raised = sorted({f"{doc['methods'].get(s['method'], s['method'])}" for s in doc["summaries"] if s.get("raised")})
+    if raised:
+        text += f"; raised an error on some pairs, scored there as the pose as given: {', '.join(raised)}"
+    return text
+
+
 def merged(docs: Sequence[dict]) -> dict:
-    """The runs' summaries as one document (the first run's method names and thresholds),
+    """The runs' summaries as one document (every run's methods, each protocol's thresholds),
     protocols in the order of PROTOCOLS. Raises SystemExit when two runs hold one protocol."""
     seen = set()
     for doc in docs:
@@ -108,17 +118,36 @@ def merged(docs: Sequence[dict]) -> dict:
     summaries = [s for doc in docs for s in doc["summaries"]]
     summaries.sort(key=lambda s: order.get(s["protocol"], len(order)))  # stable: methods keep their order
     recall = {s["protocol"]: thresholds(doc, s["protocol"]) for doc in docs for s in doc["summaries"]}
-    return {"methods": docs[0]["methods"], "recall_thresholds": recall, "summaries": summaries}
+    methods = {name: title for doc in docs for name, title in doc["methods"].items()}
+    return {"methods": methods, "recall_thresholds": recall, "summaries": summaries}
 
 
 def summary_of(run: Path) -> dict:
     """A run's summary: from a run folder (its summary.json) or from a summary file itself, such
     as the copies kept in benchmarks/results/ (run folders are not kept in the repository)."""
-    return json.loads((run if run.is_file() else run / "summary.json").read_text())
+    path = run if run.is_file() else run / "summary.json"
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise SystemExit(f"{run}: no such file, nor a folder with a summary.json; expected a bench run folder or its summary.json") from None
+    except (UnicodeDecodeError, ValueError) as e:
+        raise SystemExit(f"{path}: not a JSON file ({e}); expected a bench run's summary.json") from None
+    if not isinstance(doc, dict) or not all(key in doc for key in ("summaries", "methods", "description", "versions")):
+        raise SystemExit(f"{path}: not a bench run's summary.json (no summaries, methods, description or versions)")
+    return doc
+
+
+def is_scans(doc: dict) -> bool:
+    """Whether a summary is of a ``bench scans`` run (its description lists the folders)."""
+    return "folders" in doc["description"]
 
 
 def markdown(runs: Union[Path, Sequence[Path]], short: bool = False) -> str:
-    docs = [summary_of(run) for run in ([runs] if isinstance(runs, Path) else runs)]
+    runs = [runs] if isinstance(runs, Path) else list(runs)
+    docs = [summary_of(run) for run in runs]
+    for run, d in zip(runs, docs):
+        if is_scans(d):
+            raise SystemExit(f"{run}: a bench scans run; its table is made with --scans")
     doc = merged(docs)
     recall = thresholds(doc, doc["summaries"][0]["protocol"])
     r1, r5 = recall[0], recall[-1]
@@ -162,9 +191,11 @@ def scans_markdown(run: Path) -> str:
     confidence ROC AUC and false alarms; a run with ``--turns`` gives each folder's turned pairs
     (protocol "FOLDER turned") in the same row."""
     doc = summary_of(run)
+    if not is_scans(doc):
+        raise SystemExit(f"{run}: not a bench scans run; a ModelNet40 run's table is made without --scans")
     desc, names = doc["description"], doc["methods"]
     lines = run_lines(doc)[1:]
-    lines[0:0] = [f"Command: `{desc.get('command', 'o3dsoft bench scans')}`; {doc['pairs_completed']} pairs in {doc['seconds'] / 60:.1f} min."]
+    lines[0:0] = [f"Command: `{desc.get('command', 'o3dsoft bench scans')}`; {_size(doc)}."]
     folders = {f["folder"]: f for f in desc.get("folders", [])}
     rows = {(s["protocol"], s["method"]): s for s in doc["summaries"] if s["subset"] == "all"}
     turns = max((f.get("turns", 0) for f in folders.values()), default=0)
@@ -199,18 +230,28 @@ def scans_markdown(run: Path) -> str:
         turned = rows.get((f"{protocol} turned", method))
         values = cells(s) + (cells(turned) if turned else ["", ""] if turns else [])
         kind = folders.get(protocol, {}).get("kind", "")
-        lines.append(f"| {protocol} ({kind}, {int(s['pairs'])} pairs) | {test} | {names[method]} | {' | '.join(values)} | {trust(turned or s)} |")
+        lines.append(
+            f"| {protocol} ({kind}, {int(s['pairs'])} pair{'' if int(s['pairs']) == 1 else 's'}) | {test} | {names[method]} | {' | '.join(values)} | {trust(turned or s)} |"
+        )
     return "\n".join(lines)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("runs", type=Path, nargs="+", help="bench run folders or summary.json files (each protocol from one of them)")
-    ap.add_argument("--readme", type=Path, default=Path(__file__).resolve().parents[1] / "README.md")
+    ap.add_argument(
+        "--readme",
+        type=Path,
+        default=Path(__file__).resolve().parents[1] / "README.md",
+        help="the file whose marked section is replaced, in place (default: the repository's README.md)",
+    )
+    ap.add_argument("--print", action="store_true", help="print the section instead of writing it")
     ap.add_argument("--marker", default="results", help="the README section's marker name")
     ap.add_argument("--short", action="store_true", help="only the runs and the short table, not one table per protocol")
     ap.add_argument("--scans", action="store_true", help="one `bench scans` run: the real-scans table (marker `scans` unless told)")
     args = ap.parse_args()
+    if args.scans and len(args.runs) > 1:
+        raise SystemExit(f"--scans takes one bench scans run, got {len(args.runs)}")
     marker = "scans" if args.scans and args.marker == "results" else args.marker
     START, END = f"<!-- {marker}:start -->", f"<!-- {marker}:end -->"
     text = args.readme.read_text()
@@ -219,6 +260,9 @@ def main() -> None:
     head, rest = text.split(START, 1)
     _, tail = rest.split(END, 1)
     table = scans_markdown(args.runs[0]) if args.scans else markdown(args.runs, args.short)
+    if args.print:
+        print(table)
+        return
     args.readme.write_text(head + START + "\n" + table + "\n" + END + tail)
     print(f"updated {args.readme} from {', '.join(map(str, args.runs))}")
 

@@ -20,7 +20,7 @@ from o3dsoft.metrics import pair_errors
 from o3dsoft.preprocess import scene_size
 from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid, rotation_angle_deg
 
-from .conftest import EXAMPLES, georeferenced_bunny, tetra_off
+from .conftest import EXAMPLES, REPO, georeferenced_bunny, tetra_off
 
 
 def _bench(args):
@@ -497,7 +497,7 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     from benchmarks.results_table import scans_markdown
 
     table = scans_markdown(tmp_path / "s")  # the README's real-scans table
-    assert "| room (rgbd, 1 pairs) | 2 deg / 0.05 m, 15 deg / 0.3 m | Open3D ICP from the identity |" in table
+    assert "| room (rgbd, 1 pair) | 2 deg / 0.05 m, 15 deg / 0.3 m | Open3D ICP from the identity |" in table
     r = _bench(["scans", str(listed_scans), "--turns", "2", "--method", "fpfh-ransac+icp", "--out", str(tmp_path / "t"), "--no-progress"])
     assert r.exit_code == 0, r.output
     assert "room (rgbd: success within 2 deg / 0.05 m and 15 deg / 0.3 m), the source turned 2 times" in r.output
@@ -507,7 +507,7 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     assert summary["recall_thresholds"]["room turned"] == summary["recall_thresholds"]["room"]
     table = scans_markdown(tmp_path / "t")  # the turned pairs in their folder's row
     assert "| method | recall | time (ms) | turned 2 times: recall | time (ms) |" in table and "room turned" not in table
-    (row,) = [line for line in table.splitlines() if line.startswith("| room (rgbd, 1 pairs) |")]
+    (row,) = [line for line in table.splitlines() if line.startswith("| room (rgbd, 1 pair) |")]
     assert row.count("|") == 9
     r = _bench(["scans", str(listed_scans), "--noise", "0.003", "--method", "fpfh-ransac+icp", "--out", str(tmp_path / "n"), "--no-progress"])
     assert r.exit_code == 0, r.output
@@ -711,6 +711,44 @@ def test_results_table_joins_runs_of_different_protocols(tmp_path):
     (tmp_path / "again" / "summary.json").write_text(json.dumps(_summary_doc("bench again", ["dcp"], 25.0, 40.0)))
     with pytest.raises(SystemExit, match="dcp is in two of the runs"):
         markdown([tmp_path / "complete.json", tmp_path / "again"])
+
+
+def test_results_table_says_what_a_run_left_out_and_refuses_what_it_cannot_read(tmp_path):
+    import subprocess
+    import sys
+
+    from benchmarks.results_table import markdown
+
+    doc = _summary_doc("bench cut", ["dcp"], 20.0, 40.0)
+    doc.update(interrupted=True, pairs_failed=[{"protocol": "dcp", "index": 3, "error": "too few points"}])
+    doc["summaries"][0]["raised"] = 2
+    (tmp_path / "cut.json").write_text(json.dumps(doc))
+    md = markdown([tmp_path / "cut.json"])
+    assert "10 pairs in 1.0 min (interrupted); 1 pair was left out: no method could run on it" in md
+    assert "raised an error on some pairs, scored there as the pose as given: o3dsoft network + ICP" in md
+    # Runs of different methods: every run's names are known.
+    other = _summary_doc("bench other", ["paper"], 20.0, 40.0)
+    for row in other["summaries"]:
+        row["method"] = "icp" if row["method"] == "fpfh-ransac+icp" else row["method"]
+    other["methods"] = {"o3dsoft": other["methods"]["o3dsoft"], "icp": "Open3D ICP from the identity"}
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    assert "| Open3D ICP from the identity | 10 |" in markdown([tmp_path / "cut.json", tmp_path / "other.json"])
+
+    def table(*args):
+        return subprocess.run([sys.executable, "-m", "benchmarks.results_table", *args], capture_output=True, text=True, cwd=REPO)
+
+    readme = tmp_path / "R.md"
+    readme.write_text("x\n<!-- scans:start -->\n<!-- scans:end -->\n<!-- results:start -->\n<!-- results:end -->\n")
+    for args, message in (
+        ([str(tmp_path / "missing")], "no such file, nor a folder with a summary.json"),
+        ([str(readme)], "not a JSON file"),
+        ([str(tmp_path / "cut.json"), "--scans"], "not a bench scans run"),
+        ([str(tmp_path / "cut.json"), str(tmp_path / "other.json"), "--scans"], "--scans takes one bench scans run, got 2"),
+    ):
+        r = table(*args, "--readme", str(readme))
+        assert r.returncode != 0 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
+    r = table(str(tmp_path / "cut.json"), "--readme", str(readme), "--print")
+    assert r.returncode == 0 and "Command: `bench cut`" in r.stdout and "Command" not in readme.read_text()
 
 
 def test_incongruent_pairs_share_no_point_and_the_oracle_shows_the_floor(modelnet_root, tmp_path):
