@@ -223,7 +223,14 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto", unit
     if listed.is_file():
         clouds: Dict[Path, np.ndarray] = {}
         candidates = []
+        first: Dict[Tuple[Path, Path], int] = {}  # the line of each pair
         for entry in read_pairs_file(listed):
+            key = (entry.source.resolve(), entry.target.resolve())
+            if key[0] == key[1]:
+                raise InputError(f"{listed}, line {entry.line}: pairs {entry.source.name} with itself")
+            if key in first:  # it would count twice in every recall
+                raise InputError(f"{listed}, line {entry.line}: the pair of line {first[key]} again")
+            first[key] = entry.line
             for path in (entry.source, entry.target):
                 if path not in clouds:
                     clouds[path] = read_points(path)
@@ -249,19 +256,29 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto", unit
     if empty:
         raise InputError(f"{folder}: {empty[0]} holds no point with finite coordinates")
     trees = {path: cKDTree(points) for path, points in clouds.items()}
+    stems = [path.stem for path in clouds]
+    label = {path: path.stem if stems.count(path.stem) == 1 else _relative_name(path, folder) for path in clouds}  # a/scan.ply, b/scan.ply
     pairs, table = [], []
     for s, t, T in candidates:
         scale = normalisation_for(clouds[s], clouds[t]).scale
         d, _ = trees[t].query(apply_transform(T, clouds[s]), distance_upper_bound=0.01 * scale)
         overlap = float(np.mean(np.isfinite(d)))
         keep = listed.is_file() or overlap >= min_overlap
-        table.append({"source": s.stem, "target": t.stem, "overlap": overlap, "kept": keep})
+        table.append({"source": label[s], "target": label[t], "overlap": overlap, "kept": keep})
         if keep:
-            pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{s.stem}->{t.stem}", origin=local_origin(clouds[t])))
+            pairs.append(BenchPair(name, len(pairs), clouds[s], clouds[t], T, f"{label[s]}->{label[t]}", origin=local_origin(clouds[t])))
     size = scene_size(next(iter(clouds.values())))  # of the first scan
     guessed = size if kind == "auto" else None
     kind = guess_kind(size * UNITS[unit]) if kind == "auto" else kind
     return ScanFolder(name, pairs, kind, recall_thresholds(kind, size, UNITS[unit]), table, left_out, guessed)
+
+
+def _relative_name(path: Path, folder: Path) -> str:
+    """`path` without its suffix, relative to `folder` where it lies in it: "a/scan"."""
+    try:
+        return path.resolve().relative_to(folder.resolve()).with_suffix("").as_posix()
+    except ValueError:
+        return path.with_suffix("").as_posix()
 
 
 def turned_pairs(pairs: Sequence[BenchPair], turns: int, seed: int = 0) -> List[BenchPair]:
@@ -687,7 +704,7 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
             auc = "n/a (no failures or no successes)" if s["confidence_auc"] is None else f"{s['confidence_auc']:.3f}"
             alarms = "n/a" if s.get("false_alarm_share") is None else f"{100 * s['false_alarm_share']:.1f} %"
             lines.append(
-                f"{'':18s} confidence vs success at {d5:g} deg / {t5:g}: ROC AUC {auc} (higher is better); "
+                f"{'':18s} confidence vs success at {d5:g} deg / {t5:.3g} {(units or {}).get(s['protocol'], 'units')}: ROC AUC {auc} (higher is better); "
                 f"flagged likely failed: {100 * s['likely_failed_share']:.1f} %; right ones flagged: {alarms} (lower is better)"
                 + (f"; searched: {100 * s['searched_share']:.1f} %" if "searched_share" in s else "")
             )
@@ -769,7 +786,7 @@ def write_csv(path: Path, rows: Sequence[dict]) -> None:
                 writer.writerows(rows)
 
 
-def plot(folder: Path, rows: Sequence[dict], config: BenchConfig) -> List[Path]:
+def plot(folder: Path, rows: Sequence[dict], config: BenchConfig, units: Optional[Dict[str, str]] = None) -> List[Path]:
     """cdf_rotation_error.png and recall_vs_angle.png: one panel per protocol, one line per method."""
     import matplotlib
 
@@ -789,7 +806,8 @@ def plot(folder: Path, rows: Sequence[dict], config: BenchConfig) -> List[Path]:
                     continue
                 if kind == "cdf_rotation_error":
                     err = np.sort(np.maximum([r["rotation_deg"] for r in sel], 1e-6))
-                    ax.step(err, np.arange(1, len(err) + 1) / len(err), where="post", label=method)
+                    ax.step(np.r_[err[0], err], np.arange(len(err) + 1) / len(err), where="post", label=method)  # from 0: no pair below the least
+                    ax.set_ylim(0.0, 1.02)
                     ax.set_xscale("log")
                     ax.set_xlabel("rotation error (deg, lower is better)")
                     ax.set_ylabel("share of pairs with at most this error")
@@ -806,7 +824,8 @@ def plot(folder: Path, rows: Sequence[dict], config: BenchConfig) -> List[Path]:
                             recall.append(100 * ok[which == b].mean())
                     ax.plot(centres, recall, marker="o", label=method)
                     ax.set_xlabel("initial rotation angle (deg)")
-                    ax.set_ylabel(f"recall ({deg:g} deg, {dist:g}) %, higher is better")
+                    ax.set_ylabel(f"recall ({deg:g} deg, {dist:.3g} {(units or {}).get(protocol, 'units')}) %, higher is better")
+                    ax.set_ylim(-2.0, 102.0)
             ax.set_title(protocol)
             ax.grid(alpha=0.3)
         axes[0][0].legend(fontsize=7)
@@ -995,5 +1014,5 @@ def run(
         table = f"Interrupted: {_count(summary_doc['pairs_completed'], 'pair')} completed; the table holds those only.\n\n{table}"
     with atomic_output(out / "table.txt") as tmp:
         tmp.write_text(table + "\n")
-    plot(out, rows, config)
+    plot(out, rows, config, units)
     return BenchRun(summaries, out, interrupted, table)

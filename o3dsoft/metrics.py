@@ -167,7 +167,7 @@ def summarise(errors: "list[PairErrors]", recall: "tuple" = MODELNET_RECALL) -> 
     eul = np.stack([e.euler_abs_deg for e in errors])
     tab = np.stack([e.translation_abs for e in errors])
     return {
-        "pairs": float(len(errors)),
+        "pairs": len(errors),
         "rotation_deg_mean": float(rot.mean()),
         "rotation_deg_median": float(np.median(rot)),
         "translation_mean": float(trans.mean()),

@@ -338,6 +338,24 @@ def test_a_conf_or_pairs_file_saved_with_a_byte_order_mark_reads_whole(two_scans
     assert np.array_equal(read_transform(two_scans / "gt.txt"), np.eye(4))
 
 
+def test_a_pairs_file_that_lists_a_pair_twice_or_a_scan_with_itself_is_refused(two_scans):
+    # Either would count in every recall as a pair of its own.
+    (two_scans / "bun.conf").unlink()
+    (two_scans / "gt.txt").write_text("\n".join(" ".join(map(str, row)) for row in np.eye(4)))
+    (two_scans / "pairs.txt").write_text("bun045.ply bun000.ply gt.txt\n# again\n./bun045.ply bun000.ply gt.txt\n")
+    with pytest.raises(InputError, match="pairs.txt, line 3: the pair of line 1 again"):
+        bench.scan_folder(two_scans, 0.3)
+    (two_scans / "pairs.txt").write_text("bun045.ply bun045.ply gt.txt\n")
+    with pytest.raises(InputError, match="pairs.txt, line 1: pairs bun045.ply with itself"):
+        bench.scan_folder(two_scans, 0.3)
+    # Scans of one name in two folders are told apart by their folders.
+    for sub in ("a", "b"):
+        (two_scans / sub).mkdir()
+        shutil.copy(two_scans / "bun000.ply", two_scans / sub / "scan.ply")
+    (two_scans / "pairs.txt").write_text("a/scan.ply b/scan.ply gt.txt\n")
+    assert [p.category for p in bench.scan_folder(two_scans, 0.3).pairs] == ["a/scan->b/scan"]
+
+
 @pytest.mark.parametrize(
     "line, message",
     [
