@@ -364,7 +364,9 @@ class RegisterConfig:
             ("icp.max_points", self.icp.max_points),
             ("degeneracy.max_points", self.degeneracy.max_points),
             ("search.screen.points", search.screen.points),
-        ):
+            ("search.starts.refine", search.starts.refine),
+            ("search.features.first_round", search.features.first_round),
+        ):  # counts not negative: _check_types
             if value < 1:
                 raise InputError(f"{name} must be at least 1, got {value}")
         if self.icp.normal_neighbours < 3:
@@ -411,18 +413,6 @@ class RegisterConfig:
             raise InputError(f"second_network.shared_check must not be negative, got {self.second_network.shared_check}")
         if not 0 <= self.second_network.turns <= 23:
             raise InputError(f"second_network.turns must be in [0, 23] (the other rotations of a cube), got {self.second_network.turns}")
-        if search.starts.refine < 1:
-            raise InputError(f"search.starts.refine must be at least 1, got {search.starts.refine}")
-        if search.features.first_round < 1:
-            raise InputError(f"search.features.first_round must be at least 1, got {search.features.first_round}")
-        for name, value in (
-            ("search.votes.rotations", search.votes.rotations),
-            ("search.votes.translations", search.votes.translations),
-            ("search.votes.flipped", search.votes.flipped),
-            ("search.restart.refined", search.restart.refined),
-        ):
-            if value < 0:
-                raise InputError(f"{name} must not be negative, got {value}")
         try:
             self.confidence.validate()
         except ValueError as e:
