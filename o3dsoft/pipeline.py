@@ -28,7 +28,7 @@ are :class:`o3dsoft.config.RegisterConfig`, one nested config per stage.
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from typing import Any, Callable, Dict, Optional, Tuple
 
 import numpy as np
@@ -41,7 +41,7 @@ from . import symmetry as symmetry_stage
 from ._open3d import quietly
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig
-from .errors import UsageError
+from .errors import InputError, UsageError
 from .io import as_rigid
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
@@ -202,12 +202,35 @@ class RegistrationResult:
         )
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (arrays as nested lists)."""
+        """JSON-ready dict (arrays as nested lists); :meth:`from_dict` reads it back."""
         d = asdict(self)
         for name in TRANSFORM_FIELDS:
             if d[name] is not None:
                 d[name] = np.asarray(d[name]).tolist()
         return d
+
+    @classmethod
+    def from_dict(cls, d: Dict[str, Any]) -> "RegistrationResult":
+        """The result :meth:`to_dict` gave (or ``register --json`` printed: its other keys, such as
+        source, target, model, init and errors, are left aside), with (4, 4) float64 arrays.
+
+        Raises:
+            InputError: `d` lacks a field the result needs, or a transform is not (4, 4).
+        """
+        names = [f.name for f in fields(cls)]
+        needed = [f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING]
+        missing = [name for name in needed if name not in d]
+        if missing:
+            raise InputError(f"not a registration result: no {', '.join(missing)}")
+        values = {name: d[name] for name in names if name in d}
+        for name in TRANSFORM_FIELDS:
+            if values.get(name) is not None:
+                T = np.array(values[name], dtype=np.float64)
+                if T.shape != (4, 4):
+                    raise InputError(f"{name}: expected a 4x4 transform, got shape {T.shape}")
+                values[name] = T
+        values["points_used"] = {stage: tuple(counts) for stage, counts in values.get("points_used", {}).items()}
+        return cls(**values)
 
 
 # The result's (4, 4) T_target_source fields (the last two may be None).

@@ -159,6 +159,17 @@ def test_register_json(pair_files, tiny_model_path):
     assert payload["constraint"] is None and payload["flatness"] is None  # shared points: not measured
     assert {"fitness", "inlier_rmse", "confidence", "likely_failed", "coarse_transformation", "timings_ms"} <= set(payload)
     assert payload["likely_failed"] is False
+    # The printed result reads back into the library's, as it was.
+    from o3dsoft.errors import InputError
+    from o3dsoft.pipeline import RegistrationResult
+
+    again = RegistrationResult.from_dict(payload)
+    assert again.transformation.dtype == np.float64 and np.array_equal(again.transformation, np.array(payload["transformation"]))
+    assert json.loads(json.dumps(again.to_dict())) == {k: v for k, v in payload.items() if k not in ("source", "target", "model", "errors")}
+    with pytest.raises(InputError, match="not a registration result: no transformation"):
+        RegistrationResult.from_dict({k: v for k, v in payload.items() if k != "transformation"})
+    with pytest.raises(InputError, match="coarse_transformation: expected a 4x4 transform, got shape \\(3, 4\\)"):
+        RegistrationResult.from_dict({**payload, "coarse_transformation": payload["coarse_transformation"][:3]})
 
 
 def test_likely_failure_warns_and_strict_exits_3(tmp_path, tiny_model_path):
