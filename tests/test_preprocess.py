@@ -54,6 +54,14 @@ def test_degenerate_clouds_rejected(pts, match):
         clean_points(pts, "cloud.ply", min_points=2)
 
 
+def test_the_cleaned_points_are_a_copy_of_the_callers():
+    # Where nothing is dropped, nothing is indexed either: the copy is made on purpose.
+    cloud = _surface(np.random.default_rng(1), 500)
+    rep = clean_points(cloud)
+    assert np.array_equal(rep.points, cloud) and not np.may_share_memory(rep.points, cloud)
+    assert np.array_equal(rep.rows, np.arange(500))
+
+
 def test_stray_far_points_are_dropped_and_counted():
     # A sensor's glitch at 1e12 made a surface look like a line (its spread is all along the
     # glitch) and overflowed the voxel grids; points at a few times the cloud's reach stay.
