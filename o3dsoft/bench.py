@@ -458,7 +458,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
 
     def each(names: Sequence[str], run: Callable[[], None]) -> None:
         """run() adds the results of the methods `names` (those asked) to `out`; where it raises on
-        this pair, each of them is scored as the pose as given, with the error."""
+        this pair, each of them it did not add is scored as the pose as given, with the error."""
         asked = [m for m in names if m in methods]
         if not asked:
             return
@@ -466,7 +466,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         try:
             run()
         except (O3dsoftError, RuntimeError) as e:
-            for m in asked:  # o3dsoft gave no answer to trust: confidence 0
+            for m in (m for m in asked if m not in out):  # those done before it raised keep theirs; o3dsoft's confidence is 0
                 out[m] = MethodResult(m, np.eye(4), {"total": clock() - t0}, 0.0 if m == "o3dsoft" else None, error=first_line(e))
 
     def o3dsoft_methods() -> None:
