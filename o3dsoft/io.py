@@ -704,14 +704,18 @@ def _las_xyz(las) -> np.ndarray:
     return np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64)
 
 
-def _write_las(f, points: np.ndarray) -> None:
-    """LAS 1.4, point format 0, coordinates stored as integers on :func:`_las_steps`."""
+def _write_las(f, points: np.ndarray, rgb: Optional[np.ndarray] = None) -> None:
+    """LAS 1.4, coordinates stored as integers on :func:`_las_steps`: point format 0, or 2 with
+    the (N, 3) uint8 colours `rgb` (stored 16-bit, as the format holds them: times 257)."""
     import laspy
 
-    header = laspy.LasHeader(point_format=0, version="1.4")
+    header = laspy.LasHeader(point_format=0 if rgb is None else 2, version="1.4")
     header.offsets, header.scales = _las_steps(points)
     las = laspy.LasData(header)
     las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    if rgb is not None:
+        wide = rgb.astype(np.uint16) * np.uint16(257)
+        las.red, las.green, las.blue = wide[:, 0], wide[:, 1], wide[:, 2]
     las.write(f)
 
 
@@ -906,7 +910,7 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
     takes no other; colours packed in one 'rgb' field) unless float32 would move the points
     (:func:`pcd_needs_doubles`: then x, y, z are float64, as PCL writes them), and text with 10 decimals (.pts: the
     point count first; .xyzn: the normals that format carries, estimated from 30 neighbours where
-    none are given), and LAS 1.4 of point format 0 at a 1e-4-unit step (0.1 mm for metres; coarser where the cloud spans more than 2^31 steps)."""
+    none are given), and LAS 1.4 of point format 0 (2 with colours) at a 1e-4-unit step (0.1 mm for metres; coarser where the cloud spans more than 2^31 steps)."""
     path = Path(path)
     ext = check_extension(path, WRITE_EXTENSIONS, "writing points")
     points = np.ascontiguousarray(points, dtype=np.float64)
@@ -920,7 +924,7 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
         if ext == ".npy":
             np.save(f, points)
         elif ext == ".las":
-            _write_las(f, points)
+            _write_las(f, points, rgb)
         elif ext == ".ply":
             fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
             fields += [] if normals is None else [("nx", "<f8"), ("ny", "<f8"), ("nz", "<f8")]
@@ -1082,8 +1086,8 @@ def write_moved(path: PathLike, source: PathLike, points: np.ndarray, T: np.ndar
     (4, 4) rigid `T`, to `path` (any of :data:`WRITE_EXTENSIONS`), with what of the source's
     per-point attributes the output holds: a LAS/LAZ source written as .las keeps every dimension
     (intensity, returns, classification, GPS time, colour), its coordinates moved; colours
-    (:func:`read_attributes`) go into .ply and .pcd, and normals, turned by T, into .ply, .pcd and
-    .xyzn."""
+    (:func:`read_attributes`) go into .ply, .pcd and .las, and normals, turned by T, into .ply, .pcd
+    and .xyzn."""
     path, source = Path(path), Path(source)
     if path.suffix.lower() == ".las" and source.suffix.lower() in (".las", ".laz"):
         return _write_las_moved(path, source, T)

@@ -655,6 +655,10 @@ def test_a_las_of_a_cloud_spanning_more_than_its_integers_hold_at_the_finest_ste
 def test_colours_are_written_from_0_1_or_bytes_and_other_ranges_are_refused(tmp_path, pts):
     write_points(tmp_path / "bytes.ply", pts, colors=np.full(pts.shape, 200, dtype=np.uint8))  # as images store them
     assert np.allclose(read_attributes(tmp_path / "bytes.ply", len(pts)).colors, 200 / 255)
+    rgb = np.random.default_rng(3).integers(0, 256, pts.shape).astype(np.uint8)
+    write_points(tmp_path / "coloured.las", pts, colors=rgb)  # LAS holds colours too (16-bit)
+    assert np.allclose(read_attributes(tmp_path / "coloured.las", len(pts)).colors, rgb / 255)
+    assert np.allclose(read_points(tmp_path / "coloured.las"), pts, atol=1e-4)
     with pytest.raises(ValueError, match="colors must be in 0-1 \\(or uint8 in 0-255\\), got values up to 200"):
         write_points(tmp_path / "floats.ply", pts, colors=np.full(pts.shape, 200.0))
     with pytest.raises(ValueError, match="points must be \\(N, 3\\), got \\(200, 2\\)"):
