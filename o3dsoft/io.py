@@ -73,9 +73,10 @@ _PLY_SIZES = {kind: int(code[1]) for kind, code in _PLY_NUMPY.items()}
 _OPEN3D_TRIPLES = (("x", "y", "z"), ("nx", "ny", "nz"), ("red", "green", "blue"))
 
 PlyElement = Tuple[str, int, List[Tuple[str, str, List[str]]]]  # name, count, [(type, name, a list's types), ...]
+PlyHeader = Tuple[str, List[PlyElement], int]  # format, elements, byte offset of the data
 
 
-def _ply_header(path: Path) -> Optional[Tuple[str, List[PlyElement], int]]:
+def _ply_header(path: Path) -> Optional[PlyHeader]:
     """A PLY's format ("ascii", "binary_little_endian", ...), its elements and the byte offset
     of its data; None where the header cannot be read (Open3D's reader reports it)."""
     with open(path, "rb") as f:
@@ -107,12 +108,10 @@ def _open3d_misreads_ply(elements: List[PlyElement]) -> bool:
     return False
 
 
-def _ply_vertex_columns(path: Path) -> Optional[Dict[str, np.ndarray]]:
-    """Every scalar property of a PLY's vertices, by name, (N,) each as stored; None where the
-    vertices are not the file's first element or hold a list (not read here)."""
-    header = _ply_header(path)
-    if header is None:
-        return None
+def _ply_vertex_columns(path: Path, header: PlyHeader) -> Optional[Dict[str, np.ndarray]]:
+    """Every scalar property of the vertices of the PLY `path` (its :func:`_ply_header`), by name,
+    (N,) each as stored; None where the vertices are not the file's first element or hold a list
+    (not read here)."""
     form, elements, data_start = header
     if not elements or elements[0][0] != "vertex" or any(kind not in _PLY_NUMPY for kind, _, _ in elements[0][2]):
         return None
@@ -130,10 +129,10 @@ def _ply_vertex_columns(path: Path) -> Optional[Dict[str, np.ndarray]]:
     return {name: table[name] for name in record.names}
 
 
-def _ply_vertex_types(elements: List[PlyElement]) -> Dict[str, str]:
-    """The type of each scalar property of a PLY's vertices ("float", "uchar", ...), by name."""
+def _ply_vertex_types(elements: List[PlyElement]) -> Dict[str, np.dtype]:
+    """The numpy type of each scalar property of a PLY's vertices, by name."""
     vertex = next((properties for name, _, properties in elements if name == "vertex"), [])
-    return {name: kind for kind, name, _ in vertex if kind != "list"}
+    return {name: np.dtype(_PLY_NUMPY[kind]) for kind, name, _ in vertex if kind in _PLY_NUMPY}
 
 
 def _check_ply(path: Path) -> None:
@@ -435,7 +434,7 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
     if ext == ".ply":
         header = _ply_header(path)
         if header is not None and _open3d_misreads_ply(header[1]):
-            return _read_ply_in_any_order(path, header[1], mesh_points, seed)
+            return _read_ply_in_any_order(path, header, mesh_points, seed)
     if ext in MESH_ONLY_EXTENSIONS or ext == ".ply":
         with _open3d_quietly():
             mesh = o3d.io.read_triangle_mesh(str(path))
@@ -467,12 +466,12 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
     return points
 
 
-def _read_ply_in_any_order(path: Path, elements: List[PlyElement], mesh_points: int, seed: int) -> np.ndarray:
-    """A PLY whose vertices store z before x or y: its faces sampled where it has some (read by
-    trimesh), else its vertices read here."""
-    if any(name == "face" and count > 0 for name, count, _ in elements):
+def _read_ply_in_any_order(path: Path, header: PlyHeader, mesh_points: int, seed: int) -> np.ndarray:
+    """A PLY (its :func:`_ply_header`) whose vertices store z before x or y: its faces sampled
+    where it has some (read by trimesh), else its vertices read here."""
+    if any(name == "face" and count > 0 for name, count, _ in header[1]):
         return _sampled(path, *_trimesh_mesh(path), mesh_points, seed)
-    columns = _ply_vertex_columns(path)
+    columns = _ply_vertex_columns(path, header)
     if columns is None:
         raise InputError(f"{path}: its vertices store z before x or y, and come after another element or hold a list; save x, y, z first, in that order")
     return np.stack([columns[axis] for axis in "xyz"], axis=1).astype(np.float64)
@@ -1002,8 +1001,8 @@ def read_attributes(path: PathLike, count: int, scan: Optional[int] = None) -> P
     header = _ply_header(path) if ext == ".ply" else None
     if header is not None and not any(name == "face" and n > 0 for name, n, _ in header[1]):  # a mesh's points are sampled
         types = _ply_vertex_types(header[1])
-        if _open3d_misreads_ply(header[1]) or any(types.get(c) in ("float", "float32", "double", "float64") for c in ("red", "green", "blue")):
-            return _ply_attributes(path, count, types)
+        if _open3d_misreads_ply(header[1]) or any(c in types and types[c].kind == "f" for c in ("red", "green", "blue")):
+            return _ply_attributes(path, header, count, types)
     o3d = _o3d()
     with _open3d_quietly():
         if ext == ".ply" and len(o3d.io.read_triangle_mesh(str(path)).triangles) > 0:
@@ -1017,19 +1016,20 @@ def read_attributes(path: PathLike, count: int, scan: Optional[int] = None) -> P
     )
 
 
-def _ply_attributes(path: Path, count: int, types: Dict[str, str]) -> PointAttributes:
-    """A PLY's colours and normals read here (where Open3D mixes up the points, or scales float
-    colours in 0-1 down by 255): colours stored as floats are taken as 0-1 where none exceeds 1,
-    else over 255; integer ones over their type's largest value."""
-    columns = _ply_vertex_columns(path)
+def _ply_attributes(path: Path, header: PlyHeader, count: int, types: Dict[str, np.dtype]) -> PointAttributes:
+    """The colours and normals of the PLY `path` (its :func:`_ply_header`; its vertices' `types`)
+    read here, where Open3D mixes up the points or scales float colours in 0-1 down by 255:
+    colours stored as floats are taken as 0-1 where none exceeds 1, else over 255; integer ones
+    over their type's largest value (:func:`_unit_colours`)."""
+    columns = _ply_vertex_columns(path, header)
     if columns is None or len(columns["x"]) != count:
         return PointAttributes()
     colors = normals = None
     if all(c in columns for c in ("red", "green", "blue")):
-        rgb = np.stack([columns[c] for c in ("red", "green", "blue")], axis=1).astype(np.float64)
-        kind = np.dtype(_PLY_NUMPY[types["red"]])
-        limit = (1.0 if np.nanmax(rgb, initial=0.0) <= 1.0 else 255.0) if kind.kind == "f" else float(np.iinfo(kind).max)
-        colors = np.clip(np.nan_to_num(rgb / limit), 0.0, 1.0)
+        rgb = np.nan_to_num(np.stack([columns[c] for c in ("red", "green", "blue")], axis=1).astype(np.float64))
+        kind = types["red"]
+        limit = (1.0 if rgb.max(initial=0.0) <= 1.0 else 255.0) if kind.kind == "f" else float(np.iinfo(kind).max)
+        colors = _unit_colours(rgb, limit)
     if all(n in columns for n in ("nx", "ny", "nz")):
         normals = np.stack([columns[n] for n in ("nx", "ny", "nz")], axis=1).astype(np.float64)
     return PointAttributes(colors, normals)
