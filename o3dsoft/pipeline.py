@@ -45,7 +45,7 @@ from .errors import InputError, UsageError
 from .io import as_rigid
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
-from .preprocess import local_origin, point_spacing, scene_size
+from .preprocess import local_origin, point_spacing, sample_median, scene_size
 from .strategies import (
     FeatureMatchProposals,
     InitialGuess,
@@ -293,8 +293,7 @@ def register(
                 f"{name} is a loaded network (o3dsoft.coarse.load_model), got the name {str(given)!r}: name a model in RegisterConfig(weights=...)"
             )
     src, tgt = as_points(source, source_name), as_points(target, target_name)
-    finite = src[np.isfinite(src).all(axis=1)]
-    centre = np.median(finite, axis=0) if len(finite) else np.zeros(3)  # a stray point does not move it
+    centre = sample_median(src)  # a point in the source's middle: a stray point does not move it
     if init is not None:
         init = as_rigid(init, "init")
         src = apply_transform(init, src)
@@ -312,7 +311,7 @@ def register(
     else:
         result = _register(src, tgt, config, model, search_model, source_name, target_name, guess)[0]
     # Rotations made of float32 network passes are orthonormal to about 1e-7: made rigid to float64
-    # precision, each transform taking the source's median point where it did.
+    # precision, each transform taking the source's middle point where it did.
     result = _started_at(_moved_back(result, origin), init)
     return _each_transform(result, lambda T: nearest_rigid(T, centre))
 

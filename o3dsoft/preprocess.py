@@ -244,12 +244,28 @@ def scene_size(points: np.ndarray) -> float:
     return float(np.linalg.norm(robust_extent(points)))
 
 
+def _finite_sample(points: np.ndarray) -> np.ndarray:
+    """The finite rows of :func:`_every_kth` of the (N, 3) points: a point near the middle of a
+    cloud, or its size, is all a median or a percentile of them is asked for."""
+    sample = _every_kth(points)
+    return sample[np.isfinite(sample).all(axis=1)]
+
+
+def sample_median(points: np.ndarray) -> np.ndarray:
+    """(3,) the median of :func:`_finite_sample` of the (N, 3) points (all finite rows of clouds
+    of up to 2 x 10^5); zeros where none is finite."""
+    finite = _finite_sample(points)
+    if len(finite) == 0:
+        return np.zeros(3)
+    with np.errstate(all="ignore"):
+        return np.median(finite, axis=0)
+
+
 def local_origin(points: np.ndarray) -> np.ndarray:
     """(3,) the median of the (N, 3) points' finite rows (every k-th of them on clouds of over 10^5,
     up to 2 x 10^5) where it lies farther from the origin than their :func:`scene_size` (clouds in
     a frame far from them: georeferenced scans); else zeros (the clouds as given, to the bit)."""
-    finite = _every_kth(points)  # a point near the middle is all it takes
-    finite = finite[np.isfinite(finite).all(axis=1)]
+    finite = _finite_sample(points)
     if len(finite) < 2:
         return np.zeros(3)  # cleaning reports it, by name
     with np.errstate(all="ignore"):  # absurd coordinates too are cleaning's to report
