@@ -25,6 +25,7 @@ from typing import List, Sequence, Union
 
 from o3dsoft.bench import recall_keys
 from o3dsoft.data import PROTOCOLS
+from o3dsoft.errors import counted
 
 
 def thresholds(doc: dict, protocol: str) -> List[dict]:
@@ -96,7 +97,7 @@ def run_lines(doc: dict) -> List[str]:
 def _size(doc: dict) -> str:
     """ "208 pairs in 8.9 min", with what cut the run short or left pairs and methods out."""
     n, failed = doc["pairs_completed"], len(doc.get("pairs_failed") or [])
-    text = f"{n} pair{'' if n == 1 else 's'} in {doc['seconds'] / 60:.1f} min" + (" (interrupted)" if doc["interrupted"] else "")
+    text = f"{counted(n, 'pair')} in {doc['seconds'] / 60:.1f} min" + (" (interrupted)" if doc["interrupted"] else "")
     if failed:
         text += f"; {failed} pair{' was' if failed == 1 else 's were'} left out: no method could run on {'it' if failed == 1 else 'them'}"
     raised = sorted({f"{doc['methods'].get(s['method'], s['method'])}" for s in doc["summaries"] if s.get("raised")})
@@ -230,9 +231,7 @@ def scans_markdown(run: Path) -> str:
         turned = rows.get((f"{protocol} turned", method))
         values = cells(s) + (cells(turned) if turned else ["", ""] if turns else [])
         kind = folders.get(protocol, {}).get("kind", "")
-        lines.append(
-            f"| {protocol} ({kind}, {int(s['pairs'])} pair{'' if int(s['pairs']) == 1 else 's'}) | {test} | {names[method]} | {' | '.join(values)} | {trust(turned or s)} |"
-        )
+        lines.append(f"| {protocol} ({kind}, {counted(int(s['pairs']), 'pair')}) | {test} | {names[method]} | {' | '.join(values)} | {trust(turned or s)} |")
     return "\n".join(lines)
 
 

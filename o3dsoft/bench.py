@@ -27,7 +27,7 @@ from . import baselines
 from . import refine as refine_stage
 from .coarse import CoarseModel, sha256_of, weights_file
 from .data import DEFAULT_POINTS_PER_SHAPE, get_protocol, load_pairs
-from .errors import InputError, O3dsoftError, UsageError, first_line, release_interrupt, spawn_context, terminate_as_interrupt
+from .errors import InputError, O3dsoftError, UsageError, counted, first_line, release_interrupt, spawn_context, terminate_as_interrupt
 from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, input_chamfer_distance, modified_chamfer_distance, pair_errors, summarise, within
 from .pipeline import RegisterConfig, register
@@ -698,7 +698,7 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
             + f" {s['time_ms_median']:>9.1f} {s['time_ms_p90']:>8.1f}"
         )
         if s.get("raised"):
-            lines.append(f"{'':18s} raised an error on {_count(s['raised'], 'pair')}: scored as the pose as given (identity); pairs.csv says why")
+            lines.append(f"{'':18s} raised an error on {counted(s['raised'], 'pair')}: scored as the pose as given (identity); pairs.csv says why")
         if "confidence_auc" in s:
             d5, t5 = recall[-1]
             auc = "n/a (no failures or no successes)" if s["confidence_auc"] is None else f"{s['confidence_auc']:.3f}"
@@ -716,11 +716,6 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
                     f"ROC AUC without them: {distinct} (higher is better)"
                 )
     return "\n".join(lines)
-
-
-def _count(n: int, noun: str) -> str:
-    """ "1 pair", "3 pairs"."""
-    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 def source_commit(here: Optional[Path] = None) -> Optional[str]:
@@ -1011,7 +1006,7 @@ def run(
     with atomic_output(out / "config.json") as tmp:
         tmp.write_text(json.dumps({**description, "bench": config.to_dict()}, indent=2))
     if interrupted:  # a table read later says it is a part of the run
-        table = f"Interrupted: {_count(summary_doc['pairs_completed'], 'pair')} completed; the table holds those only.\n\n{table}"
+        table = f"Interrupted: {counted(summary_doc['pairs_completed'], 'pair')} completed; the table holds those only.\n\n{table}"
     with atomic_output(out / "table.txt") as tmp:
         tmp.write_text(table + "\n")
     plot(out, rows, config, units)

@@ -46,6 +46,11 @@ def caller_stacklevel() -> int:
     return level
 
 
+def counted(n: int, noun: str) -> str:
+    """ "1 pair", "3 pairs": a count and its noun, for messages."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
 def first_line(error: BaseException) -> str:
     """The first line of an exception's message (libraries' messages often carry C++ traces), or
     the exception's type name when it has none: for one-line errors naming what failed."""

@@ -11,7 +11,7 @@ from typing import NamedTuple, Optional, Tuple
 import numpy as np
 from scipy.stats import ks_2samp
 
-from .errors import InputError
+from .errors import InputError, counted
 from .transforms import rigid
 
 
@@ -187,7 +187,7 @@ def voxel_downsample(points: np.ndarray, voxel: float, name: str = "cloud", min_
     down = np.asarray(to_open3d(points).voxel_down_sample(voxel).points)
     if len(down) < min_points:
         raise InputError(
-            f"{name}: {len(down)} point{'' if len(down) == 1 else 's'} left on a voxel grid of {voxel:g} units, fewer than the {min_points} needed; use a smaller voxel"
+            f"{name}: {counted(len(down), 'point')} left on a voxel grid of {voxel:g} units, fewer than the {min_points} needed; use a smaller voxel"
         )
     return down
 
