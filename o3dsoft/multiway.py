@@ -28,7 +28,7 @@ from ._open3d import quietly
 from .config import RegisterConfig
 from .errors import InputError, UsageError
 from .io import as_rigid
-from .pair import CloudLike, as_points
+from .pair import CloudLike, as_points, named_clouds
 from .pipeline import SIZE_RATIO_NOTE, RegistrationResult, register
 from .preprocess import clean_points, scene_size, voxel_downsample
 from .transforms import apply_transform
@@ -270,14 +270,10 @@ def multiway(
     if not isinstance(config, MultiwayConfig):
         raise UsageError(f"config must be an o3dsoft.MultiwayConfig (its register field holds a RegisterConfig), got {type(config).__name__}")
     config.validate()
-    clouds = list(clouds)  # any iterable of scans
-    names = tuple(names) if names is not None else tuple(f"scan{i}" for i in range(len(clouds)))
-    if len(set(names)) != len(names):
+    names = tuple(names) if names is not None else None  # any iterable of names
+    if names is not None and len(set(names)) != len(names):
         raise InputError(f"two scans share the name {next(n for n in names if names.count(n) > 1)!r}; give each its own")
-    if len(clouds) < 2:
-        raise InputError(f"multiway needs at least two scans, got {len(clouds)}")
-    if len(names) != len(clouds):
-        raise InputError(f"{len(names)} names for {len(clouds)} scans")
+    clouds, names = named_clouds(clouds, names, "scan", "multiway")
     points = [as_points(c, name) for c, name in zip(clouds, names)]
     guesses = _checked_poses(init_poses, names)
     model = model if model is not None else load_model(config.register.weights, config.register.device)

@@ -23,9 +23,9 @@ import numpy as np
 
 from ._modules import callable_as_its_function
 from .config import RegisterConfig
-from .errors import InputError, UsageError
+from .errors import UsageError
 from .metrics import PairErrors, pair_errors
-from .pair import CloudLike, as_points
+from .pair import CloudLike, as_points, named_clouds
 from .pipeline import RegistrationResult, register
 from .preprocess import clean_points
 from .transforms import apply_transform
@@ -139,12 +139,7 @@ def odometry(
     if not isinstance(config, OdometryConfig):
         raise UsageError(f"config must be an o3dsoft.OdometryConfig (its register field holds a RegisterConfig), got {type(config).__name__}")
     config.validate()
-    sweeps = list(sweeps)  # any iterable of sweeps
-    names = tuple(names) if names is not None else tuple(f"sweep{i}" for i in range(len(sweeps)))
-    if len(names) != len(sweeps):
-        raise InputError(f"{len(names)} names for {len(sweeps)} sweeps")
-    if len(sweeps) < 2:
-        raise InputError(f"odometry needs at least two sweeps, got {len(sweeps)}")
+    sweeps, names = named_clouds(sweeps, names, "sweep", "odometry")
     model = model if model is not None else cached_model(config.register.weights, config.register.device)
     points = _checked_sweeps(sweeps, names, model.config.k)
     if progress is not None:

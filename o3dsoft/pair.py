@@ -8,7 +8,7 @@ import math
 import os
 from dataclasses import replace
 from functools import cached_property
-from typing import TYPE_CHECKING, Dict, Optional, Tuple, Union
+from typing import TYPE_CHECKING, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -67,6 +67,22 @@ def as_points(cloud: CloudLike, name: str) -> np.ndarray:
     if np.iscomplexobj(arr) or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise InputError(f"{name}: expected real numeric points, got dtype {arr.dtype}")
     return arr.astype(np.float64, copy=False)
+
+
+def named_clouds(clouds: Iterable[CloudLike], names: Optional[Sequence[str]], noun: str, command: str) -> Tuple[List[CloudLike], Tuple[str, ...]]:
+    """The clouds of a command of many (`command`: "multiway", "odometry"), as a list, and their
+    names (default `noun`0, `noun`1, ...).
+
+    Raises:
+        InputError: fewer than two clouds, or not one name per cloud.
+    """
+    clouds = list(clouds)  # any iterable of clouds
+    names = tuple(names) if names is not None else tuple(f"{noun}{i}" for i in range(len(clouds)))
+    if len(clouds) < 2:
+        raise InputError(f"{command} needs at least two {noun}s, got {len(clouds)}")
+    if len(names) != len(clouds):
+        raise InputError(f"{len(names)} names for {len(clouds)} {noun}s")
+    return clouds, names
 
 
 # Isolated grid points are left out only where they are at least this share of a cloud: a clean
