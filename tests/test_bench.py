@@ -1033,6 +1033,21 @@ def test_kiss_matcher_answers_for_georeferenced_scans_as_at_the_origin():
     assert run.stdout.decode().split() == ["True", "True"]
 
 
+def _kiss_matcher_script(bunny_root) -> str:
+    """The start of a script that runs KISS-Matcher in a process of its own (its C output is the
+    process's): s and t, two bunny scans; skips the test where kiss-matcher is not installed."""
+    from o3dsoft import baselines
+
+    if not baselines.installed("kiss_matcher"):
+        pytest.skip("the optional package kiss-matcher is not installed")
+    return (
+        "import os, threading, time, numpy as np, o3dsoft\n"
+        "from o3dsoft import baselines\n"
+        f"s = o3dsoft.read_points({str(bunny_root / 'bun000.ply')!r})\n"
+        f"t = o3dsoft.read_points({str(bunny_root / 'bun045.ply')!r})\n"
+    )
+
+
 def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):
     # Its constructor and its solver print warnings about their noise bounds to C's stdout at
     # large voxels (here: a scan in millimetres against one in metres); at the voxel o3dsoft
@@ -1040,15 +1055,7 @@ def test_kiss_matcher_prints_nothing_of_its_own(bunny_root):
     import subprocess
     import sys
 
-    from o3dsoft import baselines
-
-    if not baselines.installed("kiss_matcher"):
-        pytest.skip("the optional package kiss-matcher is not installed")
-    code = (
-        "import numpy as np, o3dsoft\n"
-        "from o3dsoft import baselines\n"
-        f"s = o3dsoft.read_points({str(bunny_root / 'bun000.ply')!r})\n"
-        f"t = o3dsoft.read_points({str(bunny_root / 'bun045.ply')!r})\n"
+    code = _kiss_matcher_script(bunny_root) + (
         "from o3dsoft.preprocess import scene_size\n"
         "baselines.kiss_matcher(1000 * s, t, 0.01 * max(scene_size(1000 * s), scene_size(t)))\n"
         "baselines.kiss_matcher(1000 * s, t, 0.01 * max(scene_size(1000 * s), scene_size(t)), 2.5, 4.0)\n"
@@ -1063,15 +1070,7 @@ def test_kiss_matcher_leaves_other_threads_output_alone(bunny_root):
     import subprocess
     import sys
 
-    from o3dsoft import baselines
-
-    if not baselines.installed("kiss_matcher"):
-        pytest.skip("the optional package kiss-matcher is not installed")
-    code = (
-        "import os, threading, time, o3dsoft\n"
-        "from o3dsoft import baselines\n"
-        f"s = o3dsoft.read_points({str(bunny_root / 'bun000.ply')!r})\n"
-        f"t = o3dsoft.read_points({str(bunny_root / 'bun045.ply')!r})\n"
+    code = _kiss_matcher_script(bunny_root) + (
         "done = threading.Event()\n"
         "def tick():\n"
         "    k = 0\n"
