@@ -339,3 +339,20 @@ def test_the_scan_confidence_is_fitted_on_pairs_the_bench_runs_in_neither_direct
     composed = truths[("cloud_bin_4", "cloud_bin_1")] @ truths[("cloud_bin_6", "cloud_bin_4")]
     errors = pair_errors(composed, truths[("cloud_bin_6", "cloud_bin_1")])
     assert errors.rotation_deg < 2.0 and errors.translation < 0.1
+
+
+def test_the_sparse_source_benchmark_scores_a_thinned_scan_pair(real_scans_root, tmp_path):
+    import json
+
+    from benchmarks import sparse_source
+
+    folder = real_scans_root / "3dmatch_redkitchen"
+    (tmp_path / "pairs.txt").write_text(f"{folder / 'cloud_bin_6.ply'} {folder / 'cloud_bin_4.ply'} {folder / 'gt_6_to_4.txt'}\n")
+    sparse_source.main([str(tmp_path), "--voxels", "0.12", "--starts", "3", "--out", str(tmp_path / "out.json")])
+    (report,) = json.loads((tmp_path / "out.json").read_text())["voxels"]
+    (pair,) = report["register"]
+    starts = report["starts"]
+    assert report["voxel"] == 0.12 and pair["points"] < 2000  # thinned from 15,953 points
+    assert pair["rotation_deg"] < 5.0
+    assert starts["right"] + starts["wrong"] == 3
+    assert starts["right_trusted"] <= starts["right"] and starts["wrong_trusted"] <= starts["wrong"]
