@@ -900,15 +900,15 @@ def pcd_needs_doubles(points: np.ndarray) -> bool:
 
 def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray] = None, normals: Optional[np.ndarray] = None) -> Path:
     """Write (N, 3) points to any of the point formats (by extension), atomically; with (N, 3)
-    `colors` (0-1) and `normals` where the format holds them (colours: .ply, .pcd; normals: .ply,
-    .pcd, .xyzn), ignored elsewhere.
+    `colors` (0-1) and `normals` where the format holds them (colours: .ply, .pcd, .las, .pts;
+    normals: .ply, .pcd, .xyzn), ignored elsewhere.
 
     The files are written here rather than by Open3D, whose writers report success after a
     failed write (a full disk left a truncated file): binary little-endian PLY of float64
     coordinates (normals float64, colours 8-bit), PCD of float32 (as Open3D writes them: its reader
     takes no other; colours packed in one 'rgb' field) unless float32 would move the points
     (:func:`pcd_needs_doubles`: then x, y, z are float64, as PCL writes them), and text with 10 decimals (.pts: the
-    point count first; .xyzn: the normals that format carries, estimated from 30 neighbours where
+    point count first, then "x y z r g b" rows with 8-bit colours where there are colours; .xyzn: the normals that format carries, estimated from 30 neighbours where
     none are given), and LAS 1.4 of point format 0 (2 with colours) at a 1e-4-unit step (0.1 mm for metres; coarser where the cloud spans more than 2^31 steps)."""
     path = Path(path)
     ext = check_extension(path, WRITE_EXTENSIONS, "writing points")
@@ -971,8 +971,11 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
                     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
                     normals = np.asarray(cloud.normals)
                 columns = np.hstack([points, normals])
+            fmt = ["%.10f"] * columns.shape[1]
+            if ext == ".pts" and rgb is not None:
+                columns, fmt = np.hstack([points, rgb]), fmt + ["%d"] * 3
             header = {".pts": str(len(points)), ".csv": "x,y,z"}.get(ext, "")
-            np.savetxt(f, columns, fmt="%.10f", delimiter="," if ext == ".csv" else " ", header=header, comments="")
+            np.savetxt(f, columns, fmt=fmt, delimiter="," if ext == ".csv" else " ", header=header, comments="")
     return path
 
 
@@ -1086,8 +1089,8 @@ def write_moved(path: PathLike, source: PathLike, points: np.ndarray, T: np.ndar
     (4, 4) rigid `T`, to `path` (any of :data:`WRITE_EXTENSIONS`), with what of the source's
     per-point attributes the output holds: a LAS/LAZ source written as .las keeps every dimension
     (intensity, returns, classification, GPS time, colour), its coordinates moved; colours
-    (:func:`read_attributes`) go into .ply, .pcd and .las, and normals, turned by T, into .ply, .pcd
-    and .xyzn."""
+    (:func:`read_attributes`) go into .ply, .pcd, .las and .pts, and normals, turned by T, into
+    .ply, .pcd and .xyzn."""
     path, source = Path(path), Path(source)
     if path.suffix.lower() == ".las" and source.suffix.lower() in (".las", ".laz"):
         return _write_las_moved(path, source, T)

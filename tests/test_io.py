@@ -659,6 +659,11 @@ def test_colours_are_written_from_0_1_or_bytes_and_other_ranges_are_refused(tmp_
     write_points(tmp_path / "coloured.las", pts, colors=rgb)  # LAS holds colours too (16-bit)
     assert np.allclose(read_attributes(tmp_path / "coloured.las", len(pts)).colors, rgb / 255)
     assert np.allclose(read_points(tmp_path / "coloured.las"), pts, atol=1e-4)
+    write_points(tmp_path / "coloured.pts", pts, colors=rgb)  # x y z r g b, as Open3D and CloudCompare read it
+    assert np.allclose(read_attributes(tmp_path / "coloured.pts", len(pts)).colors, rgb / 255)
+    assert np.allclose(read_points(tmp_path / "coloured.pts"), pts, atol=1e-9)
+    write_points(tmp_path / "plain.pts", pts)
+    assert read_attributes(tmp_path / "plain.pts", len(pts)).colors is None
     with pytest.raises(ValueError, match="colors must be in 0-1 \\(or uint8 in 0-255\\), got values up to 200"):
         write_points(tmp_path / "floats.ply", pts, colors=np.full(pts.shape, 200.0))
     with pytest.raises(ValueError, match="points must be \\(N, 3\\), got \\(200, 2\\)"):
