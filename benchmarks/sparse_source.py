@@ -1,11 +1,13 @@
 """Scan pairs whose source the user thinned first: is a right alignment still trusted?
 
-    python -m benchmarks.sparse_source [FOLDER] [--voxels 0.05 0.08 0.12] [--starts 25]
-        [--seed 1] [--out FILE.json]
+    python -m benchmarks.sparse_source [FOLDER ...] [--voxels 0 0.015 0.025 0.035] [--every 1]
+        [--starts 25] [--seed 1] [--out FILE.json]
 
-FOLDER holds scans and a ``pairs.txt`` (default: the 3DMatch fragments of ``real_scans``). For
-each pair and voxel size (cloud units), the source is voxel-downsampled (Open3D) and the target
-kept as it is. Two measurements per voxel size:
+Each FOLDER is one `o3dsoft bench scans` takes (a ``pairs.txt``, or a Stanford ``.conf``: every
+ordered pair overlapping 30 % or more; default: the 3DMatch fragments of ``real_scans``); every
+`every`-th pair is used. For each voxel size (a share of the target's scene size: 0.025 is 9 cm on
+a 3DMatch fragment, 5 mm on a bunny scan; 0: as given), the source is voxel-downsampled (Open3D)
+and the target kept as it is. Two measurements per voxel size:
 
 - ``register``: `o3dsoft.register` on the thinned source: rotation error (degrees), translation
   error (cloud units) and the reported confidence (0-1) of each pair;
@@ -13,12 +15,11 @@ kept as it is. Two measurements per voxel size:
   `starts` poses turned 5-90 degrees about the source's centre and shifted by 0.05 x the target's
   scene size per axis (standard deviation) off the truth, each result scored by the larger of the
   strict and the scan confidence: how many right results (within 5 deg and 0.03 x the scene size
-  of the truth: 10 cm on a 3DMatch fragment) are trusted (higher is better) and how many wrong ones
-  are (lower is better).
+  of the truth) are trusted (higher is better) and how many wrong ones are (lower is better).
 
-A confidence that does not depend on how densely the user sampled the source trusts the right
-results at every voxel size and the wrong ones at none. About 15 s per voxel size on the six 3DMatch
-pairs on a 2-core CPU.
+A confidence that does not depend on how densely the user sampled the source trusts as many right
+results, and as few wrong ones, at every voxel size as on the clouds as given. About 15 s per
+voxel size on the six 3DMatch pairs on a 2-core CPU.
 """
 
 from __future__ import annotations
@@ -34,13 +35,12 @@ from scipy.spatial.transform import Rotation
 
 from o3dsoft import confidence as confidence_stage
 from o3dsoft import refine as refine_stage
+from o3dsoft.bench import BenchPair, scan_folder
 from o3dsoft.config import RegisterConfig
-from o3dsoft.io import read_points
-from o3dsoft.metrics import pair_errors
+from o3dsoft.metrics import PairErrors, pair_errors
 from o3dsoft.pair import PreparedPair
 from o3dsoft.pipeline import register
 from o3dsoft.preprocess import scene_size
-from o3dsoft.scans import read_pairs_file
 
 DEFAULT_FOLDER = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_scans" / "3dmatch_redkitchen"
 # A start's result is right within these of the truth (degrees; share of the target's scene size).
@@ -61,20 +61,27 @@ def perturbed(truth: np.ndarray, centre: np.ndarray, shift: float, rng: np.rando
     return truth @ P
 
 
-def starts_outcome(source: np.ndarray, target: np.ndarray, truth: np.ndarray, starts: int, seed: int) -> Dict[str, int]:
-    """ICP from `starts` perturbed poses, as the pipeline refines: right/wrong results, trusted or not."""
-    pair = PreparedPair(source, target, RegisterConfig(), k=20)
-    src, tgt = pair.full
-    scorer, normals = pair.scorer("full"), pair.target_normals("full")
+def is_right(errors: PairErrors, size: float) -> bool:
+    """Within RIGHT_DEG degrees and RIGHT_SHIFT x `size` (cloud units) of the truth."""
+    return errors.rotation_deg < RIGHT_DEG and errors.translation < RIGHT_SHIFT * size
+
+
+def starts_outcome(pair: BenchPair, source: np.ndarray, starts: int, seed: int) -> Dict[str, int]:
+    """ICP from `starts` perturbed poses of the truth, as the pipeline refines `source` (N, 3)
+    onto the pair's target: how many results are right and wrong, and how many of each trusted."""
+    truth = pair.transform
+    prepared = PreparedPair(source, pair.target, RegisterConfig(), k=20)
+    src, tgt = prepared.full
+    scorer, normals = prepared.scorer("full"), prepared.target_normals("full")
     size = scene_size(tgt)
     rng = np.random.default_rng(seed)
     out = {"right_trusted": 0, "right": 0, "wrong_trusted": 0, "wrong": 0}
     for _ in range(starts):
-        result = refine_stage.icp(src, tgt, perturbed(truth, src.mean(axis=0), 0.05 * size, rng), pair.distance, pair.config.icp, normals)
-        errors = pair_errors(result.transformation, truth)
+        result = refine_stage.icp(src, tgt, perturbed(truth, src.mean(axis=0), 0.05 * size, rng), prepared.distance, prepared.config.icp, normals)
+        errors = pair_errors(result.transformation, truth, pair.origin)
         f = scorer(result.transformation)
         trusted = max(confidence_stage.confidence(f), confidence_stage.scan_confidence(f)) >= 0.5
-        kind = "right" if errors.rotation_deg < RIGHT_DEG and errors.translation < RIGHT_SHIFT * size else "wrong"
+        kind = "right" if is_right(errors, size) else "wrong"
         out[kind] += 1
         out[f"{kind}_trusted"] += int(trusted)
     return out
@@ -82,40 +89,49 @@ def starts_outcome(source: np.ndarray, target: np.ndarray, truth: np.ndarray, st
 
 def main(argv: "List[str] | None" = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("folder", nargs="?", type=Path, default=DEFAULT_FOLDER)
-    parser.add_argument("--voxels", type=float, nargs="+", default=[0.0, 0.05, 0.08, 0.12])
+    parser.add_argument("folders", nargs="*", type=Path, default=[DEFAULT_FOLDER])
+    parser.add_argument("--voxels", type=float, nargs="+", default=[0.0, 0.015, 0.025, 0.035])
+    parser.add_argument("--every", type=int, default=1)
     parser.add_argument("--starts", type=int, default=25)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
-    entries = read_pairs_file(args.folder / "pairs.txt")
+    pairs = [pair for folder in args.folders for pair in scan_folder(folder).pairs[:: args.every]]
     report = []
-    for voxel in args.voxels:
-        pairs, totals = [], {"right_trusted": 0, "right": 0, "wrong_trusted": 0, "wrong": 0}
-        for entry in entries:
-            source, target, truth = thinned(read_points(entry.source), voxel), read_points(entry.target), np.loadtxt(entry.transform)
-            result = register(source, target)
-            errors = pair_errors(result.transformation, truth)
-            pairs.append(
+    for share in args.voxels:
+        rows, totals = [], {"right_trusted": 0, "right": 0, "wrong_trusted": 0, "wrong": 0}
+        for pair in pairs:
+            source = thinned(pair.source, share * scene_size(pair.target))
+            result = register(source, pair.target)
+            errors = pair_errors(result.transformation, pair.transform, pair.origin)
+            rows.append(
                 {
-                    "pair": f"{entry.source.name}->{entry.target.name}",
+                    "pair": f"{pair.protocol}/{pair.category}",
                     "points": len(source),
                     "rotation_deg": errors.rotation_deg,
                     "translation": errors.translation,
+                    "right": is_right(errors, scene_size(pair.target)),
                     "confidence": result.confidence,
                 }
             )
-            for key, value in starts_outcome(source, target, truth, args.starts, args.seed).items():
+            for key, value in starts_outcome(pair, source, args.starts, args.seed).items():
                 totals[key] += value
-        report.append({"voxel": voxel, "register": pairs, "starts": totals})
-        rows = ", ".join(f"{p['pair']} {p['rotation_deg']:.1f} deg conf {p['confidence']:.2f}" for p in pairs)
-        print(f"voxel {voxel:g}: register (rotation error, lower is better; confidence): {rows}")
+        report.append({"voxel_share": share, "register": rows, "starts": totals})
+        right = [r for r in rows if r["right"]]
+        print(
+            f"voxel {share:g} x scene size: register right on {len(right)} of {len(rows)} pairs, "
+            f"trusted {sum(r['confidence'] >= 0.5 for r in right)} of them (higher is better); "
+            f"wrong results trusted {sum(r['confidence'] >= 0.5 for r in rows if not r['right'])} (lower is better)"
+        )
         print(
             f"  starts: right trusted {totals['right_trusted']} of {totals['right']} (higher is better), wrong trusted {totals['wrong_trusted']} of {totals['wrong']} (lower is better)",
             flush=True,
         )
     if args.out:
-        args.out.write_text(json.dumps({"folder": str(args.folder), "starts": args.starts, "seed": args.seed, "voxels": report}, indent=1) + "\n")
+        args.out.write_text(
+            json.dumps({"folders": [str(f) for f in args.folders], "every": args.every, "starts": args.starts, "seed": args.seed, "voxels": report}, indent=1)
+            + "\n"
+        )
 
 
 if __name__ == "__main__":

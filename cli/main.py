@@ -971,7 +971,9 @@ _TRAIN_FIELDS = (
 @click.option(
     "--resume",
     is_flag=True,
-    help="Continue from OUT/checkpoint.pt exactly where it stopped, with the settings of OUT/config.yaml (options given here override them).",
+    help="Continue from OUT/checkpoint.pt exactly where it stopped, with the settings of OUT/config.yaml. Options given here override them "
+    "(e.g. --epochs, --max-steps, --lr); those that decide which pairs are drawn or the network (the data, --protocol, --batch-size, --seed, "
+    "the network's settings, --limit-train, --points-per-shape, the --extra-* options) must stay as they were.",
 )
 @click.option("--overwrite", is_flag=True, help="Start a new run in an --out folder that holds one, replacing its files.")
 @click.option("--max-steps", type=click.IntRange(min=1), default=None, help="Stop after this many steps (quick runs).")
@@ -979,7 +981,8 @@ _TRAIN_FIELDS = (
     "--max-minutes",
     type=click.FloatRange(min=0, min_open=True),
     default=None,
-    help="Stop after this many minutes of training, with a checkpoint and the model exported (--resume goes on).",
+    help="Stop after this many minutes of training in this call, with a checkpoint and the model exported (--resume goes on, "
+    "its minutes counted afresh; --max-steps counts the whole run's steps).",
 )
 @click.option("--limit-train", type=click.IntRange(min=1), default=None, help="Use only the first N training shapes.")
 @click.option("--points-per-shape", type=click.IntRange(min=1), default=1024, show_default=True, help="Points per shape (first N of the HDF5 data).")
@@ -1089,7 +1092,9 @@ def _run_bench(name, pairs, count, description, recall=None, titles=None, units=
         units=units,
     )
     click.echo(result.table)
-    click.echo(f"\nRun folder: {result.folder} (pairs.csv, summary.json, config.json, table.txt, cdf_rotation_error.png, recall_vs_angle.png)")
+    names = ("pairs.csv", "summary.json", "config.json", "table.txt", "cdf_rotation_error.png", "recall_vs_angle.png")
+    written = [n for n in names if (result.folder / n).is_file() and (result.folder / n).stat().st_size > 0]
+    click.echo(f"\nRun folder: {result.folder} ({', '.join(written) or 'nothing written'})")
     if not result.summaries and not result.interrupted:
         raise InputError("no pair could run (each one's reason is above; summary.json lists them)")
     if result.interrupted:

@@ -371,6 +371,10 @@ def import_pairs(path: Path) -> List[BenchPair]:
 
     path = Path(path)
     check_pairs_file(path)
+    with open(path, "rb") as f:
+        head = f.read(6)
+    if not head.startswith(b"PK") and head != b"\x93NUMPY":  # neither a zip of arrays nor one array
+        raise InputError(f"{path}: not a pairs file (.npz: a zip of named arrays, as --export-pairs writes)")
     try:
         z = np.load(path, allow_pickle=False)
     except Exception as e:  # numpy raises several types for non-npz files
@@ -608,6 +612,8 @@ def summarise_rows(rows: Sequence[dict], errors: Sequence[PairErrors], config: B
                 summary = {"protocol": protocol, "subset": subset, "method": method, "recall_thresholds": [list(r) for r in recall]}
                 summary.update(summarise([errors[i] for i in sel], recall))
                 summary["raised"] = sum(1 for i in sel if rows[i]["error"])  # pairs scored as the pose as given
+                if summary["raised"]:
+                    summary["first_error"] = next(rows[i]["error"] for i in sel if rows[i]["error"])
                 summary["chamfer_mean"] = float(np.mean([rows[i]["chamfer"] for i in sel]))
                 summary["time_ms_median"] = float(np.median(total))
                 summary["time_ms_p90"] = float(np.percentile(total, 90))
@@ -698,7 +704,8 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
             + f" {s['time_ms_median']:>9.1f} {s['time_ms_p90']:>8.1f}"
         )
         if s.get("raised"):
-            lines.append(f"{'':18s} raised an error on {counted(s['raised'], 'pair')}: scored as the pose as given (identity); pairs.csv says why")
+            first = f" (the first: {s['first_error']})" if s.get("first_error") else ""
+            lines.append(f"{'':18s} raised an error on {counted(s['raised'], 'pair')}{first}: scored as the pose as given (identity); pairs.csv says why")
         if "confidence_auc" in s:
             d5, t5 = recall[-1]
             auc = "n/a (no failures or no successes)" if s["confidence_auc"] is None else f"{s['confidence_auc']:.3f}"

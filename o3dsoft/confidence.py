@@ -10,7 +10,10 @@ of the final alignment that overlap does not change (:class:`Features`):
   distance max(0.3 d, 1.5 s), s the target's median point spacing. A point whose nearest target
   point has a source point over three times closer lies beyond the target's edge (partial
   overlap) and is not counted either way; on a wrong alignment no such closer partner exists. When
-  the target is much sparser than the source, the roles swap.
+  the target is much sparser than the source, the roles swap. Where the counted cloud is much
+  sparser than the other (a scan the user downsampled), its points lie too far apart to be three
+  times closer, and a partner that lies on its surface (near its tangent plane, among its points)
+  is taken as claimed too.
 - ``spacing_ratio``: the median distance to the nearest partner over the other cloud's spacing,
   about 1 for two independent samplings of one surface at the right pose, 0 for identical points.
 
@@ -65,6 +68,12 @@ COMPLETE_FEATURE_NAMES = ("consistency", "overlap", "spacing_ratio")
 SCAN_FEATURE_NAMES = ("planar",)
 # ... and those of :func:`partial_confidence`.
 PARTIAL_FEATURE_NAMES = ("log_agreeing",)
+# The edge test on a much sparser counted cloud (:meth:`Scorer.on_sparse_surface`): the neighbours
+# of its tangent planes, how many of its points around a partner are averaged, and how far from
+# the partner along the plane (in its point spacings) their mean may lie.
+EDGE_NEIGHBOURS = 10
+EDGE_AROUND = 6
+EDGE_INSIDE = 0.5
 
 
 @dataclass(frozen=True)
@@ -83,7 +92,10 @@ class ConfidenceConfig:
         spacings: ... and at least this many point spacings of the cloud compared with; a target
             whose spacing exceeds the source's this many times is the one whose points are counted.
         claimed: a point whose nearest partner has a point of its own cloud within this share of
-            their distance lies beyond the other cloud's edge, and is not counted.
+            their distance lies beyond the other cloud's edge, and is not counted. Where the
+            counted cloud's spacing exceeds the other's `spacings` times, so does a point whose
+            partner lies within this share of their distance of the counted cloud's tangent plane
+            and among its points (:meth:`Scorer.on_sparse_surface`).
         min_overlap: alignments whose counted points are fewer than this share of the smaller
             cloud get confidence 0 (too few to measure).
         min_points: on clouds the smaller of which holds fewer points, the pipeline caps the
@@ -219,6 +231,9 @@ class Scorer:
         self.far_tree = cKDTree(self.far)
         self.near_tree = cKDTree(self.near)  # for the edge test: distances do not change under T
         self.far_spacing = max(s_source if self.swapped else s_target, 1e-12)
+        self.near_spacing = s_target if self.swapped else s_source
+        sparse_near = self.near_spacing > config.spacings * self.far_spacing and len(self.near) >= max(EDGE_NEIGHBOURS, EDGE_AROUND)
+        self.near_normals = refine_stage.normals(self.near, EDGE_NEIGHBOURS) if sparse_near else None
         self.reach = max(distance, self.tight)
         self.wide_reach = max(self.reach, config.wide_spacings * self.far_spacing)
         usable = target_normals is not None and not self.swapped and given <= max_points and len(target_normals) == given
@@ -240,7 +255,10 @@ class Scorer:
         claimed = np.zeros(len(moved), dtype=bool)
         if doubtful.any():
             partners = apply_transform(np.linalg.inv(T), self.far[j[doubtful]])  # into the near cloud's frame
-            claimed[doubtful] = self.near_tree.query(partners)[0] <= self.config.claimed * dist[doubtful]
+            gap, nearest = self.near_tree.query(partners)
+            reach = self.config.claimed * dist[doubtful]
+            claimed[doubtful] = gap <= reach
+            claimed[doubtful] |= self.on_sparse_surface(partners, nearest, reach)
         counted = close | (within & ~claimed)
         ratio_counted = close | (reached & ~claimed)
         spacing_ratio = float(np.median(dist[ratio_counted]) / self.far_spacing) if ratio_counted.any() else math.inf
@@ -249,6 +267,22 @@ class Scorer:
         consistency = float(close.sum() / counted.sum())
         overlap = min(1.0, float(counted.sum()) / min(len(moved), len(self.far)))
         return Features(float(close.mean()), self.tight, consistency, overlap, spacing_ratio, self._planar(moved, j, counted))
+
+    def on_sparse_surface(self, partners: np.ndarray, nearest: np.ndarray, reach: np.ndarray) -> np.ndarray:
+        """(K,) bool: which of the (K, 3) `partners` (in the counted cloud's frame) lie on the much
+        sparser counted cloud's surface: within `reach` (K,) of its tangent plane at their nearest
+        point (indices `nearest`, (K,)), and among its points: the mean of their
+        :data:`EDGE_AROUND` nearest points lies within :data:`EDGE_INSIDE` point spacings of them
+        along that plane (beyond the cloud's edge, a spacing or more inwards). A plane alone would
+        reach past the cloud's last points, where a wrong alignment's partners lie."""
+        if self.near_normals is None:  # not much sparser: its points tell
+            return np.zeros(len(partners), dtype=bool)
+        normals = self.near_normals[nearest]
+        across = np.abs(np.einsum("ij,ij->i", partners - self.near[nearest], normals))
+        _, around = self.near_tree.query(partners, k=EDGE_AROUND)
+        offset = partners - self.near[around].mean(axis=1)
+        along = offset - np.einsum("ij,ij->i", offset, normals)[:, None] * normals
+        return (across <= reach) & (np.linalg.norm(along, axis=1) <= EDGE_INSIDE * self.near_spacing)
 
     def _planar(self, moved: np.ndarray, j: np.ndarray, counted: np.ndarray) -> float:
         """``Features.planar`` of the (N, 3) moved points, whose nearest partners are far[j],

@@ -26,7 +26,8 @@ def read_config(path: PathLike, cls: type) -> Dict[str, Any]:
     Raises:
         UsageError: the file does not exist.
         InputError: YAML syntax error, a top level that is not a mapping, an unknown key or one
-            given twice, a value of the wrong type (each with file and line).
+            given twice, a value of the wrong type, a nested mapping whose dataclass's
+            ``validate()`` refuses it (each with file and line).
     """
     import yaml
 
@@ -66,7 +67,12 @@ def _read_mapping(path: Path, node, cls: type) -> Dict[str, Any]:
         if dataclasses.is_dataclass(expected):
             if isinstance(value_node, yaml.ScalarNode) and value_node.value in ("", "null", "~"):
                 raise InputError(f"{path} line {line}: {key!r} must be a mapping")
-            out[key] = expected(**_read_mapping(path, value_node, expected))
+            nested = expected(**_read_mapping(path, value_node, expected))
+            try:
+                getattr(nested, "validate", lambda: None)()
+            except InputError as e:  # its ranges, named where the file gives them
+                raise InputError(f"{path} line {line}: {e}") from None
+            out[key] = nested
             continue
         try:
             value = yaml.SafeLoader(" ").construct_object(value_node, deep=True)

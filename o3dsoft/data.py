@@ -334,14 +334,16 @@ class Shapes(NamedTuple):
     categories: List[str]
 
 
-def resolve_data_root(path: Optional[str]) -> Path:
-    """The ModelNet40 folder: the given path, else $O3DSOFT_DATA, else an InputError saying how to get it."""
+def resolve_data_root(path: Optional[str], option: str = "--data") -> Path:
+    """The ModelNet40 folder: the given path, else $O3DSOFT_DATA, else an InputError saying how to
+    get it (`option`: the command-line option that gives the folder, named in the error)."""
     chosen = path or os.environ.get(DATA_ENV)
+    how = _HOW_TO_GET.replace("--data PATH", f"{option} PATH")
     if not chosen:
-        raise InputError(f"no ModelNet40 data given. {_HOW_TO_GET}")
+        raise InputError(f"no ModelNet40 data given. {how}")
     root = Path(chosen).expanduser()
     if not root.is_dir():
-        raise InputError(f"{root}: no such folder. {_HOW_TO_GET}")
+        raise InputError(f"{root}: {'not a folder' if root.exists() else 'no such folder'}. {how}")
     return root
 
 

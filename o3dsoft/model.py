@@ -31,6 +31,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from .errors import InputError
 from .procrustes import weighted_procrustes
 
 
@@ -67,6 +68,19 @@ class NetConfig:
         d = asdict(self)
         d["channels"] = list(self.channels)
         return d
+
+    def validate(self) -> None:
+        """InputError naming the first setting out of its range."""
+        checks = [
+            ("k", self.k >= 1, "at least 1"),
+            ("radius", self.radius > 0, "positive"),
+            ("channels", len(self.channels) >= 1 and all(c >= 1 for c in self.channels), "a list of one or more positive widths"),
+            ("overlap", self.overlap >= 0, "at least 0 (0: no overlap head)"),
+            ("overlap_layers", self.overlap_layers >= 0, "at least 0"),
+        ]
+        for name, ok, expected in checks:
+            if not ok:
+                raise InputError(f"net setting {name} = {getattr(self, name)!r} must be {expected}")
 
     @classmethod
     def from_dict(cls, d: dict) -> "NetConfig":

@@ -84,7 +84,7 @@ class TrainConfig:
         checkpoint_minutes: wall-clock interval between checkpoints (also written each epoch).
         eval_pairs: test pairs evaluated after each epoch (0: none; None: the whole split).
         max_steps: stop after this many optimiser steps in total (None: run all epochs).
-        max_minutes: stop after this many minutes of training in this process, with a checkpoint
+        max_minutes: stop after this many minutes of training in this call, with a checkpoint
             and the model exported (``--resume`` goes on): for a machine lent for a fixed time
             (None: no limit).
         limit_train: use only the first N training shapes (None: all).
@@ -137,6 +137,7 @@ class TrainConfig:
 
     def validate(self) -> None:
         """InputError naming the first setting out of its range."""
+        self.net.validate()
         check_training_recipe(self.protocol)
         check_training_recipe(self.extra_protocol)
         checks = [
@@ -247,7 +248,8 @@ def _initial_weights(init: str) -> Tuple[dict, dict, dict]:
 
     path = Path(init)
     if not path.is_file() and init not in bundled_model_names():
-        raise UsageError(f"{init}: no such checkpoint or model file (shipped models, by name: {', '.join(bundled_model_names())})")
+        what = "is a folder, not a checkpoint or model file" if path.is_dir() else "no such checkpoint or model file"
+        raise UsageError(f"{init}: {what} (shipped models, by name: {', '.join(bundled_model_names())})")
     if path.is_file() and _zipfile_has(path, "data.pkl") and not _zipfile_has(path, "code/"):
         ckpt = _load_checkpoint(path)
         record = {
@@ -498,7 +500,7 @@ def _data_fingerprints(config: TrainConfig) -> Dict[str, Optional[str]]:
     keep, wherever it lies now (a run trained on a lent GPU machine goes on here)."""
     return {
         "data": folder_fingerprint(resolve_data_root(config.data)),
-        "extra_data": folder_fingerprint(resolve_data_root(config.extra_data)) if config.extra_data else None,
+        "extra_data": folder_fingerprint(resolve_data_root(config.extra_data, "--extra-data")) if config.extra_data else None,
     }
 
 
@@ -624,7 +626,9 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         if new_head:
             adopted.update(overlap=config.net.overlap, overlap_layers=config.net.overlap_layers)
         if replace(init_config, **adopted) != config.net:
-            raise InputError(f"{config.init}: its network settings differ from this run's ({init_net})")
+            theirs, ours = replace(init_config, **adopted).to_dict(), config.net.to_dict()
+            differ = ", ".join(f"{k} {theirs[k]!r} (this run: {ours[k]!r})" for k in ours if theirs[k] != ours[k])
+            raise InputError(f"{config.init}: its network settings differ from this run's: {differ}")
         with _damaged(Path(config.init)):
             missing, unexpected = model.load_state_dict(weights, strict=not new_head)
             if unexpected or any(not k.startswith("overlap.") for k in missing):
@@ -705,8 +709,11 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         try:
             _save_atomic(contents, ckpt_path)
         except (OSError, RuntimeError, InputError) as e:  # torch.save reports a failed write as RuntimeError
-            kept = "the previous checkpoint is unchanged" if ckpt_path.is_file() else "no checkpoint was written"
-            raise O3dsoftError(f"{ckpt_path}: could not write the checkpoint ({e}); {kept}; free space and run again with --resume") from None
+            if ckpt_path.is_file():
+                advice = "the previous checkpoint is unchanged; once the folder is writable again (space, permissions), go on with --resume"
+            else:
+                advice = "no checkpoint was written; once the folder is writable again (space, permissions), start the run again with --overwrite"
+            raise O3dsoftError(f"{ckpt_path}: could not write the checkpoint ({e}); {advice}") from None
 
     dataset = _TrainingPairs([train_pairs])
     stop = _StopBetweenSteps(world == 1)
@@ -759,7 +766,10 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                     log(f"interrupted: checkpoint after step {state['global_step']} in {ckpt_path} (--resume goes on from there)")
                     export(None)  # the model so far, usable at once (a second Ctrl-C stops without it)
                     raise KeyboardInterrupt
-                if _out_of_steps(config, state) or (config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60):
+                out_of_time = config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60
+                if _out_of_steps(config, state) or out_of_time:
+                    if out_of_time and not _out_of_steps(config, state):
+                        log(f"stopped: max_minutes = {config.max_minutes:g} of training in this call, after step {state['global_step']} (--resume goes on)")
                     done = True
                     break
             progress.close()

@@ -113,8 +113,9 @@ def test_bad_pairs_files(tmp_path):
     with pytest.raises(UsageError, match="no such pairs file"):
         bench.import_pairs(tmp_path / "none.npz")
     (tmp_path / "text.npz").write_text("hello")
-    with pytest.raises(InputError, match="not a pairs file"):
+    with pytest.raises(InputError, match="not a pairs file") as raised:
         bench.import_pairs(tmp_path / "text.npz")
+    assert "pickle" not in str(raised.value)  # numpy's advice for pickled files, which a text file is not
     np.savez(tmp_path / "partial.npz", source_points=np.zeros((3, 3)))
     with pytest.raises(InputError, match="missing array.*source_offsets"):
         bench.import_pairs(tmp_path / "partial.npz")
@@ -231,7 +232,10 @@ def test_a_method_that_raises_on_a_pair_is_scored_there_and_the_others_keep_the_
     rows = list(csv.DictReader(open(tmp_path / "pairs.csv")))
     (failed,) = [r for r in rows if r["error"]]
     assert failed["method"] == "o3dsoft" and failed["index"] == "1" and "points" in failed["error"] and float(failed["confidence"]) == 0.0
-    assert "raised an error on 1 pair: scored as the pose as given" in (tmp_path / "table.txt").read_text()
+    assert (
+        "raised an error on 1 pair (the first: source: 20 distinct finite points; at least 32 are needed): scored as the pose as given"
+        in (tmp_path / "table.txt").read_text()
+    )
 
 
 def test_bad_names_and_data(tmp_path, monkeypatch):
@@ -1153,6 +1157,7 @@ def test_modelnet40_runs_a_protocol_given_twice_once_and_fails_where_no_pair_run
     assert json.loads((tmp_path / "a" / "summary.json").read_text())["pairs_completed"] == 2
     r = _bench([*twice[:-2], "--method", "o3dsoft", "--points-per-shape", "10", "--out", str(tmp_path / "b")])  # too few points for the network
     assert r.exit_code == 1 and "skipped" in r.output and "Error: no pair could run" in r.output
+    assert "Run folder: " in r.output and ".png" not in r.output  # the plots were not made: not listed
     r = _bench([*twice, "--method", "o3dsoft", "--points-per-shape", "10", "--out", str(tmp_path / "d")])  # ICP runs there: o3dsoft fails them
     assert r.exit_code == 0 and "raised an error on 2 pairs" in (tmp_path / "d" / "table.txt").read_text()
     r = _bench([*twice, "--seed", "-1", "--out", str(tmp_path / "c")])

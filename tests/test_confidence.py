@@ -243,6 +243,32 @@ def _grid_plane(step: float, offset: float, half: float = 1.0) -> np.ndarray:
     return np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
 
 
+def _jittered_strip(x0: float, x1: float, step: float, rng: np.random.Generator) -> np.ndarray:
+    """(N, 3) points of the plane z = 0 over [x0, x1] x [0, 1], a jittered grid of `step`, 1 mm noise across."""
+    x, y = np.meshgrid(np.arange(x0, x1, step), np.arange(0.0, 1.0, step))
+    points = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
+    points[:, :2] += rng.uniform(-0.3, 0.3, (len(points), 2)) * step
+    points[:, 2] += rng.normal(0.0, 0.001, len(points))
+    return points
+
+
+def test_a_much_sparser_source_beyond_the_targets_edge_does_not_count_against_the_right_pose():
+    # A user's downsampled scan (10 cm spacing) over a quarter of a dense one (1 cm): its points
+    # just beyond the target's edge have no point of their own three times closer to their partner
+    # there, but the partner lies on their surface.
+    rng = np.random.default_rng(0)
+    target = _jittered_strip(0.0, 1.0, 0.01, rng)
+    scores = {}
+    for step in (0.03, 0.1):
+        scorer = confidence.Scorer(_jittered_strip(0.75, 1.75, step, rng), target, distance=0.1)
+        scores[step] = scorer(np.eye(4))
+        lifted = np.eye(4)
+        lifted[2, 3] = 0.04  # off the surface by more than the tight distance: a wrong pose
+        assert scorer(lifted).consistency == 0.0
+    assert scores[0.1].consistency >= 0.92 and confidence.confidence(scores[0.1]) > 0.5  # 0.75 and 0.00 before
+    assert abs(scores[0.1].consistency - scores[0.03].consistency) < 0.1  # 0.065 (0.275 before)
+
+
 def test_the_planar_share_counts_points_on_the_partners_tangent_plane():
     # Two samplings of one plane on grids half a step apart: every nearest partner lies half a
     # diagonal away along the surface, none across it.
@@ -348,11 +374,11 @@ def test_the_sparse_source_benchmark_scores_a_thinned_scan_pair(real_scans_root,
 
     folder = real_scans_root / "3dmatch_redkitchen"
     (tmp_path / "pairs.txt").write_text(f"{folder / 'cloud_bin_6.ply'} {folder / 'cloud_bin_4.ply'} {folder / 'gt_6_to_4.txt'}\n")
-    sparse_source.main([str(tmp_path), "--voxels", "0.12", "--starts", "3", "--out", str(tmp_path / "out.json")])
+    sparse_source.main([str(tmp_path), "--voxels", "0.035", "--starts", "3", "--out", str(tmp_path / "out.json")])
     (report,) = json.loads((tmp_path / "out.json").read_text())["voxels"]
     (pair,) = report["register"]
     starts = report["starts"]
-    assert report["voxel"] == 0.12 and pair["points"] < 2000  # thinned from 15,953 points
-    assert pair["rotation_deg"] < 5.0
+    assert report["voxel_share"] == 0.035 and pair["points"] < 2000  # thinned from 15,953 points
+    assert pair["right"] and pair["rotation_deg"] < 5.0
     assert starts["right"] + starts["wrong"] == 3
     assert starts["right_trusted"] <= starts["right"] and starts["wrong_trusted"] <= starts["wrong"]

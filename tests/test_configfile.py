@@ -41,6 +41,11 @@ def test_values_are_checked_and_converted(tmp_path):
         ("net:\n  k: 8\n  k: 16\n", r"line 3: 'k' is given twice \(first on line 2\)"),
         ("net:\n  shared_encoder: 1\n", r"'shared_encoder' must be true or false"),
         ("net: 3\n", r"line 1: expected a mapping of NetConfig settings"),
+        ("epochs: 1\nnet:\n  k: 0\n", r"train.yaml line 2: net setting k = 0 must be at least 1"),
+        ("net:\n  radius: -1\n", r"net setting radius = -1.0 must be positive"),
+        ("net:\n  channels: []\n", r"net setting channels = \(\) must be a list of one or more positive widths"),
+        ("net:\n  channels: [0, 8]\n", r"net setting channels = \(0, 8\)"),
+        ("net:\n  overlap: -2\n", r"net setting overlap = -2 must be at least 0"),
         ("- epochs\n", r"expected a mapping of TrainConfig settings"),
         ("epochs: [1\n", r"train.yaml line 2: not valid YAML"),
         ('epochs: !!python/object/apply:os.system ["touch pwned"]\n', r"line 1: 'epochs': could not determine a constructor for the tag"),
@@ -59,6 +64,8 @@ def test_missing_config_file(tmp_path):
 def test_out_of_range_setting_is_named():
     with pytest.raises(InputError, match="epochs = 0 must be at least 1"):
         TrainConfig(epochs=0).validate()
+    with pytest.raises(InputError, match="net setting overlap_layers = -1 must be at least 0"):
+        TrainConfig(net=NetConfig(overlap_layers=-1)).validate()
 
 
 def test_command_line_overrides_the_config_file(modelnet_root, tmp_path):
@@ -75,6 +82,11 @@ def test_command_line_overrides_the_config_file(modelnet_root, tmp_path):
     assert resumed.batch_size == 2 and resumed.net.k == 8 and resumed.max_steps == 2
     r = CliRunner().invoke(main, ["train", "--config", str(_yaml(tmp_path, "epoch: 1\n"))])
     assert r.exit_code == 1 and "unknown key 'epoch'" in r.output and "Traceback" not in r.output
+    # A network setting out of range: one line naming it, and no run folder left behind.
+    bad = tmp_path / "bad"
+    r = CliRunner().invoke(main, ["train", "--config", str(_yaml(tmp_path, "net:\n  k: 0\n")), "--data", str(modelnet_root), "--out", str(bad)])
+    assert r.exit_code == 1 and "net setting k = 0 must be at least 1" in r.output and "Traceback" not in r.output
+    assert not bad.exists()
 
 
 @pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "configs").glob("*.yaml")))

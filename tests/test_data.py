@@ -99,6 +99,11 @@ def test_missing_data_says_how_to_get_it(tmp_path, monkeypatch):
         resolve_data_root(None)
     with pytest.raises(InputError, match="no such folder"):
         resolve_data_root(str(tmp_path / "nope"))
+    (tmp_path / "shape_names.txt").write_text("a\n")
+    with pytest.raises(InputError, match="shape_names.txt: not a folder"):
+        resolve_data_root(str(tmp_path / "shape_names.txt"))
+    with pytest.raises(InputError, match="nope: no such folder.* pass its folder with --extra-data PATH"):
+        resolve_data_root(str(tmp_path / "nope"), "--extra-data")
     with pytest.raises(InputError, match="no ModelNet40 test split here"):
         load_modelnet40(tmp_path, "test")
 

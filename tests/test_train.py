@@ -105,11 +105,16 @@ def test_init_from_a_checkpoint(modelnet_root, tmp_path):
     assert card["initialised_from"]["sha256"] == sha256_of(tmp_path / "a" / "model.pt")
     with pytest.raises(UsageError, match="no such checkpoint or model file"):
         train(_config(modelnet_root, tmp_path / "n", max_steps=1, init=str(tmp_path / "missing.pt")))
+    with pytest.raises(UsageError, match="is a folder, not a checkpoint or model file"):
+        train(_config(modelnet_root, tmp_path / "n", max_steps=1, init=str(tmp_path / "a")))
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(InputError, match="junk.pt"):
         train(_config(modelnet_root, tmp_path / "j", max_steps=1, init=str(tmp_path / "junk.pt")))
     other = NetConfig(k=4, radius=0.3, channels=(8, 8, 8, 8, 8))
-    with pytest.raises(InputError, match="network settings differ"):
+    with pytest.raises(
+        InputError,
+        match="network settings differ from this run's: k 8 \\(this run: 4\\), channels \\[8, 16, 16, 16, 32\\] \\(this run: \\[8, 8, 8, 8, 8\\]\\)$",
+    ):
         train(_config(modelnet_root, tmp_path / "c", max_steps=1, net=other, init=str(tmp_path / "a" / "checkpoint.pt")))
 
 
@@ -174,6 +179,13 @@ def test_disk_full_while_checkpointing_keeps_the_last_good_checkpoint(modelnet_r
         train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=lambda m: None)
     assert (tmp_path / "checkpoint.pt").read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt", "config.json", "config.yaml", "model.pt", "model_card.json"]
+    # The first checkpoint of a run: nothing to resume, so the advice is to start again, which works.
+    fresh = tmp_path / "fresh"
+    with pytest.raises(O3dsoftError, match="no checkpoint was written; .* start the run again with --overwrite"):
+        train(_config(modelnet_root, fresh, max_steps=1, eval_pairs=0), log=lambda m: None)
+    monkeypatch.undo()
+    train(_config(modelnet_root, fresh, max_steps=1, eval_pairs=0), overwrite=True, log=lambda m: None)
+    assert (fresh / "model.pt").is_file()
 
 
 def test_two_processes_under_torchrun_stay_identical(modelnet_root, tmp_path):
@@ -341,9 +353,11 @@ def test_a_checkpoint_carrying_code_is_refused_without_running_it(modelnet_root,
 
 
 def test_a_time_limit_ends_the_run_with_a_checkpoint_and_a_model(modelnet_root, tmp_path):
-    path = train(_config(modelnet_root, tmp_path, max_minutes=1e-6, epochs=3, eval_pairs=0), log=lambda m: None)
+    lines = []
+    path = train(_config(modelnet_root, tmp_path, max_minutes=1e-6, epochs=3, eval_pairs=0), log=lines.append)
     card = json.loads((tmp_path / "model_card.json").read_text())
     assert card["steps"] == 1 and path.is_file()  # the first step outlasts the limit
+    assert any(line.startswith("stopped: max_minutes = 1e-06 of training in this call, after step 1") for line in lines)
     state = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["state"]
     assert state["global_step"] == 1 and state["epoch"] == 0  # --resume goes on from here
     with pytest.raises(InputError, match="max_minutes"):
