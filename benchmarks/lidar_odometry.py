@@ -84,7 +84,8 @@ def sequence(rays, plane: np.ndarray, rings: int, sweeps: int, seed: int):
 
 
 def measure(clouds: List[np.ndarray], truth: List[np.ndarray], map_sweeps: int, model) -> dict:
-    """One odometry run: its step errors, final drift, wrong and trusted-wrong steps, time per sweep."""
+    """One odometry run: its step errors, final drift, wrong and trusted-wrong steps, flagged steps
+    and those of them left out of the local maps, time per sweep."""
     import o3dsoft
     from o3dsoft.odometry import errors_against
 
@@ -101,6 +102,7 @@ def measure(clouds: List[np.ndarray], truth: List[np.ndarray], map_sweeps: int, 
         "wrong": int(wrong.sum()),
         "trusted_wrong": int((wrong & ~flagged).sum()),
         "flagged": int(flagged.sum()),
+        "left_out_of_map": int(sum(not kept for kept in result.mapped)),
         "seconds_per_sweep": seconds,
     }
 

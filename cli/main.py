@@ -795,11 +795,16 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     with io.atomic_output(out_dir / "poses.txt") as tmp:
         tmp.write_text("".join(" ".join(f"{v:.9g}" for v in pose[:3].reshape(-1)) + "\n" for pose in result.poses))
     click.echo(json.dumps(payload, indent=2) if as_json else _format_odometry(result, out_dir, reference))
-    flagged = [f"{n} (confidence {s.confidence:.3f}: {s.failure_reason})" for n, s, f in zip(names, result.steps, result.flagged) if f]
+    flagged = [
+        f"{n} (confidence {s.confidence:.3f}: {s.failure_reason}; "
+        + ("kept in the map: it fits it and lies near the motion guessed, so the sweeps after it build on it)" if m else "left out of the map)")
+        for n, s, f, m in zip(names, result.steps, result.flagged, result.mapped)
+        if f
+    ]
     if flagged:
         click.echo(
-            f"Warning: {len(flagged)} step(s) flagged likely failed; their poses may be off (the sweeps after them are registered without them): "
-            + "; ".join(flagged),
+            f"Warning: {len(flagged)} step(s) flagged likely failed; their poses may be off (the sweeps after a step left out of the map are registered "
+            "without it): " + "; ".join(flagged),
             err=True,
         )
         if strict:
@@ -948,7 +953,7 @@ _TRAIN_FIELDS = (
     help="Start from these weights (fine-tuning): a run's checkpoint.pt, a model file, or a shipped model by name (default, paper, partial, incongruent).",
 )
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
-@click.option("--device", default="cpu", show_default=True, help="cpu or cuda (under torchrun: one GPU per process).")
+@click.option("--device", default="cpu", show_default=True, help="Torch device: cpu, cuda, cuda:1, mps... (under torchrun: one GPU per process).")
 @click.option(
     "--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config."
 )

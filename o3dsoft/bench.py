@@ -850,9 +850,10 @@ class BenchRun(NamedTuple):
 
 
 def prepare_folder(out: Path, overwrite: bool) -> Path:
-    """Create the run folder; refuse an existing one unless `overwrite`."""
+    """Create the run folder; refuse an existing one that holds anything unless `overwrite`."""
     out = Path(out)
-    if out.exists() and not overwrite:
+    empty = out.is_dir() and not any(out.iterdir())  # made beforehand, or left by a run killed before it wrote
+    if out.exists() and not empty and not overwrite:
         raise UsageError(f"{out}: the output folder exists; choose another --out or pass --overwrite")
     return make_folder(out)
 

@@ -1,7 +1,8 @@
 """``odometry``: the poses of a sequence of sweeps (LiDAR, depth frames), one after another.
 
     for each sweep after the first:
-    -> a local map: the last few sweeps (not those flagged that fit it poorly), in the previous sweep's frame
+    -> a local map: the last few sweeps (not those flagged that fit it poorly or moved far from
+       their guess), in the previous sweep's frame
     -> register the sweep onto it (:func:`o3dsoft.register`) from a constant-velocity guess (the
        last motion again; where ICP from it is trusted, nothing else runs)
     -> its pose: the previous pose followed by the motion found.
@@ -32,8 +33,13 @@ from .transforms import apply_transform
 
 # A flagged step whose sweep has at least this share of its points within ICP's distance of the
 # map stays in it: on sparse sweeps the confidence flags right steps, and a map without them loses
-# its way (docs/multiway.md).
+# its way (docs/multiway.md) ...
 MAP_MIN_FITNESS = 0.5
+# ... where it lies within this turn (degrees) and this shift (a share of the pair's scale) of the
+# motion guessed for it: a wide ICP distance finds most points of a sweep near the map at a pose
+# turned far from the right one, and sweeps registered onto that would follow it.
+MAP_MAX_TURN = 10.0
+MAP_MAX_SHIFT = 0.1
 
 
 @dataclass(frozen=True)
@@ -43,7 +49,8 @@ class OdometryConfig:
     Attributes:
         map_sweeps: how many of the last sweeps make the local map each sweep is registered onto
             (1: the previous sweep alone, frame to frame); a sweep whose step was flagged and
-            fits the map poorly (:data:`MAP_MIN_FITNESS`) is left out of it (it reaches back past).
+            fits the map poorly (:data:`MAP_MIN_FITNESS`) or moved far from the motion guessed
+            (:data:`MAP_MAX_TURN`, :data:`MAP_MAX_SHIFT`) is left out of it (it reaches back past).
         constant_velocity: start each sweep at the last motion repeated (else where the previous
             sweep is); after a step left out of the map, from the last kept sweep's pose and motion.
         register: the registration's settings (the same for every sweep).
@@ -74,23 +81,27 @@ class OdometryResult:
             ``transformation`` is the motion previous_T_sweep from the previous sweep's pose as
             found (poses[k] = poses[k-1] @ steps[k].transformation).
         timings_s: "total" (s, lower is better).
+        mapped: per sweep, whether the local maps of the sweeps after it hold it (the first and
+            every trusted sweep; a flagged one only where it fits its map and lies near the motion
+            guessed for it).
     """
 
     names: Tuple[str, ...]
     poses: Tuple[np.ndarray, ...]
     steps: Tuple[Optional[RegistrationResult], ...]
     timings_s: Dict[str, float]
+    mapped: Tuple[bool, ...] = ()
 
     @property
     def flagged(self) -> Tuple[bool, ...]:
-        """Per sweep: its registration is flagged likely failed (its pose may be off; where it also fits
-        the map poorly, the sweeps after it are registered without it)."""
+        """Per sweep: its registration is flagged likely failed (its pose may be off; unless it is
+        ``mapped``, the sweeps after it are registered without it)."""
         return tuple(step is not None and step.likely_failed for step in self.steps)
 
     def to_dict(self) -> dict:
         """JSON-ready dict: per sweep its pose, and its step's confidence, flag and reason."""
 
-        def sweep(name: str, pose: np.ndarray, step: Optional[RegistrationResult]) -> dict:
+        def sweep(name: str, pose: np.ndarray, step: Optional[RegistrationResult], mapped: bool) -> dict:
             entry: dict = {"name": name, "world_T_sweep": pose.tolist()}
             if step is not None:
                 entry.update(
@@ -98,13 +109,14 @@ class OdometryResult:
                     likely_failed=step.likely_failed,
                     failure_reason=step.failure_reason,
                     estimate_from=step.estimate_from,
+                    in_map=mapped,
                     seconds=round(step.timings_ms.get("total", 0.0) / 1000.0, 4),
                 )
             return entry
 
         return {
             "world": self.names[0],
-            "sweeps": [sweep(n, p, s) for n, p, s in zip(self.names, self.poses, self.steps)],
+            "sweeps": [sweep(n, p, s, m) for n, p, s, m in zip(self.names, self.poses, self.steps, self.mapped or (True,) * len(self.steps))],
             "timings_s": self.timings_s,
         }
 
@@ -147,15 +159,19 @@ def odometry(
     start = time.perf_counter()
     poses: List[np.ndarray] = [np.eye(4)]
     steps: List[Optional[RegistrationResult]] = [None]
+    guesses: List[Optional[np.ndarray]] = [None]
     for k in range(1, len(points)):
-        local_map = _local_map(points, poses, steps, k, config.map_sweeps)
-        guess = _guess(poses, steps, k, config.constant_velocity)
+        local_map = _local_map(points, poses, steps, guesses, k, config.map_sweeps)
+        guess = _guess(poses, steps, guesses, k, config.constant_velocity)
         step = register(points[k], local_map, config.register, model=model, source_name=names[k], target_name=f"the map before {names[k]}", init=guess)
         poses.append(poses[-1] @ step.transformation)
         steps.append(step)
+        guesses.append(guess)
         if progress is not None:
             progress(k + 1, len(points))
-    return OdometryResult(names, tuple(poses), tuple(steps), {"total": round(time.perf_counter() - start, 3)})
+    kept = set(_kept(steps, guesses, len(points)))
+    mapped = tuple(j in kept for j in range(len(points)))
+    return OdometryResult(names, tuple(poses), tuple(steps), {"total": round(time.perf_counter() - start, 3)}, mapped)
 
 
 class OdometryErrors(NamedTuple):
@@ -193,26 +209,45 @@ def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_point
     return points
 
 
-def _kept(steps: Sequence[Optional[RegistrationResult]], k: int) -> List[int]:
+def _kept(steps: Sequence[Optional[RegistrationResult]], guesses: Sequence[Optional[np.ndarray]], k: int) -> List[int]:
     """The sweeps before k that the map keeps (the first always): those whose step was trusted,
     or flagged with at least :data:`MAP_MIN_FITNESS` of its points on the map it was registered
-    onto (on sparse sweeps the confidence flags right steps)."""
-    return [j for j in range(k) if steps[j] is None or not steps[j].likely_failed or steps[j].fitness >= MAP_MIN_FITNESS]
+    onto (on sparse sweeps the confidence flags right steps) and within :data:`MAP_MAX_TURN` and
+    :data:`MAP_MAX_SHIFT` of the (4, 4) motion guessed for it, `guesses[j]`."""
+
+    def keeps(step: Optional[RegistrationResult], guess: Optional[np.ndarray]) -> bool:
+        if step is None or not step.likely_failed:
+            return True
+        if step.fitness < MAP_MIN_FITNESS or guess is None:
+            return False
+        off = pair_errors(step.transformation, guess)
+        return off.rotation_deg <= MAP_MAX_TURN and off.translation <= MAP_MAX_SHIFT * step.scale
+
+    return [j for j in range(k) if keeps(steps[j], guesses[j])]
 
 
-def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], k: int, size: int) -> np.ndarray:
+def _local_map(
+    points: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    steps: Sequence[Optional[RegistrationResult]],
+    guesses: Sequence[Optional[np.ndarray]],
+    k: int,
+    size: int,
+) -> np.ndarray:
     """(M, 3) the last `size` sweeps before sweep k that the map keeps (:func:`_kept`), in sweep k-1's
     frame (its pose's: the motion found from there composes back to the right pose whatever
     that pose is)."""
     into = np.linalg.inv(poses[k - 1])
-    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in _kept(steps, k)[-size:]])
+    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in _kept(steps, guesses, k)[-size:]])
 
 
-def _guess(poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], k: int, constant_velocity: bool) -> np.ndarray:
+def _guess(
+    poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], guesses: Sequence[Optional[np.ndarray]], k: int, constant_velocity: bool
+) -> np.ndarray:
     """(4, 4) the guess of sweep k-1 _T_ sweep k: the last kept sweep's pose (:func:`_kept`)
     carried on, once per sweep since, by the last motion between two kept sweeps (constant
     velocity; the identity without it or before any): a step left out of the map is not repeated."""
-    kept = _kept(steps, k)
+    kept = _kept(steps, guesses, k)
     velocity = np.eye(4)
     if constant_velocity:
         moves = [j for j in kept if j >= 1 and (j - 1) in kept]

@@ -759,6 +759,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                 state["epoch_losses"] = losses
                 progress.update(losses, scheduler.get_last_lr()[0])
                 if stop.asked or time.monotonic() - last_ckpt > config.checkpoint_minutes * 60:
+                    # The epoch so far, for the card's history should the run stop here.
+                    state["partial"] = {"epoch": epoch + 1, "steps": len(losses), "train_loss": float(np.mean(losses))}
                     state["seconds"] += time.monotonic() - last_ckpt
                     last_ckpt = time.monotonic()
                     checkpoint()

@@ -79,7 +79,9 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     # The same folder again is refused; --overwrite reuses it.
     r = _bench(["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--out", str(out)])
     assert r.exit_code == 2 and "exists" in r.output and "--overwrite" in r.output
-    # Scoring the exported pairs gives the same errors for a deterministic method.
+    # Scoring the exported pairs gives the same errors for a deterministic method (into a folder
+    # made beforehand and still empty: taken as it is).
+    (tmp_path / "again").mkdir()
     r = _bench(["modelnet40", "--import-pairs", str(tmp_path / "pairs.npz"), "--method", "icp", "--out", str(tmp_path / "again")])
     assert r.exit_code == 0, r.output
     again = list(csv.DictReader(open(tmp_path / "again" / "pairs.csv")))

@@ -43,26 +43,34 @@ def test_odometry_follows_a_sequence_of_sweeps():
     assert doc["world"] == "sweep0" and len(doc["sweeps"]) == 6 and "confidence" in doc["sweeps"][1] and "confidence" not in doc["sweeps"][0]
 
 
-def test_the_local_map_and_the_guess_leave_flagged_steps_that_fit_poorly_out():
+def test_the_local_map_and_the_guess_leave_flagged_steps_that_fit_poorly_or_moved_far_out():
     points = [np.full((k + 1, 3), float(k)) for k in range(6)]  # sweep k has k + 1 points
     poses = [np.eye(4)] * 6
-    # steps 2 and 4 flagged, their sweeps off the map; step 1 flagged on the map (kept)
-    steps = [None] + [SimpleNamespace(likely_failed=k in (1, 2, 4), fitness=0.9 if k == 1 else 0.2, transformation=np.eye(4)) for k in range(1, 6)]
-    assert len(_local_map(points, poses, steps, 5, 3)) == 1 + 2 + 4  # sweeps 0, 1 and 3: 2 and 4 flagged
-    assert len(_local_map(points, poses, steps, 4, 2)) == 2 + 4  # sweeps 1 and 3
-    assert len(_local_map(points, poses, steps, 1, 5)) == 1  # the first alone
+    guesses = [None] + [np.eye(4)] * 5
+    # steps 2 and 4 flagged, their sweeps off the map; step 1 flagged on the map, at its guess (kept)
+    steps = [None] + [SimpleNamespace(likely_failed=k in (1, 2, 4), fitness=0.9 if k == 1 else 0.2, transformation=np.eye(4), scale=10.0) for k in range(1, 6)]
+    assert len(_local_map(points, poses, steps, guesses, 5, 3)) == 1 + 2 + 4  # sweeps 0, 1 and 3: 2 and 4 flagged
+    assert len(_local_map(points, poses, steps, guesses, 4, 2)) == 2 + 4  # sweeps 1 and 3
+    assert len(_local_map(points, poses, steps, guesses, 1, 5)) == 1  # the first alone
     moved = [rigid(np.eye(3), np.array([k, 0.0, 0.0])) for k in range(6)]  # world_T_sweep: in sweep k-1's frame
-    assert np.array_equal(_local_map(points, moved, steps, 4, 1), points[3])
-    assert np.allclose(_local_map(points, moved, steps, 4, 2)[:2], points[1] + [-2.0, 0.0, 0.0])
+    assert np.array_equal(_local_map(points, moved, steps, guesses, 4, 1), points[3])
+    assert np.allclose(_local_map(points, moved, steps, guesses, 4, 2)[:2], points[1] + [-2.0, 0.0, 0.0])
+    # A flagged step that fits its map closely but turned far from its guess (a wide ICP distance
+    # finds most of a street sweep near the map 95 degrees off), or shifted far, is left out too.
+    for far in (rigid(euler_to_matrix([0.0, 0.0, 95.0]), np.zeros(3)), rigid(np.eye(3), np.array([2.0, 0.0, 0.0]))):
+        turned = list(steps)
+        turned[1] = SimpleNamespace(likely_failed=True, fitness=0.97, transformation=far, scale=10.0)
+        assert len(_local_map(points, poses, turned, guesses, 4, 3)) == 1 + 4  # sweeps 0 and 3
+
     # The guess: sweep 5 after the flagged step 4 is the last trusted sweep (3) carried on twice by
     # the last motion between two trusted sweeps (0 -> 1; 2 -> 3 follows a flagged one).
     velocity = rigid(euler_to_matrix([0.0, 0.0, 2.0]), np.array([1.0, 0.0, 0.0]))
     steps[1].transformation, steps[3].transformation, steps[4].transformation = velocity, np.eye(4), rigid(np.eye(3), np.array([50.0, 0, 0]))
     poses = [np.eye(4), velocity, velocity, velocity @ rigid(np.eye(3), np.array([0.0, 3.0, 0.0])), np.eye(4) * 7]
     poses[4][3, 3] = 1.0
-    guess = _guess(poses, steps, 5, True)
+    guess = _guess(poses, steps, guesses, 5, True)
     assert np.allclose(poses[4] @ guess, poses[3] @ velocity @ velocity)
-    assert np.allclose(poses[4] @ _guess(poses, steps, 5, False), poses[3])  # without constant velocity: where sweep 3 is
+    assert np.allclose(poses[4] @ _guess(poses, steps, guesses, 5, False), poses[3])  # without constant velocity: where sweep 3 is
 
 
 @pytest.mark.parametrize("size", [1, 3])
@@ -72,6 +80,8 @@ def test_a_sweep_in_other_units_is_flagged_and_the_next_ones_stay_right(size):
     sweeps[3] = 1000.0 * sweeps[3]  # millimetres among metres
     result = o3dsoft.odometry(sweeps, o3dsoft.OdometryConfig(map_sweeps=size))
     assert result.flagged == (False, False, False, True, False, False)
+    assert result.mapped == (True, True, True, False, True, True)
+    assert [entry.get("in_map") for entry in result.to_dict()["sweeps"]] == [None, True, True, False, True, True]
     for k in (4, 5):
         e = o3dsoft.pair_errors(result.poses[k], truth[k])
         assert e.rotation_deg < 0.3 and e.translation < 0.05, (k, e)
@@ -139,3 +149,17 @@ def test_odometry_command_writes_poses_multiway_reads(tmp_path):
     gt.write_text("".join(gt.read_text().splitlines(keepends=True)[:3]))
     r = CliRunner().invoke(main, ["odometry", *map(str, files), "--out", str(tmp_path / "bad"), "--gt", str(gt)])
     assert r.exit_code == 1 and "gt.txt: 3 poses for 4 sweeps" in r.output and "Traceback" not in r.output and not (tmp_path / "bad").exists()
+
+
+def test_the_odometry_warning_says_whether_a_flagged_step_stayed_in_the_map(tmp_path):
+    sweeps, _ = _sequence(4, seed=2)
+    sweeps[2] = 1000.0 * sweeps[2]  # millimetres among metres: flagged, and off the map
+    files = []
+    for k, sweep in enumerate(sweeps):
+        files.append(tmp_path / f"frame_{k}.ply")
+        o3dsoft.write_points(files[-1], sweep)
+    r = CliRunner().invoke(main, ["odometry", *map(str, files), "--out", str(tmp_path / "odo"), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert "Warning: 1 step(s) flagged likely failed" in r.output and "frame_2.ply (confidence" in r.output and "left out of the map)" in r.output
+    doc = json.loads((tmp_path / "odo" / "poses.json").read_text())
+    assert [entry.get("in_map") for entry in doc["sweeps"]] == [None, True, False, True]

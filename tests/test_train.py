@@ -74,6 +74,8 @@ def test_ctrl_c_keeps_the_steps_done_and_resume_goes_on_exactly(modelnet_root, t
     assert any("interrupted: checkpoint after step 2" in line for line in logged)
     card = json.loads((tmp_path / "b" / "model_card.json").read_text())  # the model so far is usable at once
     assert card["steps"] == 2 and card["sha256"] == sha256_of(tmp_path / "b" / "model.pt")
+    (record,) = card["history"]  # the epoch under way, as a stop by --max-steps records it
+    assert record["epoch"] == 1 and record["steps"] == 2 and record["partial"] and record["train_loss"] > 0
     assert load_model(tmp_path / "b" / "model.pt").config.k == TINY.k
     monkeypatch.setattr(train_module, "registration_loss", loss)
     train(_config(modelnet_root, tmp_path / "b", max_steps=4, eval_pairs=0), resume=True, log=lambda m: None)
