@@ -657,6 +657,8 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     units = units_note(clouds, names)
     if units:
         click.echo(f"Warning: {units}.", err=True)
+    if init_path is not None and init_path.suffix.lower() != ".json":  # its lines are taken in the scans' order
+        _warn_name_order([str(p) for p in scans], "scans", f"{init_path}'s lines are read in the order the scans are given; give them in its order")
     init_poses = io.read_poses(init_path, names, [local_origin(c) for c in clouds]) if init_path is not None else None
     without = [n for n, pose in zip(names, init_poses or ()) if pose is None]
     if without:
@@ -760,13 +762,7 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     if len(sweeps) < 2:
         raise click.UsageError(f"{sweeps[0]}: one sweep; odometry needs at least two")
     names = [str(p) for p in sweeps]
-    numbered = sorted(names, key=lambda n: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", n)])
-    if names == sorted(names) and numbered != names:  # a shell glob's order: frame_10 before frame_2
-        early, late = next((a, b) for a, b in zip(names, numbered) if a != b)
-        click.echo(
-            f"Warning: the sweeps are in name order, so {early} comes before {late}: give them in the order taken (`ls -v`, or names with leading zeros)",
-            err=True,
-        )
+    _warn_name_order(names, "sweeps", "give them in the order taken")
     clouds = [io.read_points(p) for p in sweeps]
     reference = io.read_poses(gt_path, names, what="sweeps") if gt_path is not None else None
     missing = [n for n, pose in zip(names, reference or ()) if pose is None]
@@ -809,6 +805,15 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
         )
         if strict:
             sys.exit(3)
+
+
+def _warn_name_order(names: "list[str]", what: str, advice: str) -> None:
+    """Warn where `names` come in name order but not in number order (a shell glob's: frame_10
+    before frame_2), which is seldom the order they were taken in."""
+    numbered = sorted(names, key=lambda n: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", n)])
+    if names == sorted(names) and numbered != names:
+        early, late = next((a, b) for a, b in zip(names, numbered) if a != b)
+        click.echo(f"Warning: the {what} are in name order, so {early} comes before {late}: {advice} (`ls -v`, or names with leading zeros)", err=True)
 
 
 def _format_odometry(result, out_dir: Path, reference=None) -> str:
@@ -872,7 +877,9 @@ def _format_multiway(result, out_dir: Path, merged_points: int, frame_file: Opti
     lines += [
         "",
         f"Time (s, lower is better): pairs {t['pairs']:.1f}, optimisation {t['optimise']:.2f}, total {t['total']:.1f}",
-        f"Wrote {out_dir / 'poses.json'} and {out_dir / 'merged.ply'} ({merged_points:,} points).",
+        f"Wrote {out_dir / 'poses.json'} and {out_dir / 'merged.ply'} ({merged_points:,} points"
+        + ("" if result.voxel is not None else ": every scan's, overlaps included; --merge-voxel thins them onto a grid")
+        + ").",
     ]
     return "\n".join(lines)
 

@@ -140,7 +140,10 @@ def assess(
             f"({along[0]:.2f}, {along[1]:.2f}, {along[2]:.2f}) they fit {fit:.2f} as well (from {config.max_flatness:g}: not determined)"
         )
     elif flatness >= config.max_flatness:
-        reason = f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): points that fill a volume or a ball do not determine the pose"
+        reason = (
+            f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): the pose is not determined "
+            "(points that fill a volume or a ball, or a pose where the clouds meet only on a patch such as the ground)"
+        )
     return Degeneracy(constraint, flatness, reason)
 
 

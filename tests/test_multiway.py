@@ -359,6 +359,7 @@ def test_cli_starts_from_initial_poses(tmp_path, scans):
     result = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "out"), "--init", str(guesses), "--no-progress"])
     assert result.exit_code == 0, result.output
     assert f"world frame: that of {guesses} ({files[0]} held at its pose there)" in result.output
+    assert "points: every scan's, overlaps included; --merge-voxel thins them onto a grid)." in result.output  # small scans: no grid
     record = json.loads((tmp_path / "out" / "poses.json").read_text())
     for k, scan in enumerate(record["scans"]):
         assert pair_errors(np.array(scan["world_T_scan"]), world @ poses[k]).rotation_deg < 1.0
@@ -370,6 +371,12 @@ def test_cli_starts_from_initial_poses(tmp_path, scans):
     short = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "o2"), "--init", str(guesses)])
     assert short.exit_code == 1 and "guesses.txt: 1 poses for 3 scans" in short.output and "Traceback" not in short.output
     assert not (tmp_path / "o2").exists()
+    # Scans in a shell glob's order (v10 before v2) against a text file's lines: said first.
+    named = [tmp_path / n for n in ("v1.ply", "v10.ply", "v2.ply")]
+    for src, dst in zip(files, named):
+        dst.write_bytes(src.read_bytes())
+    glob = CliRunner().invoke(main, ["multiway", *map(str, named), "--out", str(tmp_path / "o4"), "--init", str(guesses)])
+    assert f"so {named[1]} comes before {named[2]}: {guesses}'s lines are read in the order the scans are given" in glob.output
 
 
 def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
