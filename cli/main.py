@@ -1081,6 +1081,8 @@ def _run_bench(name, pairs, count, description, recall=None, titles=None, units=
     if recall is not None:  # thresholds per protocol (folder of scans)
         config = replace(config, recall_by_protocol=recall)
     needs_model = {"o3dsoft", "o3dsoft-coarse"} & set(config.methods)
+    if pipeline.get("weights") is not None and not needs_model:
+        click.echo(f"Warning: --weights {pipeline['weights']} is not used: no method asked ({', '.join(config.methods)}) runs the network", err=True)
     device = config.register.device
     model = load_model(config.register.weights, device) if needs_model else None
     if needs_model and config.register.second_network.weights is not None:

@@ -273,8 +273,8 @@ class Scorer:
         sparser counted cloud's surface: within `reach` (K,) of its tangent plane at their nearest
         point (indices `nearest`, (K,)), and among its points: the mean of their
         :data:`EDGE_AROUND` nearest points lies within :data:`EDGE_INSIDE` point spacings of them
-        along that plane (beyond the cloud's edge, a spacing or more inwards). A plane alone would
-        reach past the cloud's last points, where a wrong alignment's partners lie."""
+        along that plane (beyond the cloud's edge their mean lies inwards, on the cloud's side). A
+        plane alone would reach past the cloud's last points, where a wrong alignment's partners lie."""
         if self.near_normals is None:  # not much sparser: its points tell
             return np.zeros(len(partners), dtype=bool)
         normals = self.near_normals[nearest]

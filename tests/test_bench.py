@@ -1157,6 +1157,8 @@ def test_modelnet40_runs_a_protocol_given_twice_once_and_fails_where_no_pair_run
     r = _bench([*twice, "--out", str(tmp_path / "a")])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "a" / "summary.json").read_text())["pairs_completed"] == 2
+    r = _bench([*twice, "--weights", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "w")])  # a network file no method asked reads
+    assert r.exit_code == 0 and "nope.pt is not used: no method asked (icp) runs the network" in r.output
     r = _bench([*twice[:-2], "--method", "o3dsoft", "--points-per-shape", "10", "--out", str(tmp_path / "b")])  # too few points for the network
     assert r.exit_code == 1 and "skipped" in r.output and "Error: no pair could run" in r.output
     assert "Run folder: " in r.output and ".png" not in r.output  # the plots were not made: not listed
