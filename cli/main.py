@@ -369,6 +369,8 @@ def register(
     t0 = time.perf_counter()
     src = io.read_points(source, mesh_points=mesh_points)
     tgt = io.read_points(target, mesh_points=mesh_points)
+    _warn_float32(source, src)
+    _warn_float32(target, tgt)
     moved = local_origin(src)  # a rounded rotation, made exact, still moves the source where the file's does
     T_gt = io.read_transform(gt_path, moved) if gt_path is not None else None
     T_init = io.read_transform(init_path, moved) if init_path is not None else None
@@ -647,6 +649,8 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     names, clouds, files = [], [], []
     for p in scans:
         found = io.read_scans(p)
+        if len(found) == 1:
+            _warn_float32(p, found[0][1])
         first = len(files)
         for name, points in found:
             names.append(name)
@@ -764,6 +768,8 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     names = [str(p) for p in sweeps]
     _warn_name_order(names, "sweeps", "give them in the order taken")
     clouds = [io.read_points(p) for p in sweeps]
+    for p, c in zip(sweeps, clouds):
+        _warn_float32(p, c)
     reference = io.read_poses(gt_path, names, what="sweeps") if gt_path is not None else None
     missing = [n for n, pose in zip(names, reference or ()) if pose is None]
     if missing:
@@ -805,6 +811,23 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
         )
         if strict:
             sys.exit(3)
+
+
+def _warn_float32(path: Path, points) -> None:
+    """Warn where the file `path` stores its points' coordinates as float32 so far from its
+    frame's origin that they were rounded by more than a millionth of the cloud's extent."""
+    import numpy as np
+
+    from .. import io
+
+    rounding = io.float32_rounding(path, points)
+    if rounding is not None:
+        far = float(abs(points[np.isfinite(points).all(axis=1)]).max())
+        click.echo(
+            f"Warning: {path} stores x, y, z as float32, which {far:,.0f} units from the origin rounds them by up to {rounding:.3g} units: "
+            "the file lost that precision when it was written (write float64 coordinates, or coordinates about a point near the cloud)",
+            err=True,
+        )
 
 
 def _warn_name_order(names: "list[str]", what: str, advice: str) -> None:

@@ -898,6 +898,41 @@ def pcd_needs_doubles(points: np.ndarray) -> bool:
     return rounding > PCD_ROUNDING * float(np.linalg.norm(finite.max(axis=0) - finite.min(axis=0)))
 
 
+def stored_as_float32(path: PathLike) -> bool:
+    """Whether the PLY or PCD file `path` stores its x, y, z as 4-byte floats (False for other
+    formats, and where the header cannot be read: the reader reports that)."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext == ".ply":
+        header = _ply_header(path)
+        types = _ply_vertex_types(header[1]) if header is not None else {}
+        return all(types.get(c) == np.dtype(np.float32) for c in "xyz")
+    if ext == ".pcd":
+        found = _pcd_header(path)
+        if found is None:
+            return False
+        fields = found[0]
+        stored = {name: (t.upper(), z) for name, z, t in zip(fields.get("FIELDS", []), fields.get("SIZE", []), fields.get("TYPE", []))}
+        return all(stored.get(c) == ("F", "4") for c in "xyz")
+    return False
+
+
+def float32_rounding(path: PathLike, points: np.ndarray) -> Optional[float]:
+    """How far float32 may have rounded the (N, 3) `points` read from `path` (cloud units: half a
+    float32 step at the largest coordinate), where the file stores them as float32 and that is
+    more than ``PCD_ROUNDING`` of their extent, as :func:`pcd_needs_doubles` judges (clouds far from
+    their frame's origin: 4e6 m out, float32 steps by 0.25 m); else None. The rounding happened
+    when the file was written: nothing read from it can undo it."""
+    if not stored_as_float32(path):
+        return None
+    finite = points[np.isfinite(points).all(axis=1)]
+    if len(finite) == 0:
+        return None
+    largest = float(np.abs(finite).max())
+    rounding = float(np.spacing(np.float32(largest))) / 2.0
+    return rounding if rounding > PCD_ROUNDING * float(np.linalg.norm(finite.max(axis=0) - finite.min(axis=0))) else None
+
+
 def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray] = None, normals: Optional[np.ndarray] = None) -> Path:
     """Write (N, 3) points to any of the point formats (by extension), atomically; with (N, 3)
     `colors` (0-1) and `normals` where the format holds them (colours: .ply, .pcd, .las, .pts;
@@ -1327,7 +1362,8 @@ def check_rigid(T: np.ndarray, name: str = "transform", tol: float = 1e-4) -> No
 
 
 def write_transform(path: PathLike, T: np.ndarray) -> Path:
-    """Write a rigid 4x4 transform as text (any extension but .npy) or .npy, atomically.
+    """Write a rigid 4x4 transform as text (any extension but .npy; 17 significant digits, which
+    read back to the same float64) or .npy, atomically.
 
     Raises:
         InputError: `T` is not a finite rigid 4x4 transform (within :data:`READ_TOLERANCE`, what
@@ -1343,5 +1379,5 @@ def write_transform(path: PathLike, T: np.ndarray) -> Path:
             with open(tmp, "wb") as f:
                 np.save(f, np.asarray(T, dtype=np.float64))
         else:
-            np.savetxt(tmp, np.asarray(T, dtype=np.float64), fmt="%.10f")
+            np.savetxt(tmp, np.asarray(T, dtype=np.float64), fmt="%.17g")  # every bit: 1e-10 of a rotation moves a point 4e6 m out by 0.4 mm
     return path

@@ -215,8 +215,14 @@ class RegistrationResult:
         source, target, model, init and errors, are left aside), with (4, 4) float64 arrays.
 
         Raises:
-            InputError: `d` lacks a field the result needs, or a transform is not (4, 4).
+            InputError: `d` lacks a field the result needs, a transform is not (4, 4), or a field
+                holds another type than its own (a string for True or False, None where the
+                field is not optional).
         """
+        from .config import _check_types
+
+        if not isinstance(d, dict):
+            raise InputError(f"not a registration result: expected a dict, got {type(d).__name__}")
         names = [f.name for f in fields(cls)]
         needed = [f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING]
         missing = [name for name in needed if name not in d]
@@ -229,8 +235,13 @@ class RegistrationResult:
                 if T.shape != (4, 4):
                     raise InputError(f"{name}: expected a 4x4 transform, got shape {T.shape}")
                 values[name] = T
+        for name in ("timings_ms", "removed", "points_used"):
+            if name in values and not isinstance(values[name], dict):
+                raise InputError(f"{name} must be a mapping, got {values[name]!r}")
         values["points_used"] = {stage: tuple(counts) for stage, counts in values.get("points_used", {}).items()}
-        return cls(**values)
+        result = cls(**values)
+        _check_types(result, "")  # "false" would read as true
+        return result
 
 
 # The result's (4, 4) T_target_source fields (the last two may be None).

@@ -170,6 +170,16 @@ def test_register_json(pair_files, tiny_model_path):
         RegistrationResult.from_dict({k: v for k, v in payload.items() if k != "transformation"})
     with pytest.raises(InputError, match="coarse_transformation: expected a 4x4 transform, got shape \\(3, 4\\)"):
         RegistrationResult.from_dict({**payload, "coarse_transformation": payload["coarse_transformation"][:3]})
+    # Hand-edited or other tools' JSON: each field holds its own type, or it is refused by name.
+    for field, value, message in (
+        ("likely_failed", "false", "likely_failed must be True or False, got 'false'"),
+        ("confidence", "high", "confidence must be a number, got 'high'"),
+        ("transformation", None, "transformation must not be None"),
+        ("fitness", None, "fitness must not be None"),
+        ("timings_ms", None, "timings_ms must be a mapping, got None"),
+    ):
+        with pytest.raises(InputError, match=message):
+            RegistrationResult.from_dict({**payload, field: value})
 
 
 def test_likely_failure_warns_and_strict_exits_3(tmp_path, tiny_model_path):

@@ -376,6 +376,12 @@ def test_transform_text_formats(tmp_path):
     write_transform(tmp_path / "t.txt", T)
     assert np.allclose(read_transform(tmp_path / "t.npy"), T)
     assert np.allclose(read_transform(tmp_path / "t.txt"), T)
+    # A georeferenced result (a turn about a point 4e6 m out) reads back to the same bits: at 10
+    # decimals its rotation had moved that point by 0.1 mm.
+    S = rigid(np.eye(3), np.array([500_000.0, 4_000_000.0, 100.0]))
+    geo = S @ rigid(euler_to_matrix([0.3, -0.2, 9.7]), np.array([1.5, -2.25, 0.1])) @ np.linalg.inv(S)
+    write_transform(tmp_path / "geo.txt", geo)
+    assert np.array_equal(np.loadtxt(tmp_path / "geo.txt"), geo)
 
 
 def _rounded_georeferenced_truth(rng, folder, digits=6):
@@ -733,3 +739,34 @@ print("stdout is back")
         timeout=120,
     )
     assert out.strip() == "stdout is back", out
+
+
+def _float32_ply(path, points):
+    """A binary PLY of float32 x, y, z (as many scanners and tools write)."""
+    rows = np.asarray(points, dtype="<f4")
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(rows)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    path.write_bytes(header.encode("ascii") + rows.tobytes())
+    return path
+
+
+def test_float32_files_far_from_their_origin_say_how_much_they_were_rounded(tmp_path, pts):
+    from click.testing import CliRunner
+
+    from o3dsoft.cli.main import main
+    from o3dsoft.io import float32_rounding, stored_as_float32
+
+    far = pts + [500_000.0, 4_000_000.0, 100.0]
+    f32 = _float32_ply(tmp_path / "far32.ply", far)
+    read = read_points(f32)
+    assert stored_as_float32(f32) and float32_rounding(f32, read) == 0.125  # half of float32's step at 4e6
+    near = _float32_ply(tmp_path / "near32.ply", pts)
+    assert stored_as_float32(near) and float32_rounding(near, read_points(near)) is None  # rounds by 1e-7 of its size at most
+    write_points(tmp_path / "far64.ply", far)
+    assert not stored_as_float32(tmp_path / "far64.ply") and float32_rounding(tmp_path / "far64.ply", far) is None
+    write_points(tmp_path / "near.pcd", pts)  # float32 PCD near the origin, float64 far from it
+    write_points(tmp_path / "far.pcd", far)
+    assert stored_as_float32(tmp_path / "near.pcd") and not stored_as_float32(tmp_path / "far.pcd")
+    np.savetxt(tmp_path / "far.xyz", far)
+    assert float32_rounding(tmp_path / "far.xyz", far) is None  # text keeps its digits
+    r = CliRunner().invoke(main, ["register", str(f32), str(f32), "--no-refine", "--search", "off"])
+    assert f"Warning: {f32} stores x, y, z as float32, which 4,000," in r.output and "rounds them by up to 0.125 units" in r.output
