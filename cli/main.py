@@ -268,7 +268,7 @@ def _register_config(
     "out_path",
     type=click.Path(path_type=Path),
     help="Write the transformed source here (.ply .pcd .xyz .xyzn .pts .csv .npy .las); the colours and normals of a point-cloud source "
-    "(PLY, PCD, XYZN, XYZRGB, PTS, LAS, E57; not a mesh's sampled points) go with it (colours into .ply, .pcd, .las, .pts; normals into .ply, .pcd, .xyzn), "
+    "(PLY, PCD, XYZN, XYZRGB, PTS, LAS, E57; not a mesh's sampled points) go with it (colours into .ply, .pcd, .las, .pts; normals into .ply, .pcd, .xyzn; .xyzn estimates normals, their sign arbitrary, where the source has none), "
     "and a LAS/LAZ source's every dimension into .las.",
 )
 @click.option("--save-transform", type=click.Path(path_type=Path), help="Write the 4x4 result here (text, or .npy).")

@@ -478,7 +478,9 @@ def _read_ply_in_any_order(path: Path, header: PlyHeader, mesh_points: int, seed
 
 
 def _sampled(path: Path, vertices: np.ndarray, faces: np.ndarray, n: int, seed: int) -> np.ndarray:
-    """:func:`sample_mesh` of a mesh read from `path`, whose faces must name its vertices."""
+    """:func:`sample_mesh` of a mesh read from `path`, whose faces must name its vertices; the
+    faces with a vertex whose coordinates are not finite are left out (one such vertex would make
+    the total area, and so every sampled point, NaN)."""
     if len(vertices) == 0:
         raise InputError(f"{path}: mesh has faces but no vertices")
     outside = faces[(faces < 0) | (faces >= len(vertices))]
@@ -486,6 +488,11 @@ def _sampled(path: Path, vertices: np.ndarray, faces: np.ndarray, n: int, seed: 
         raise InputError(
             f"{path}: a face refers to vertex {outside[0] + 1} (counting from 1), but {len(vertices)} vertices were read; is a vertex line malformed or missing?"
         )
+    finite = np.isfinite(vertices).all(axis=1)
+    if not finite.all():
+        faces = faces[finite[faces].all(axis=1)]
+        if len(faces) == 0:
+            raise InputError(f"{path}: every face has a vertex with a non-finite coordinate (vertex {np.flatnonzero(~finite)[0] + 1}, counting from 1)")
     return sample_mesh(vertices, faces, n, seed)
 
 

@@ -52,6 +52,21 @@ def test_meshes_are_sampled_on_faces(tmp_path, ext):
     assert np.array_equal(points, read_points(path, mesh_points=3000))  # deterministic
 
 
+def test_a_mesh_vertex_with_no_finite_coordinates_leaves_out_its_faces_only(tmp_path):
+    box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    vertices = np.array(box.vertices)
+    vertices[0] = np.nan  # one corner of eight: the faces around it go, the rest are sampled
+    body = "".join(f"v {x} {y} {z}\n" for x, y, z in vertices) + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in box.faces)
+    (tmp_path / "nan.obj").write_text(body)
+    points = read_points(tmp_path / "nan.obj", mesh_points=2000)
+    assert points.shape == (2000, 3) and np.isfinite(points).all()  # it had read 2,000 NaN rows
+    assert (np.abs(points) <= [1.0 + 1e-6, 0.5 + 1e-6, 0.25 + 1e-6]).all()
+    tri = "v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n"
+    (tmp_path / "all.obj").write_text(tri)
+    with pytest.raises(InputError, match="every face has a vertex with a non-finite coordinate \\(vertex 3, counting from 1\\)"):
+        read_points(tmp_path / "all.obj")
+
+
 def test_sample_mesh_seeded():
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=float)
     f = np.array([[0, 1, 2]])
