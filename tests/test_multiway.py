@@ -531,3 +531,23 @@ def test_icp_options_set_multiways_icp(tmp_path, scans, monkeypatch):
     r = CliRunner().invoke(main, args)
     assert r.exit_code in (0, 3), r.output  # 3: a scan left unjoined
     assert [(c.distance, c.absolute, c.method) for c in seen] == [(0.3, False, "plane")]
+
+
+def test_cli_warns_where_many_trusted_alignments_are_pruned(tmp_path, scans, monkeypatch):
+    from dataclasses import replace
+
+    import o3dsoft.multiway as multiway_module
+
+    clouds, _ = scans
+    files = [write_points(tmp_path / f"view{k}.ply", c) for k, c in enumerate(clouds[:3])]
+    r = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "a"), "--no-progress"])
+    assert r.exit_code == 0 and "were pruned" not in r.output  # consistent views: none pruned
+    real = multiway_module.multiway
+
+    def all_pruned(*args, **kwargs):  # as on turntable views of a symmetric object
+        result = real(*args, **kwargs)
+        return replace(result, edges=tuple(replace(e, pruned=not e.likely_failed) for e in result.edges))
+
+    monkeypatch.setattr(multiway_module, "multiway", all_pruned)
+    r = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "b"), "--no-progress"])
+    assert "trusted alignments disagreed with the others and were pruned: the scans' poses may be wrong" in r.output
