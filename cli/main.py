@@ -260,7 +260,7 @@ def _register_config(
     "--init",
     "init_path",
     type=click.Path(path_type=Path),
-    help="Initial guess of T_target_source (4x4 text or .npy; odometry, a previous pose): the source starts there, ICP from it is tried first, "
+    help="Initial guess of T_target_source (4x4 or 3x4 text, or .npy; odometry, a previous pose): the source starts there, ICP from it is tried first, "
     "and where it is trusted neither the feature match nor the network runs; --max-rotation then bounds the turn away from it.",
 )
 @click.option(
@@ -589,6 +589,7 @@ def _format_result(source, target, result, errors, model_info, config, read=None
             lines.append(
                 f"  {name:24s} {e.rotation_deg:>8.4f} deg {e.translation:>8.3g} units {e.rotation_l1:>10.6f} {e.rotation_l2:>10.6f} {e.translation_l1:>10.6f} {e.translation_l2:>10.6f}"
             )
+        lines.append("  (|R-Rgt|_1, |R-Rgt|_2: entrywise L1 and Frobenius norms of the rotation matrices' difference, no unit; |t-tgt|_1, |t-tgt|_2: units)")
     t = result.timings_ms
     lines += [
         "",
@@ -974,10 +975,16 @@ _TRAIN_FIELDS = (
     show_default=True,
     help="Pair protocol (paper, dcp, wide45, so3, incongruent, ...) or mixture (incongruent-mix, incongruent-view-mix).",
 )
-@click.option("--epochs", type=click.IntRange(min=1), default=5, show_default=True)
+@click.option("--epochs", type=click.IntRange(min=1), default=5, show_default=True, help="Passes over the training pairs.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=10, show_default=True, help="Pairs per step (per process under torchrun).")
 @click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True, help="Adam's learning rate.")
-@click.option("--lr-schedule", type=click.Choice(["constant", "cosine"]), default="constant", show_default=True)
+@click.option(
+    "--lr-schedule",
+    type=click.Choice(["constant", "cosine"]),
+    default="constant",
+    show_default=True,
+    help="Learning rate: constant, or cosine from --lr to --lr-min.",
+)
 @click.option("--lr-min", type=click.FloatRange(min=0), default=1e-5, show_default=True, help="Final learning rate of the cosine schedule.")
 @click.option("--grad-clip", type=click.FloatRange(min=0, min_open=True), default=None, help="Clip the gradients' L2 norm (default: no clipping).")
 @_loss_weight("--point-loss", "Weight of a loss on each source point's soft partner (where it truly lies), added to the paper's transform loss.")
@@ -996,7 +1003,7 @@ _TRAIN_FIELDS = (
     default=None,
     help="Start from these weights (fine-tuning): a run's checkpoint.pt, a model file, or a shipped model by name (default, paper, partial, incongruent).",
 )
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of the pairs drawn and of the network's first weights.")
 @click.option("--device", default="cpu", show_default=True, help="Torch device: cpu, cuda, cuda:1, mps... (under torchrun: one GPU per process).")
 @click.option(
     "--radius", type=click.FloatRange(min=0, min_open=True), default=None, help="Neighbourhood radius (normalised units); default from the network config."
@@ -1016,7 +1023,13 @@ _TRAIN_FIELDS = (
     help="Width of an overlap head (attention between the two clouds that predicts which points lie in the overlap; default 0: none).",
 )
 @click.option("--out", default="runs/train", show_default=True, help="Output folder: checkpoint, config, model, model card.")
-@click.option("--checkpoint-minutes", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True)
+@click.option(
+    "--checkpoint-minutes",
+    type=click.FloatRange(min=0, min_open=True),
+    default=5.0,
+    show_default=True,
+    help="Minutes between checkpoints (one is also written each epoch).",
+)
 @click.option(
     "--resume",
     is_flag=True,
@@ -1085,7 +1098,7 @@ def _bench_options(fn):
             "--method",
             "methods",
             multiple=True,
-            help=f"Methods to run (repeat the option; default all but the KISS-Matcher peers on ModelNet40): {', '.join(METHOD_NAMES)}.",
+            help=f"Methods to run (repeat the option; default on ModelNet40 all but the KISS-Matcher peers; on scans o3dsoft, fpfh-ransac+icp and, where installed, kiss-matcher+gicp): {', '.join(METHOD_NAMES)}.",
         ),
         click.option(
             "--seed",

@@ -677,7 +677,7 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
     recall columns of that protocol's thresholds (``recall_thresholds`` of each summary).
     `titles`: a longer title for some protocols (a folder of scans and its kind); `units`: the
     name of some protocols' distance unit (e.g. "m"), else "units"."""
-    lines = ["Errors and times: lower is better; recall: higher is better. Translation in the clouds' units."]
+    lines = ["Errors and times: lower is better; recall: higher is better. Translation in the clouds' units (m where the column says so)."]
     block = None
     for s in summaries:
         recall = [tuple(r) for r in s["recall_thresholds"]]

@@ -59,6 +59,7 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert r.exit_code == 0, r.output
     assert "T_target_source" in r.output and "higher is better" in r.output and "lower is better" in r.output
     assert "network + ICP" in r.output and "deg" in r.output
+    assert "|R-Rgt|_1, |R-Rgt|_2: entrywise L1 and Frobenius norms of the rotation matrices' difference, no unit" in r.output
     assert "constraint   not measured: the clouds share their points" in r.output  # the target is the source moved
     assert re.search(r"estimate     from the [a-zA-Z -]+(, refined by ICP)?\n", r.output)  # "from the network starts", not "the network starts's"
     assert np.allclose(read_transform(d / "T.txt"), T, atol=1e-5)
