@@ -878,7 +878,7 @@ def _format_odometry(result, out_dir: Path, reference=None) -> str:
             + "."
         )
     lines += [
-        f"Time (s, lower is better): {result.timings_s['total']:.1f} in all, {np.median(seconds):.3f} per sweep (median).",
+        f"Time (s, lower is better): {result.timings_s['total']:.1f} in all, {np.median(seconds):.3f} per step (median, a sweep registered onto its map).",
         f"Wrote {out_dir / 'poses.json'} and {out_dir / 'poses.txt'} (one 3x4 pose per line).",
     ]
     return "\n".join(lines)
@@ -909,7 +909,7 @@ def _format_multiway(result, out_dir: Path, merged_points: int, frame_file: Opti
         f"{sum(e.in_tree for e in result.edges)} in the spanning tree, {sum(e.pruned for e in result.edges)} pruned by the optimisation.",
     ]
     for e in result.edges:
-        state = "pruned" if e.pruned else "tree" if e.in_tree else "loop" if e.used else "left out"
+        state = "pruned" if e.pruned else "tree" if e.in_tree else "loop" if e.used else "left out (flagged likely failed)"
         lines.append(f"  {result.names[e.source]} -> {result.names[e.target]}: confidence {e.confidence:.3f}, {state}, {e.seconds:.2f} s")
     t = result.timings_s
     lines += [
