@@ -51,6 +51,14 @@ def counted(n: int, noun: str) -> str:
     return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
+def refuse_out_of_range(settings: object, checks: "list[tuple[str, bool, str]]", kind: str) -> None:
+    """Raise InputError naming the first of `checks` ((field, in range, what it must be), in
+    order) that fails, with the value `settings` holds: "{kind} setting k = 0 must be at least 1"."""
+    for name, ok, expected in checks:
+        if not ok:
+            raise InputError(f"{kind} setting {name} = {getattr(settings, name)!r} must be {expected}")
+
+
 def first_line(error: BaseException) -> str:
     """The first line of an exception's message (libraries' messages often carry C++ traces), or
     the exception's type name when it has none: for one-line errors naming what failed."""

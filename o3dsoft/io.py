@@ -901,7 +901,11 @@ def pcd_needs_doubles(points: np.ndarray) -> bool:
     finite = points[np.isfinite(points).all(axis=1)]
     if len(finite) == 0:
         return False
-    rounding = float(np.abs(finite.astype(np.float32).astype(np.float64) - finite).max())
+    return _rounded_beyond_share(finite, float(np.abs(finite.astype(np.float32).astype(np.float64) - finite).max()))
+
+
+def _rounded_beyond_share(finite: np.ndarray, rounding: float) -> bool:
+    """Whether `rounding` (cloud units) exceeds ``PCD_ROUNDING`` of the extent of the (N, 3) finite points."""
     return rounding > PCD_ROUNDING * float(np.linalg.norm(finite.max(axis=0) - finite.min(axis=0)))
 
 
@@ -935,9 +939,8 @@ def float32_rounding(path: PathLike, points: np.ndarray) -> Optional[float]:
     finite = points[np.isfinite(points).all(axis=1)]
     if len(finite) == 0:
         return None
-    largest = float(np.abs(finite).max())
-    rounding = float(np.spacing(np.float32(largest))) / 2.0
-    return rounding if rounding > PCD_ROUNDING * float(np.linalg.norm(finite.max(axis=0) - finite.min(axis=0))) else None
+    rounding = float(np.spacing(np.float32(np.abs(finite).max()))) / 2.0
+    return rounding if _rounded_beyond_share(finite, rounding) else None
 
 
 def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray] = None, normals: Optional[np.ndarray] = None) -> Path:

@@ -31,7 +31,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .errors import InputError
+from .errors import refuse_out_of_range
 from .procrustes import weighted_procrustes
 
 
@@ -78,9 +78,7 @@ class NetConfig:
             ("overlap", self.overlap >= 0, "at least 0 (0: no overlap head)"),
             ("overlap_layers", self.overlap_layers >= 0, "at least 0"),
         ]
-        for name, ok, expected in checks:
-            if not ok:
-                raise InputError(f"net setting {name} = {getattr(self, name)!r} must be {expected}")
+        refuse_out_of_range(self, checks, "net")
 
     @classmethod
     def from_dict(cls, d: dict) -> "NetConfig":

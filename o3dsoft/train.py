@@ -39,7 +39,7 @@ from .data import (
     resolve_data_root,
     training_parts,
 )
-from .errors import InputError, O3dsoftError, UsageError
+from .errors import InputError, O3dsoftError, UsageError, refuse_out_of_range
 from .io import atomic_output, make_folder, remove_stale_temporaries
 from .metrics import pair_errors, summarise
 from .model import NetConfig, SoftAlignNet, count_parameters, match_loss, overlap_labels, overlap_loss, registration_loss, virtual_point_loss
@@ -170,9 +170,7 @@ class TrainConfig:
             ),
             ("workers", self.workers >= 0, "0 or more"),
         ]
-        for name, ok, expected in checks:
-            if not ok:
-                raise InputError(f"training setting {name} = {getattr(self, name)!r} must be {expected}")
+        refuse_out_of_range(self, checks, "training")
 
 
 def normalised_batch(pairs: Sequence[Pair]):
@@ -759,8 +757,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                 state["epoch_losses"] = losses
                 progress.update(losses, scheduler.get_last_lr()[0])
                 if stop.asked or time.monotonic() - last_ckpt > config.checkpoint_minutes * 60:
-                    # The epoch so far, for the card's history should the run stop here.
-                    state["partial"] = {"epoch": epoch + 1, "steps": len(losses), "train_loss": float(np.mean(losses))}
+                    state["partial"] = _epoch_record(epoch, losses)  # the epoch so far, for the card's history should the run stop here
                     state["seconds"] += time.monotonic() - last_ckpt
                     last_ckpt = time.monotonic()
                     checkpoint()
@@ -768,14 +765,15 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                     log(f"interrupted: checkpoint after step {state['global_step']} in {ckpt_path} (--resume goes on from there)")
                     export(None)  # the model so far, usable at once (a second Ctrl-C stops without it)
                     raise KeyboardInterrupt
+                out_of_steps = _out_of_steps(config, state)
                 out_of_time = config.max_minutes is not None and time.monotonic() - started >= config.max_minutes * 60
-                if _out_of_steps(config, state) or out_of_time:
-                    if out_of_time and not _out_of_steps(config, state):
+                if out_of_steps or out_of_time:
+                    if not out_of_steps:
                         log(f"stopped: max_minutes = {config.max_minutes:g} of training in this call, after step {state['global_step']} (--resume goes on)")
                     done = True
                     break
             progress.close()
-            record = {"epoch": epoch + 1, "steps": len(losses), "train_loss": float(np.mean(losses)) if losses else math.nan}
+            record = _epoch_record(epoch, losses)
             if test_pairs is not None:
                 record["test"] = evaluate(model, test_pairs, config.eval_pairs, device)
                 log(_evaluation_line(epoch, record["test"]))
@@ -803,6 +801,11 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
 
         dist.barrier()  # the other ranks return only once rank 0 has written the model
     return out / "model.pt"
+
+
+def _epoch_record(epoch: int, losses: Sequence[float]) -> dict:
+    """The history's record of epoch `epoch` (counted from 0) from its steps' losses so far."""
+    return {"epoch": epoch + 1, "steps": len(losses), "train_loss": float(np.mean(losses)) if losses else math.nan}
 
 
 class _StopBetweenSteps:
