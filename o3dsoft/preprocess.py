@@ -203,6 +203,25 @@ def isolated_points(points: np.ndarray, radius: float) -> np.ndarray:
     return isolated
 
 
+# A point farther from its cloud's median than this many times the cloud's reach (twice the distance
+# within which 90 % of its points lie) counts in neither the cloud's size nor its centre: a few ghost
+# returns 100 m out from a 2 m room would move its centroid by a metre and triple its scale. A
+# scan's own points lie within 2 reaches (a street sweep's farthest: 1.8), a ModelNet40 shape's within 2.
+FAR_REACH = 10.0
+
+
+def within_reach(points: np.ndarray) -> np.ndarray:
+    """(N,) bool: the (N, 3) finite points within :data:`FAR_REACH` times their cloud's reach of its
+    median (all of them where the reach is 0)."""
+    if len(points) < 2:
+        return np.ones(len(points), dtype=bool)
+    _, centre, distances = _about_median(points)
+    reach = 2.0 * np.percentile(distances, STRAY_PERCENTILE)
+    if not 0 < reach < np.inf:
+        return np.ones(len(points), dtype=bool)
+    return np.linalg.norm(points - centre, axis=1) <= FAR_REACH * reach
+
+
 def robust_extent(points: np.ndarray) -> np.ndarray:
     """(3,) sides of the box holding the central 98 % of the (N, 3) points along each axis (cloud
     units): a few stray far points do not change it."""
@@ -223,6 +242,7 @@ def principal_extents(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     the same order: a pipe 100 long and 0.1 across has sides (100, 0.1, 0.1) whichever way it lies."""
     sample = _every_kth(points)
     sample = sample[np.isfinite(sample).all(axis=1)]
+    sample = sample[within_reach(sample)]
     axes = principal_axes(sample)
     lo, hi = np.percentile((sample - sample.mean(axis=0)) @ axes, [1, 99], axis=0)
     return hi - lo, axes
@@ -240,8 +260,9 @@ def flat_normal(points: np.ndarray) -> Optional[np.ndarray]:
 
 
 def scene_size(points: np.ndarray) -> float:
-    """Diagonal of the :func:`robust_extent` box of the (N, 3) points (cloud units)."""
-    return float(np.linalg.norm(robust_extent(points)))
+    """Diagonal of the :func:`robust_extent` box of the (N, 3) finite points :func:`within_reach`
+    (cloud units)."""
+    return float(np.linalg.norm(robust_extent(points[within_reach(points)])))
 
 
 def _finite_sample(points: np.ndarray) -> np.ndarray:
@@ -367,7 +388,9 @@ class Normalisation(NamedTuple):
 def normalisation_for(source: np.ndarray, target: np.ndarray) -> Normalisation:
     """Centroids of both clouds and one common scale: the larger of their radii about the centroid,
     where a cloud's radius is at most twice the distance within which 99 % of its points lie
-    (so that a few stray far points do not shrink the scene)."""
+    (so that a few stray far points do not shrink the scene); both of the points
+    :func:`within_reach` (ghost returns far out move neither)."""
+    source, target = source[within_reach(source)], target[within_reach(target)]
     cs = source.mean(axis=0)
     ct = target.mean(axis=0)
     radius = max(_radius(source - cs), _radius(target - ct))

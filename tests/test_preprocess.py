@@ -197,6 +197,29 @@ def test_a_stray_far_point_does_not_change_the_scene_size():
     assert scene_size(np.vstack([cloud, [[1000.0, 0.0, 0.0]]])) == pytest.approx(scene_size(cloud), rel=0.01)
 
 
+def _with_ghosts(cloud, share, rng):
+    """`cloud` and a `share` of its count of ghost returns 60-600 times its size out, above it."""
+    n = max(1, int(share * len(cloud)))
+    away = rng.normal(size=(n, 3))
+    away[:, 2] = np.abs(away[:, 2])
+    away *= rng.uniform(60, 600, (n, 1)) * scene_size(cloud) / np.linalg.norm(away, axis=1, keepdims=True)
+    return np.vstack([cloud, np.median(cloud, axis=0) + away])
+
+
+@pytest.mark.parametrize("share", [0.002, 0.02])
+def test_ghost_returns_far_out_change_neither_the_scale_nor_the_grid(share):
+    """A few points hundreds of sizes out (sky returns, multipath) moved the centroid and tripled
+    the scale that every distance of the pipeline follows; past 1 % they coarsened the grid."""
+    rng = np.random.default_rng(4)
+    source, target = _surface(rng, 20_000), _surface(rng, 20_000)
+    ghosted = _with_ghosts(source, share, rng), _with_ghosts(target, share, rng)
+    clean, noisy = normalisation_for(source, target), normalisation_for(*ghosted)
+    assert noisy.scale == pytest.approx(clean.scale, rel=1e-9)
+    assert np.allclose(noisy.source_centroid, clean.source_centroid) and np.allclose(noisy.target_centroid, clean.target_centroid)
+    assert data_grid(*ghosted, 0.01) == pytest.approx(data_grid(source, target, 0.01), rel=1e-9)
+    assert principal_extents(ghosted[0])[0] == pytest.approx(principal_extents(source)[0], rel=0.02)
+
+
 @settings(max_examples=60, deadline=None)
 @given(st.integers(1, 200), st.integers(0, 2**32 - 1))
 def test_first_of_each_row_equals_a_byte_exact_unique(n, seed):
