@@ -341,7 +341,7 @@ class RegisterConfig:
 
     def validate(self, k: int) -> None:
         """Raise InputError for settings the network (neighbourhood size `k`) cannot run with."""
-        _check_types(self, "")
+        check_settings(self)
         search = self.search
         if search.mode not in SEARCH_MODES:
             raise InputError(f"search.mode={search.mode!r}; valid: {', '.join(SEARCH_MODES)}")
@@ -397,6 +397,9 @@ class RegisterConfig:
         for name in ("kiss_voxel", "kiss_normal_radius", "kiss_feature_radius"):
             if not getattr(search, name) > 0:
                 raise InputError(f"search.{name} must be positive, got {getattr(search, name)}")
+        for name in ("voxel", "normal_radius", "fpfh_radius", "ransac_distance"):  # Open3D's grid, neighbourhoods and inlier test
+            if not getattr(search.features.match.features, name) > 0:
+                raise InputError(f"search.features.match.features.{name} must be positive, got {getattr(search.features.match.features, name)}")
         if not search.independent_spacing >= 0:
             raise InputError(f"search.independent_spacing must be at least 0, got {search.independent_spacing}")
         if search.partial_choice is not None and (len(search.partial_choice) != 4 or not all(math.isfinite(w) for w in search.partial_choice)):
@@ -434,6 +437,30 @@ class RegisterConfig:
                 f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.line_neighbours}, {degeneracy.shared_below}, "
                 f"{degeneracy.regular_below}, {degeneracy.max_flatness}"
             )
+
+
+def check_settings(settings) -> None:
+    """Raise InputError naming the first field of the frozen dataclass `settings` (and of those
+    nested in it) of the wrong type (:func:`_check_types`) or that holds a number no setting
+    takes (:func:`_check_numbers`)."""
+    _check_types(settings, "")
+    _check_numbers(settings, "")
+
+
+def _check_numbers(settings, prefix: str) -> None:
+    """Raise InputError naming the first number of the frozen dataclass `settings` (and of those
+    nested in it) that is NaN, infinite or negative: every setting is a count, a distance, a
+    share, an angle or a threshold (only the weights of a tuple, a confidence's coefficients, may
+    be negative)."""
+    for f in fields(settings):
+        value, name = getattr(settings, f.name), f"{prefix}{f.name}"
+        if is_dataclass(value):
+            _check_numbers(value, f"{name}.")
+        elif isinstance(value, (tuple, list)):
+            if not all(math.isfinite(v) for v in value):
+                raise InputError(f"{name} must hold finite numbers, got {tuple(value)}")
+        elif isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) and not (math.isfinite(value) and float(value) >= 0):
+            raise InputError(f"{name} must be a finite number, at least 0, got {value}")
 
 
 def _check_types(settings, prefix: str) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 
 from ._modules import callable_as_its_function
 from ._open3d import quietly
-from .config import RegisterConfig
+from .config import RegisterConfig, check_settings
 from .errors import InputError, UsageError
 from .io import as_rigid
 from .pair import CloudLike, as_points, named_clouds
@@ -76,6 +76,7 @@ class MultiwayConfig:
 
     def validate(self) -> None:
         """Raise InputError for settings :func:`multiway` cannot run with."""
+        check_settings(self)
         if self.neighbours not in NEIGHBOUR_RULES:
             raise InputError(f"neighbours={self.neighbours!r}; valid: {', '.join(NEIGHBOUR_RULES)}")
         for name, value in (("all_up_to", self.all_up_to), ("window", self.window), ("near", self.near)):

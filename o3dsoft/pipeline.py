@@ -40,7 +40,7 @@ from . import refine as refine_stage
 from . import symmetry as symmetry_stage
 from ._open3d import quietly
 from .clock import StageClock
-from .config import SEARCH_MODES, RegisterConfig
+from .config import SEARCH_MODES, RegisterConfig, check_settings
 from .errors import InputError, UsageError
 from .io import as_rigid
 from .metrics import input_chamfer_distance
@@ -297,6 +297,7 @@ def register(
     config = RegisterConfig() if config is None else config
     if not isinstance(config, RegisterConfig):
         raise UsageError(f"config must be an o3dsoft.RegisterConfig, got {type(config).__name__}")
+    check_settings(config)  # before any stage reads one (the network's own limits: config.validate)
     coarse_stage.torch_runs()
     for name, given in (("model", model), ("search_model", search_model)):
         if isinstance(given, (str, os.PathLike)):

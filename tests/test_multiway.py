@@ -331,6 +331,10 @@ def test_bad_settings_and_too_few_scans(scans, model):
         multiway(scans[0][:1], model=model)
     with pytest.raises(InputError, match="neighbours='nearest'"):
         multiway(scans[0], MultiwayConfig(neighbours="nearest"), model=model)
+    with pytest.raises(InputError, match="register must be an o3dsoft.RegisterConfig, got 'x'"):
+        multiway(scans[0], MultiwayConfig(register="x"), model=model)
+    with pytest.raises(InputError, match="loop_closure_preference must be a finite number, at least 0, got nan"):
+        multiway(scans[0], MultiwayConfig(loop_closure_preference=float("nan")), model=model)
 
 
 def test_cli_writes_poses_and_the_merged_cloud(tmp_path, scans):
