@@ -420,9 +420,11 @@ class RegisterConfig:
             self.confidence.validate()
         except ValueError as e:
             raise InputError(f"confidence: {e}") from None
-        if not self.symmetry.max_ratio >= 1 or not 0 <= self.symmetry.min_away_deg <= 180:
+        symmetry = self.symmetry
+        if not symmetry.max_ratio >= 1 or not 0 <= symmetry.min_away_deg <= 180 or not 0 < symmetry.closed_from <= 1:
             raise InputError(
-                f"symmetry: max_ratio must be at least 1 and min_away_deg in [0, 180]; got {self.symmetry.max_ratio}, {self.symmetry.min_away_deg}"
+                "symmetry: max_ratio must be at least 1, min_away_deg in [0, 180] and closed_from in (0, 1]; "
+                f"got {symmetry.max_ratio}, {symmetry.min_away_deg}, {symmetry.closed_from}"
             )
         degeneracy = self.degeneracy
         if (

@@ -509,23 +509,31 @@ def _target_side(pair: PreparedPair, best: Attempt, level: str) -> Optional[conf
 
 def _probe_symmetry(pair: PreparedPair, verifier: Verifier, best: Attempt, geometry: degeneracy_stage.Degeneracy) -> symmetry_stage.Symmetry:
     """The half-turned copy of a trusted result that fits the work clouds closest
-    (:func:`o3dsoft.symmetry.probe`), where both clouds look complete, the pose shows no shared
-    point and the geometry determines it; otherwise not probed. (Clouds that share points fix
-    the pose by them; on scans and partial overlaps a turned copy seldom fits.)"""
+    (:func:`o3dsoft.symmetry.probe`), where the geometry determines the pose and either both
+    clouds look complete and the pose shows no shared point, or both scans are closed surfaces
+    (complete objects on a grid, whose centroids look like shared points); otherwise not probed.
+    (Clouds that share points fix the pose by them; on views, scenes and partial overlaps a turned
+    copy seldom fits.)"""
     config = pair.config
-    probed = (
-        config.symmetry.enabled
-        and config.refine
-        and pair.complete
-        and geometry.reason is None
-        and best.trust >= config.confidence.likely_failed_below
-        and verifier.shares_no_point(best)
-    )
-    if not probed:
+    probed = config.symmetry.enabled and config.refine and geometry.reason is None and best.trust >= config.confidence.likely_failed_below
+    # Off a grid, a pose that shows shared points is fixed by them; on one, the cells' centroids
+    # look like shared points at any pose.
+    sampled_apart = verifier.shares_no_point(best) or pair.voxel is not None
+    if not (probed and sampled_apart and (pair.complete or _closed_objects(pair))):
         return symmetry_stage.NOT_PROBED
     work = pair.clouds("work")
     icp = lambda T: refine_stage.icp(*work, T, pair.distance, config.icp).transformation  # noqa: E731 - ICP alone: the copies are not scored
     return symmetry_stage.probe(*work, best.fine.transformation, icp, config.symmetry, verifier.admissible)
+
+
+def _closed_objects(pair: PreparedPair) -> bool:
+    """Both clouds are scans of one closed surface each (:func:`o3dsoft.symmetry.closed_share` on
+    the screen clouds at least ``symmetry.closed_from``) with the same profile of distances to
+    their centroids: two complete scans of an object."""
+    if not pair.scans or pair.looks_partial:
+        return False
+    neighbours, closed = pair.config.icp.normal_neighbours, pair.config.symmetry.closed_from
+    return all(symmetry_stage.closed_share(c, refine_stage.normals(c, neighbours), at_least=closed) >= closed for c in pair.clouds("screen"))
 
 
 def _fits_closer(pair: PreparedPair, new: Attempt, old: Attempt, gain: float) -> bool:

@@ -7,6 +7,10 @@ The probe: the result's pose followed by a half turn of the moved source about e
 principal axes through its centroid (the symmetries of most such shapes), each refined by ICP;
 the copy that ends at least ``min_away_deg`` from the result with the lowest input Chamfer distance
 (:func:`o3dsoft.metrics.input_chamfer_distance`) is compared with the result.
+
+Two samplings of a dense object on a voxel grid look as if they shared points (the grid's
+centroids of a box lie as close at a quarter turn as at the truth), so there the probe runs where
+both clouds are closed surfaces (:func:`closed_share`): complete objects, not views or scenes.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import numpy as np
 
 from . import search as search_stage
 from .metrics import input_chamfer_distance
+from .preprocess import point_spacing, sample_indices
 from .transforms import apply_transform, rigid, rotation_angle_deg
 
 
@@ -33,11 +38,16 @@ class SymmetryConfig:
             default 1.1).
         min_away_deg: a copy that ICP brings back within this many degrees of the result is the
             result, not a copy (degrees, default 20).
+        closed_from: on a voxel grid, clouds whose :func:`closed_share` is at least this are closed
+            surfaces, probed whatever their spacing ratio (in (0, 1]; default 0.95: closed
+            objects measure 1.0, single views of an object 0.06-0.22, indoor and street scans
+            0.18-0.74).
     """
 
     enabled: bool = True
     max_ratio: float = 1.1
     min_away_deg: float = 20.0
+    closed_from: float = 0.95
 
 
 class Symmetry(NamedTuple):
@@ -59,6 +69,32 @@ class Symmetry(NamedTuple):
 
 
 NOT_PROBED = Symmetry(None, None, None)
+
+
+def closed_share(points: np.ndarray, normals: np.ndarray, sample: int = 300, seed: int = 0, at_least: float = 0.0) -> float:
+    """The share of (at most `sample` of) the (N, 3) `points` from which the line along the point's
+    (N, 3) normal (sign arbitrary) meets the cloud again: some other point lies within 1.5 point
+    spacings of the line, over 3 spacings away along it. 1 for a closed surface (the line into the
+    enclosed volume leaves it through the surface); near 0 for one view of an object (the line in
+    leaves through the unseen back) and low for scenes (a floor's normal meets no ceiling).
+    Expects an even spacing (a voxel grid). Where the share cannot reach `at_least`, counting
+    stops: the share of the points counted so far, under `at_least`."""
+    points = np.asarray(points, np.float64)
+    if len(points) < 3:
+        return 0.0
+    spacing = point_spacing(points)
+    chosen = sample_indices(len(points), sample, seed)
+    met = np.zeros(len(chosen), dtype=bool)
+    for start in range(0, len(chosen), 64):  # (64, N) distances at a time
+        rows = chosen[start : start + 64]
+        offsets = points[None, :, :] - points[rows, None, :]
+        along = np.einsum("mnk,mk->mn", offsets, normals[rows])
+        across_sq = np.einsum("mnk,mnk->mn", offsets, offsets) - along**2
+        met[start : start + len(rows)] = ((across_sq < (1.5 * spacing) ** 2) & (np.abs(along) > 3.0 * spacing)).any(axis=1)
+        counted = start + len(rows)
+        if counted - met[:counted].sum() > (1.0 - at_least) * len(chosen):  # too many missed already
+            return float(met[:counted].mean())
+    return float(met.mean())
 
 
 def half_turns(source: np.ndarray, transformation: np.ndarray) -> List[np.ndarray]:

@@ -81,6 +81,35 @@ def test_a_trusted_copy_of_a_symmetric_shape_is_flagged_with_its_other_pose(mode
 def test_the_symmetry_settings_are_checked():
     rng = np.random.default_rng(0)
     source = box_surface(rng, 300)
-    for bad in ({"max_ratio": 0.9}, {"min_away_deg": -1.0}, {"min_away_deg": 200.0}):
+    for bad in ({"max_ratio": 0.9}, {"min_away_deg": -1.0}, {"min_away_deg": 200.0}, {"closed_from": 0.0}, {"closed_from": 1.5}):
         with pytest.raises(InputError, match="symmetry"):
             o3dsoft.register(source, source, o3dsoft.RegisterConfig(symmetry=symmetry.SymmetryConfig(**bad)))
+
+
+def _even(points, voxel):
+    return o3dsoft.preprocess.voxel_downsample(points, voxel)
+
+
+def test_a_closed_surface_meets_itself_along_its_normals_and_a_view_or_an_open_box_does_not():
+    rng = np.random.default_rng(2)
+    box = _even(box_surface(rng, 30_000), 0.04)
+    seen = box[(box >= np.array([1.0, 0.6, 0.3]) - 1e-9).any(axis=1)]  # the three faces a camera on (1, 1, 1) sees
+    open_box = box[box[:, 2] < 0.3 - 1e-9]  # no lid
+    shares = {name: symmetry.closed_share(c, refine.normals(c, 10)) for name, c in (("box", box), ("seen", seen), ("open", open_box))}
+    assert shares["box"] >= 0.95 and shares["seen"] < 0.1 and shares["open"] < 0.9, shares
+
+
+def test_two_dense_samplings_of_a_box_are_probed_and_an_unsymmetric_shape_stays_trusted():
+    """Dense clouds are scans (no complete-shape confidence), and on a grid the cells' centroids of
+    two samplings of a box lie as close at a half turn as at the truth (they look like shared
+    points): the probe runs because both are closed surfaces."""
+    rng = np.random.default_rng(3)
+    T = random_transform(rng, 60.0, 0.5)
+    with_a_block = lambda rng, n: np.r_[box_surface(rng, n), box_surface(rng, n // 5, (0.25, 0.2, 0.15)) + [0.6, 0.3, 0.45]]  # noqa: E731 - on the lid, off centre
+    for make, ambiguous in ((box_surface, True), (with_a_block, False)):
+        source, target = make(rng, 8_000), apply_transform(T, make(rng, 8_000))
+        result = o3dsoft.register(source, target)
+        assert result.copy_transformation is not None, result.failure_reason
+        assert result.likely_failed == ambiguous, (result.confidence, result.failure_reason)
+        if not ambiguous:
+            assert pair_errors(result.transformation, T).rotation_deg < 2
