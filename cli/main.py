@@ -138,7 +138,7 @@ def _pipeline_options(fn):
                 type=click.Choice(SEARCH_MODES),
                 default="auto",
                 show_default=True,
-                help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the search network from 15 starting rotations; without the feature match, the networks from 39): auto = when the first result looks wrong.",
+                help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the search network from 15 starting rotations; without the feature match, the networks from 39): auto = when the first result looks wrong, and first of all on clouds that look like a partial overlap.",
             ),
             click.option(
                 "--search-features/--no-search-features",
@@ -537,7 +537,7 @@ def _format_result(source, target, result, errors, model_info, config, read=None
         f"o3dsoft register  {source} -> {target}",
         f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}{without}"
         + ("" if read is None else f"; {read[0]} and {read[1]} read")
-        + f"); scale {result.scale:.4g} units; ICP point-to-{result.icp_method}",
+        + f"); scale {result.scale:.4g} units (the clouds' radius, which --icp-distance is relative to); ICP point-to-{result.icp_method}",
         "  points per stage (source / target): " + ", ".join(f"{stage} {n} / {m}" for stage, (n, m) in result.points_used.items()),
         *_cleaning_lines(
             result.removed,

@@ -25,7 +25,7 @@ def main() -> None:
     result = o3dsoft.register(source, target)
     err = o3dsoft.pair_errors(result.transformation, T_gt)
     np.set_printoptions(precision=5, suppress=True)
-    print("estimated T_target_source:\n", result.transformation)
+    print("estimated T_target_source (translation in mm):\n", result.transformation)
     print(f"rotation error {err.rotation_deg:.2e} deg, translation error {err.translation:.2e} mm (lower is better)")
     print(
         f"fitness {result.fitness:.3f} (higher is better), confidence {result.confidence:.3f} (0-1, higher is better)"

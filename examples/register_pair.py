@@ -26,7 +26,7 @@ def main() -> None:
     print(f"network alone : rotation error {coarse.rotation_deg:7.3f} deg, translation error {coarse.translation * 1000:7.3f} mm (lower is better)")
     print(f"network + ICP : rotation error {final.rotation_deg:7.3f} deg, translation error {final.translation * 1000:7.3f} mm (lower is better)")
     print(f"fitness {result.fitness:.3f} (higher is better), inlier RMSE {result.inlier_rmse * 1000:.3f} mm (lower is better)")
-    print("time per stage (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings_ms.items()))
+    print("time per stage (ms, lower is better): " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings_ms.items()))
 
 
 if __name__ == "__main__":

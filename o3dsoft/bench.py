@@ -677,7 +677,10 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
     recall columns of that protocol's thresholds (``recall_thresholds`` of each summary).
     `titles`: a longer title for some protocols (a folder of scans and its kind); `units`: the
     name of some protocols' distance unit (e.g. "m"), else "units"."""
-    lines = ["Errors and times: lower is better; recall: higher is better. Translation in the clouds' units (m where the column says so)."]
+    lines = [
+        "Errors and times: lower is better; recall: higher is better. Translation in the clouds' units (m where the column says so). "
+        "Euler RMSE: ModelNet40's measure, '-' on scans (their poses lie near its gimbal lock)."
+    ]
     block = None
     for s in summaries:
         recall = [tuple(r) for r in s["recall_thresholds"]]
@@ -713,7 +716,7 @@ def format_table(summaries: Sequence[dict], titles: Optional[Dict[str, str]] = N
             lines.append(
                 f"{'':18s} confidence vs success at {d5:g} deg / {t5:.3g} {(units or {}).get(s['protocol'], 'units')}: ROC AUC {auc} (higher is better); "
                 f"flagged likely failed: {100 * s['likely_failed_share']:.1f} %; right ones flagged: {alarms} (lower is better)"
-                + (f"; searched: {100 * s['searched_share']:.1f} %" if "searched_share" in s else "")
+                + (f"; searched: {100 * s['searched_share']:.1f} % (lower is faster)" if "searched_share" in s else "")
             )
             if s.get("failures"):
                 distinct = "n/a" if s["confidence_auc_distinct"] is None else f"{s['confidence_auc_distinct']:.3f}"
@@ -811,7 +814,7 @@ def plot(folder: Path, rows: Sequence[dict], config: BenchConfig, units: Optiona
                     ax.step(np.r_[err[0], err], np.arange(len(err) + 1) / len(err), where="post", label=method)  # from 0: no pair below the least
                     ax.set_ylim(0.0, 1.02)
                     ax.set_xscale("log")
-                    ax.set_xlabel("rotation error (deg, lower is better)")
+                    ax.set_xlabel("rotation error (deg, lower is better; below 1e-6 drawn at 1e-6)")
                     ax.set_ylabel("share of pairs with at most this error")
                 else:
                     angle = np.array([r["initial_angle_deg"] for r in sel])

@@ -340,8 +340,9 @@ def load_model(path: Union[str, Path, None] = None, device: Union[str, torch.dev
     and the finiteness of every tensor are checked, so that a damaged file fails here.
 
     Raises:
-        InputError: the file is missing, damaged, is not a TorchScript archive, or is not an
-            o3dsoft model; a shipped model does not match its card.
+        UsageError: the file is missing, or the device is unknown or absent.
+        InputError: the file is damaged, is not a TorchScript archive, or is not an o3dsoft
+            model; a shipped model does not match its card. Both are ValueErrors.
     """
     path = weights_file(path)
     device = torch_device(device)

@@ -45,8 +45,9 @@ SCAN_POINTS = 4096
 
 
 def as_points(cloud: CloudLike, name: str) -> np.ndarray:
-    """An Open3D PointCloud (legacy or tensor), a torch or Open3D tensor or an (N, 3) array-like
-    -> (N, 3) float64 array."""
+    """An Open3D PointCloud (legacy or tensor), a torch or Open3D tensor, an (N, 3) array-like or
+    an (N,) structured array with fields x, y, z (ROS's point_cloud2.read_points) -> (N, 3)
+    float64 array."""
     if isinstance(cloud, (str, os.PathLike)):
         raise InputError(f"{name}: got the file name {str(cloud)!r}, not points: read it first, o3dsoft.read_points(path)")
     if hasattr(cloud, "points") and not isinstance(cloud, np.ndarray):
@@ -60,6 +61,10 @@ def as_points(cloud: CloudLike, name: str) -> np.ndarray:
         arr = np.asarray(cloud)
     except ValueError as e:  # ragged nested lists
         raise InputError(f"{name}: expected points of shape (N, 3), got rows of different lengths ({e})") from None
+    if arr.dtype.names is not None:  # one record per point: x, y, z and others (intensity, ring, ...)
+        if not {"x", "y", "z"} <= set(arr.dtype.names):
+            raise InputError(f"{name}: a structured array needs fields x, y and z, got {', '.join(arr.dtype.names)}")
+        arr = np.stack([arr[c].reshape(-1).astype(np.float64) for c in "xyz"], axis=1)
     if arr.ndim == 0:  # not an array at all (e.g. a mesh)
         raise InputError(f"{name}: expected an Open3D PointCloud, a tensor or (N, 3) points, got a {type(cloud).__module__}.{type(cloud).__qualname__}")
     if arr.ndim != 2 or arr.shape[1] != 3:

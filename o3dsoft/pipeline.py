@@ -42,7 +42,7 @@ from ._open3d import quietly
 from .clock import StageClock
 from .config import SEARCH_MODES, RegisterConfig, check_settings
 from .errors import InputError, UsageError
-from .io import as_rigid
+from .io import as_rigid, check_rigid
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, PreparedPair, as_points
 from .preprocess import local_origin, point_spacing, sample_median, scene_size
@@ -69,7 +69,8 @@ __all__ = ["register", "RegisterConfig", "RegistrationResult", "SEARCH_MODES", "
 
 @dataclass(frozen=True, eq=False)  # arrays have no single truth value: results compare (and hash) by identity
 class RegistrationResult:
-    """The result of registering a source cloud onto a target cloud.
+    """The result of registering a source cloud onto a target cloud. Frozen; two results compare
+    equal only when they are the same object (compare ``transformation`` with ``np.allclose``).
 
     Attributes:
         transformation: (4, 4) float64 T_target_source: p_target = T @ p_source.
@@ -215,9 +216,10 @@ class RegistrationResult:
         source, target, model, init and errors, are left aside), with (4, 4) float64 arrays.
 
         Raises:
-            InputError: `d` lacks a field the result needs, a transform is not (4, 4), or a field
-                holds another type than its own (a string for True or False, None where the
-                field is not optional).
+            InputError: `d` lacks a field the result needs, a transform is not a rigid (4, 4)
+                one, a field holds another type than its own (a string for True or False, None
+                where the field is not optional), or ``confidence`` or ``fitness`` lies outside
+                [0, 1].
         """
         from .config import _check_types
 
@@ -234,6 +236,7 @@ class RegistrationResult:
                 T = np.array(values[name], dtype=np.float64)
                 if T.shape != (4, 4):
                     raise InputError(f"{name}: expected a 4x4 transform, got shape {T.shape}")
+                check_rigid(T, name)  # a scaled, sheared or non-finite one: refused by name
                 values[name] = T
         for name in ("timings_ms", "removed", "points_used"):
             if name in values and not isinstance(values[name], dict):
@@ -241,6 +244,9 @@ class RegistrationResult:
         values["points_used"] = {stage: tuple(counts) for stage, counts in values.get("points_used", {}).items()}
         result = cls(**values)
         _check_types(result, "")  # "false" would read as true
+        for name in ("confidence", "fitness"):
+            if not 0 <= getattr(result, name) <= 1:
+                raise InputError(f"{name} must be in [0, 1], got {getattr(result, name)}")
         return result
 
 

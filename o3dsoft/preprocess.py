@@ -90,7 +90,7 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
     largest = float(np.abs(pts).max())
     if largest > MAX_COORDINATE:
         raise InputError(
-            f"{name}: a coordinate of {largest:.3g} remains after dropping {strays} strays; no scan measures that far (at most {MAX_COORDINATE:g} units): is the file damaged?"
+            f"{name}: a coordinate of {largest:.6e} remains after dropping {strays} strays; no scan measures that far (coordinates up to {MAX_COORDINATE:.0e} units are taken): is the file damaged?"
         )
     check_spread(pts, name)
     return CleanReport(pts, non_finite, duplicates, strays, rows)

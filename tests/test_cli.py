@@ -178,6 +178,9 @@ def test_register_json(pair_files, tiny_model_path):
         ("transformation", None, "transformation must not be None"),
         ("fitness", None, "fitness must not be None"),
         ("timings_ms", None, "timings_ms must be a mapping, got None"),
+        ("confidence", 7.0, r"confidence must be in \[0, 1\], got 7.0"),
+        ("fitness", float("nan"), r"fitness must be in \[0, 1\], got nan"),
+        ("transformation", np.diag([2.0, 1.0, 1.0, 1.0]).tolist(), "transformation: not a rigid transform"),
     ):
         with pytest.raises(InputError, match=message):
             RegistrationResult.from_dict({**payload, field: value})

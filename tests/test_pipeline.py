@@ -598,6 +598,13 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         as_points([[1.0, 2.0, 3.0], [1.0, 2.0]], "source")
     with pytest.raises(InputError, match="target: expected real numeric points, got dtype complex128"):
         as_points(np.ones((50, 3), dtype=complex), "target")  # the imaginary part is not silently dropped
+    # ROS's point_cloud2.read_points: one record per point
+    records = np.zeros(50, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("ring", "<u2")])
+    for k, c in enumerate("xyz"):
+        records[c] = grad.detach().numpy()[:, k]
+    assert np.array_equal(as_points(records, "source"), grad.detach().numpy().astype(np.float64))
+    with pytest.raises(InputError, match="source: a structured array needs fields x, y and z, got x, y, intensity"):
+        as_points(np.zeros(5, dtype=[("x", "<f4"), ("y", "<f4"), ("intensity", "<f4")]), "source")
     import open3d as o3d
 
     pts = np.random.default_rng(0).random((50, 3))
