@@ -761,7 +761,9 @@ def test_scans_with_a_stray_far_point_or_in_other_units_are_right_or_flagged():
     assert not res.likely_failed and pair_errors(res.transformation, T).rotation_deg < 1.0
     assert res.scale < 1.0  # the scene's scale, not the stray point's
     res = register(1000.0 * src, tgt)  # millimetres against metres: no rigid transform fits
-    assert res.likely_failed and "-fold (are they in the same units? " in res.failure_reason
+    assert res.likely_failed and res.failure_reason.startswith("the clouds' sizes differ 1021-fold (are they in the same units? ")
+    res = register(3.2808 * src, tgt)  # feet against metres
+    assert res.likely_failed and res.failure_reason.startswith("the clouds' sizes differ 3.4-fold (are they in the same units? ")
 
 
 def test_a_low_overlap_rgbd_pair_in_millimetres_as_in_metres(real_scans_root):
