@@ -360,6 +360,16 @@ def partial_confidence(f: Features, agreeing: int, config: ConfidenceConfig = Co
     return _logistic(config.partial_coefficients, np.array([math.log(max(agreeing, 1))]))
 
 
+def agreeing_trusted_from(config: ConfidenceConfig = ConfidenceConfig()) -> Optional[int]:
+    """The fewest agreeing estimates whose :func:`partial_confidence` reaches
+    ``likely_failed_below`` (None where no count does)."""
+    if config.partial_coefficients is None or config.partial_coefficients[1] <= 0:
+        return None
+    intercept, slope = config.partial_coefficients
+    t = config.likely_failed_below
+    return max(1, math.ceil(math.exp((math.log(t / (1.0 - t)) - intercept) / slope) - 1e-9))
+
+
 def complete_feature_vector(f: Features, config: ConfidenceConfig = ConfidenceConfig()) -> np.ndarray:
     """The measurements of :data:`COMPLETE_FEATURE_NAMES` as :func:`complete_confidence` takes
     them: (3,)."""

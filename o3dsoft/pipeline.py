@@ -732,7 +732,8 @@ def _failure_reason(best: Attempt, config: RegisterConfig, searched: bool, compl
         if complete and confidence_stage.complete_confidence(full_overlap, config.confidence) >= config.confidence.likely_failed_below:
             why += f", and both clouds look complete but those points are only {100 * best.scored.overlap:.0f} % of the smaller one"
         if agreeing is not None:
-            why += f", and only {agreeing[0]} of the {agreeing[1]} estimates reached this pose"
+            needed = confidence_stage.agreeing_trusted_from(config.confidence)
+            why += f", and {agreeing[0]} of the {agreeing[1]} estimates reached this pose" + (f" (trusted from {needed})" if needed else "")
     return why + (_SEARCHED if searched else "")
 
 

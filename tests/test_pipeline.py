@@ -1247,7 +1247,8 @@ def test_on_a_partial_overlap_the_confidence_counts_the_estimates_that_reached_t
     assert 5 <= result.agreeing < result.attempts
     assert result.confidence == pytest.approx(1 / (1 + np.exp(-(c0 + c1 * np.log(result.agreeing)))))
     assert result.confidence > 2 * off.confidence
-    assert f"only {result.agreeing} of the {result.attempts} estimates reached this pose" in result.failure_reason
+    assert f", and {result.agreeing} of the {result.attempts} estimates reached this pose (trusted from 43)" in result.failure_reason
+    assert 1 / (1 + np.exp(-(c0 + c1 * np.log(43)))) >= 0.5 > 1 / (1 + np.exp(-(c0 + c1 * np.log(42))))
     assert off.agreeing == result.agreeing and "estimates reached" not in off.failure_reason
 
 
