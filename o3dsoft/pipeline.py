@@ -27,6 +27,7 @@ are :class:`o3dsoft.config.RegisterConfig`, one nested config per stage.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from typing import Any, Callable, Dict, Optional, Tuple
@@ -487,14 +488,16 @@ def _scored_level(pair: PreparedPair, unrefined: bool) -> str:
 
 def _assess(pair: PreparedPair, best: Attempt) -> degeneracy_stage.Degeneracy:
     """Whether the geometry determines `best`'s pose, on the screen clouds (evenly spaced, at most
-    search.screen.points): a test that can only flag, and only clouds that share no point (theirs
-    fix the pose otherwise)."""
+    search.screen.points): a test that can only flag, and off a grid only clouds that share no
+    point (theirs fix the pose otherwise). On a grid no point is shared (each cloud's cells
+    average its own points), though the cells' centroids of two dense scans lie as close as
+    shared points would: a tunnel's two stations are assessed whatever their spacing ratio."""
     return degeneracy_stage.assess(
         *pair.clouds("screen"),
         best.fine.transformation,
         pair.distance,
         pair.norm.scale,
-        best.scored.spacing_ratio,
+        best.scored.spacing_ratio if pair.voxel is None else math.inf,
         pair.config.degeneracy,
         lambda: pair.scorer("screen"),
     )

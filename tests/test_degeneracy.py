@@ -65,6 +65,19 @@ def test_shapes_that_slide_on_themselves_come_back_flagged(shape, moved):
             assert all(abs(axis[2]) > 0.98 if kind == "turn about" else abs(axis[2]) < 0.02 for kind, axis in free)
 
 
+def test_two_dense_scans_of_a_tunnel_on_a_grid_are_assessed_and_flagged():
+    """On a grid the cells' centroids of two dense scans lie as close as shared points would
+    (spacing ratio under degeneracy.shared_below), which had skipped the test: a tunnel's two
+    stations came back trusted 180 degrees off."""
+    rng = np.random.default_rng(0)
+    tunnel = lambda n: np.c_[3.0 * np.cos(a := rng.uniform(0, 2 * np.pi, n)), 3.0 * np.sin(a), rng.uniform(-15, 15, n)]  # noqa: E731
+    T = rigid(np.eye(3), np.array([0.0, 0.0, 4.0]))
+    r = o3dsoft.register(tunnel(60_000), apply_transform(T, tunnel(60_000)))
+    assert r.voxel is not None
+    assert r.likely_failed and r.confidence == 0.0 and "can slide on each other" in r.failure_reason
+    assert r.constraint is not None and r.constraint < o3dsoft.RegisterConfig().degeneracy.min_constraint
+
+
 def test_a_filled_flat_shape_comes_back_flagged():
     # Flat clouds are judged within their plane (2D scans' outlines fix the pose there); a filled
     # square's inside follows no line, and it fits about as well turned.
