@@ -232,6 +232,16 @@ def test_first_of_each_row_equals_a_byte_exact_unique(n, seed):
     np.testing.assert_array_equal(first_of_each_row(pts), expected)
 
 
+def test_distinct_points_read_from_float32_get_distinct_hashes():
+    """Their float64 bytes end in 29 zero bits; the hash must not keep only the rest."""
+    from o3dsoft.preprocess import _row_hashes
+
+    rng = np.random.default_rng(0)
+    pts = np.unique(rng.uniform(-50, 50, (1_000_000, 3)).astype(np.float32), axis=0).astype(np.float64)
+    hashes = _row_hashes(np.ascontiguousarray(pts).view(np.uint64).reshape(-1, 3))
+    assert len(np.unique(hashes)) == len(pts)
+
+
 def test_first_of_each_row_falls_back_on_a_hash_collision(monkeypatch):
     from o3dsoft import preprocess
 
