@@ -547,7 +547,11 @@ def merged_cloud(
     color = np.concatenate(tints) if all(t is not None for t in tints) else None
     if voxel:
         keys = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+        sides = keys.max(axis=0) + 1
+        if float(np.prod(sides.astype(np.float64))) < 2.0**62:  # one integer per cell, row-major: sorts 10 times as fast as rows
+            _, first, inverse = np.unique((keys[:, 0] * sides[1] + keys[:, 1]) * sides[2] + keys[:, 2], return_index=True, return_inverse=True)
+        else:
+            _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
         inverse = inverse.reshape(-1)
         counts = np.bincount(inverse, minlength=len(first))[:, None]
 

@@ -65,7 +65,7 @@ def render_registration(
     shown = None
     for i, (title, T) in enumerate(panels, start=1):
         moved = src if T is None else apply_transform(T, src)
-        near, _ = tree.query(moved)
+        near, _ = tree.query(moved, distance_upper_bound=distance)  # inf beyond: drawn at the top of the scale, and far faster from a poor pose
         flat = (moved - origin) @ axes
         ax = fig.add_subplot(1, len(panels), i)
         ax.scatter(*flat_tgt.T, s=0.5, c="0.75", linewidths=0, label="target")
