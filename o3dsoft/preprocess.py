@@ -224,7 +224,10 @@ def within_reach(points: np.ndarray) -> np.ndarray:
         return np.ones(len(points), dtype=bool)
     _, centre, distances = _about_median(points)
     reach = 2.0 * np.percentile(distances, STRAY_PERCENTILE)
-    if not 0 < reach < np.inf:
+    # No point is farther from the centre than sqrt(3) times its largest coordinate offset (most
+    # clouds: no per-point distance to take).
+    farthest = max(float(points.max()) - float(centre.min()), float(centre.max()) - float(points.min()))
+    if not 0 < reach < np.inf or np.sqrt(3.0) * farthest <= FAR_REACH * reach:
         return np.ones(len(points), dtype=bool)
     return np.linalg.norm(points - centre, axis=1) <= FAR_REACH * reach
 
