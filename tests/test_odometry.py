@@ -43,6 +43,24 @@ def test_odometry_follows_a_sequence_of_sweeps():
     assert doc["world"] == "sweep0" and len(doc["sweeps"]) == 6 and "confidence" in doc["sweeps"][1] and "confidence" not in doc["sweeps"][0]
 
 
+def test_the_first_step_is_registered_without_a_guess_and_the_later_ones_from_the_motion(monkeypatch):
+    """Before any motion is known, "where the last sweep was" is no guess: ICP from the identity
+    slid a room view 1.1 m off and was trusted, and every later pose kept the slide."""
+    sweeps, truth = _sequence(4)
+    module = importlib.import_module("o3dsoft.odometry")
+    inits = []
+
+    def recorded(*args, **kwargs):
+        inits.append(kwargs.get("init"))
+        return o3dsoft.register(*args, **kwargs)
+
+    monkeypatch.setattr(module, "register", recorded)
+    result = odometry(sweeps, OdometryConfig(map_sweeps=2))
+    assert inits[0] is None and all(init is not None for init in inits[1:])
+    assert o3dsoft.pair_errors(inits[2], result.steps[2].transformation).rotation_deg < 0.5  # the motion repeated
+    assert all(o3dsoft.pair_errors(p, t).translation < 0.05 for p, t in zip(result.poses, truth))
+
+
 def test_the_local_map_and_the_guess_leave_flagged_steps_that_fit_poorly_or_moved_far_out():
     points = [np.full((k + 1, 3), float(k)) for k in range(6)]  # sweep k has k + 1 points
     poses = [np.eye(4)] * 6
