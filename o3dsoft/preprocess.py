@@ -99,19 +99,28 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
 def stray_points(points: np.ndarray) -> np.ndarray:
     """(N,) bool: the (N, 3) points farther from their median than :data:`STRAY_REACH` times the
     cloud's reach (none where the reach is 0)."""
+    beyond = _beyond_reach(points, STRAY_REACH)
+    return np.zeros(len(points), dtype=bool) if beyond is None else beyond
+
+
+def _beyond_reach(points: np.ndarray, reaches: float) -> Optional[np.ndarray]:
+    """(N,) bool: the (N, 3) points farther from their median than `reaches` times the cloud's
+    reach (twice the distance from the median within which :data:`STRAY_PERCENTILE` % of them
+    lie); None where none can be: fewer than two points, a reach of 0, or a cloud whose box lies
+    within that distance (most clouds: no per-point distance is taken)."""
     if len(points) < 2:
-        return np.zeros(len(points), dtype=bool)
+        return None
     with np.errstate(all="ignore"):  # coordinates near the float limit: distances of inf
         _, centre, distances = _about_median(points)
         reach = 2.0 * np.percentile(distances, STRAY_PERCENTILE)
         if not 0 < reach < np.inf:
-            return np.zeros(len(points), dtype=bool)
+            return None
         # No point is farther from the centre than sqrt(3) times its largest coordinate offset
         # (whole-array extremes: 10 times as fast as per axis).
         farthest = max(float(points.max()) - float(centre.min()), float(centre.max()) - float(points.min()))
-        if np.sqrt(3.0) * farthest <= STRAY_REACH * reach:
-            return np.zeros(len(points), dtype=bool)  # most clouds: no per-point distance to take
-        return np.linalg.norm(points - centre, axis=1) > STRAY_REACH * reach
+        if np.sqrt(3.0) * farthest <= reaches * reach:
+            return None
+        return np.linalg.norm(points - centre, axis=1) > reaches * reach
 
 
 def first_of_each_row(points: np.ndarray) -> np.ndarray:
@@ -217,19 +226,11 @@ def isolated_points(points: np.ndarray, radius: float) -> np.ndarray:
 FAR_REACH = 10.0
 
 
-def within_reach(points: np.ndarray) -> np.ndarray:
-    """(N,) bool: the (N, 3) finite points within :data:`FAR_REACH` times their cloud's reach of its
-    median (all of them where the reach is 0)."""
-    if len(points) < 2:
-        return np.ones(len(points), dtype=bool)
-    _, centre, distances = _about_median(points)
-    reach = 2.0 * np.percentile(distances, STRAY_PERCENTILE)
-    # No point is farther from the centre than sqrt(3) times its largest coordinate offset (most
-    # clouds: no per-point distance to take).
-    farthest = max(float(points.max()) - float(centre.min()), float(centre.max()) - float(points.min()))
-    if not 0 < reach < np.inf or np.sqrt(3.0) * farthest <= FAR_REACH * reach:
-        return np.ones(len(points), dtype=bool)
-    return np.linalg.norm(points - centre, axis=1) <= FAR_REACH * reach
+def near_points(points: np.ndarray) -> np.ndarray:
+    """(N', 3) the (N, 3) finite points within :data:`FAR_REACH` times their cloud's reach of its
+    median: the array itself where all are (:func:`_beyond_reach`)."""
+    beyond = _beyond_reach(points, FAR_REACH)
+    return points if beyond is None else points[~beyond]
 
 
 def robust_extent(points: np.ndarray) -> np.ndarray:
@@ -252,7 +253,7 @@ def principal_extents(points: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     the same order: a pipe 100 long and 0.1 across has sides (100, 0.1, 0.1) whichever way it lies."""
     sample = _every_kth(points)
     sample = sample[np.isfinite(sample).all(axis=1)]
-    sample = sample[within_reach(sample)]
+    sample = near_points(sample)
     axes = principal_axes(sample)
     lo, hi = np.percentile((sample - sample.mean(axis=0)) @ axes, [1, 99], axis=0)
     return hi - lo, axes
@@ -270,9 +271,9 @@ def flat_normal(points: np.ndarray) -> Optional[np.ndarray]:
 
 
 def scene_size(points: np.ndarray) -> float:
-    """Diagonal of the :func:`robust_extent` box of the (N, 3) finite points :func:`within_reach`
+    """Diagonal of the :func:`robust_extent` box of the (N, 3) finite points' :func:`near_points`
     (cloud units)."""
-    return float(np.linalg.norm(robust_extent(points[within_reach(points)])))
+    return float(np.linalg.norm(robust_extent(near_points(points))))
 
 
 def _finite_sample(points: np.ndarray) -> np.ndarray:
@@ -399,8 +400,8 @@ def normalisation_for(source: np.ndarray, target: np.ndarray) -> Normalisation:
     """Centroids of both clouds and one common scale: the larger of their radii about the centroid,
     where a cloud's radius is at most twice the distance within which 99 % of its points lie
     (so that a few stray far points do not shrink the scene); both of the points
-    :func:`within_reach` (ghost returns far out move neither)."""
-    source, target = source[within_reach(source)], target[within_reach(target)]
+    :func:`near_points` (ghost returns far out move neither)."""
+    source, target = near_points(source), near_points(target)
     cs = source.mean(axis=0)
     ct = target.mean(axis=0)
     radius = max(_radius(source - cs), _radius(target - ct))
