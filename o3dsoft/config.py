@@ -340,7 +340,8 @@ class RegisterConfig:
         return asdict(self)
 
     def validate(self, k: int) -> None:
-        """Raise InputError for settings the network (neighbourhood size `k`) cannot run with."""
+        """Raise InputError for settings the network (neighbourhood size `k`) cannot run with: every
+        number finite and not negative (:func:`check_settings`), then the bounds that leaves open."""
         check_settings(self)
         search = self.search
         if search.mode not in SEARCH_MODES:
@@ -350,12 +351,8 @@ class RegisterConfig:
                 raise UsageError(f"{name}={value} is below the network's neighbourhood size K={k}")
         if self.icp.method not in ("auto", "point", "plane"):
             raise InputError(f"icp.method={self.icp.method!r}; valid: auto, point, plane")
-        if self.voxel is not None and not self.voxel >= 0:
-            raise InputError(f"voxel must be positive (or 0: keep every point), got {self.voxel}")
         if not 0 <= self.data_voxel < 1:
             raise InputError(f"data_voxel must be in [0, 1), got {self.data_voxel}")
-        if not 0 <= self.icp.normal_within < float("inf"):
-            raise InputError(f"icp.normal_within must be finite and at least 0, got {self.icp.normal_within}")
         schedule = self.icp.schedule
         if not schedule or not all(0 < factor < math.inf for factor in schedule):
             raise InputError(f"icp.schedule must hold at least one positive, finite distance factor, got {schedule}")
@@ -371,9 +368,6 @@ class RegisterConfig:
                 raise InputError(f"{name} must be at least 1, got {value}")
         if self.icp.normal_neighbours < 3:
             raise InputError(f"icp.normal_neighbours must be at least 3 (a plane), got {self.icp.normal_neighbours}")
-        for name in ("isolated_radius", "isolated_spacings"):
-            if not 0 <= getattr(self, name) < float("inf"):
-                raise InputError(f"{name} must be finite and at least 0, got {getattr(self, name)}")
         if search.features.candidates < 1:
             raise InputError(f"search.features.candidates must be at least 1, got {search.features.candidates}")
         if self.max_rotation is not None and not 0 < self.max_rotation <= 180:
@@ -400,9 +394,7 @@ class RegisterConfig:
         for name in ("voxel", "normal_radius", "fpfh_radius", "ransac_distance"):  # Open3D's grid, neighbourhoods and inlier test
             if not getattr(search.features.match.features, name) > 0:
                 raise InputError(f"search.features.match.features.{name} must be positive, got {getattr(search.features.match.features, name)}")
-        if not search.independent_spacing >= 0:
-            raise InputError(f"search.independent_spacing must be at least 0, got {search.independent_spacing}")
-        if search.partial_choice is not None and (len(search.partial_choice) != 4 or not all(math.isfinite(w) for w in search.partial_choice)):
+        if search.partial_choice is not None and len(search.partial_choice) != 4:  # finite: check_settings
             raise InputError(f"search.partial_choice must be None or 4 finite weights, got {search.partial_choice}")
         for name in ("min_contact", "independent_contact"):
             if not 0 <= getattr(search, name) <= 1:
@@ -428,16 +420,11 @@ class RegisterConfig:
             )
         degeneracy = self.degeneracy
         if (
-            not 0 <= degeneracy.min_constraint < 1
-            or min(degeneracy.neighbours, degeneracy.line_neighbours) < 3
-            or degeneracy.shared_below < 0
-            or degeneracy.regular_below < 0
-            or not degeneracy.max_flatness > 0
-        ):
+            not 0 <= degeneracy.min_constraint < 1 or min(degeneracy.neighbours, degeneracy.line_neighbours) < 3 or not degeneracy.max_flatness > 0
+        ):  # shared_below and regular_below not negative: check_settings
             raise InputError(
-                "degeneracy: min_constraint must be in [0, 1), neighbours and line_neighbours at least 3, shared_below and regular_below not negative and max_flatness positive; "
-                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.line_neighbours}, {degeneracy.shared_below}, "
-                f"{degeneracy.regular_below}, {degeneracy.max_flatness}"
+                "degeneracy: min_constraint must be in [0, 1), neighbours and line_neighbours at least 3 and max_flatness positive; "
+                f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.line_neighbours}, {degeneracy.max_flatness}"
             )
 
 
