@@ -24,7 +24,7 @@ from ..errors import InputError, O3dsoftError, terminate_as_interrupt
 # The values of RegisterConfig.search.mode (o3dsoft.config.SEARCH_MODES) and the bench's methods
 # (o3dsoft.bench.METHODS), not imported here: that would load torch and Open3D before --help;
 # a test keeps them equal.
-SEARCH_MODES = ("auto", "always", "off")
+SEARCH_MODES = ("auto", "always", "off", "quick")
 METHOD_NAMES = ("oracle", "o3dsoft-coarse", "o3dsoft", "icp", "fpfh-ransac", "fpfh-ransac+icp", "fgr", "fgr+icp", "kiss-matcher", "kiss-matcher+gicp")
 WEIGHTS_HELP = (
     "TorchScript model file, or a shipped model by name: default, paper, partial, incongruent (default: default; "
@@ -138,7 +138,7 @@ def _pipeline_options(fn):
                 type=click.Choice(SEARCH_MODES),
                 default="auto",
                 show_default=True,
-                help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the search network from 15 starting rotations; without the feature match, the networks from 39): auto = when the first result looks wrong, and first of all on clouds that look like a partial overlap.",
+                help="Global search, for clouds with no rough alignment (a feature match's estimates in turn, then the search network from 15 starting rotations; without the feature match, the networks from 39): auto = when the first result looks wrong, and first of all on clouds that look like a partial overlap; quick = only the feature match that goes first on a partial overlap (a flagged result stays flagged).",
             ),
             click.option(
                 "--search-features/--no-search-features",
@@ -575,7 +575,9 @@ def _format_result(source, target, result, errors, model_info, config, read=None
     if result.searched:
         why = result.search_reason
         screened = f" ({result.screened} screened on at most {config.search.screen.points:,} points per cloud first)" if result.screened else ""
-        lines.append(f"  search       ran ({why}); {result.attempts} estimates refined{screened}, {result.agreeing} of them reached the result's pose")
+        tried = f"{result.attempts} estimate{'' if result.attempts == 1 else 's'} refined"
+        reached = "it reached" if result.attempts == result.agreeing == 1 else f"{result.agreeing} of them reached"
+        lines.append(f"  search       ran ({why}); {tried}{screened}, {reached} the result's pose")
     if errors is not None:
         f, c = errors["final"], errors["coarse"]
         estimate = result.estimate_from

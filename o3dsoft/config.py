@@ -20,7 +20,7 @@ from .refine import ICPConfig
 from .search import FeatureMatchConfig
 from .symmetry import SymmetryConfig
 
-SEARCH_MODES = ("auto", "always", "off")
+SEARCH_MODES = ("auto", "always", "off", "quick")
 
 
 @dataclass(frozen=True)
@@ -134,7 +134,9 @@ class SearchConfig:
 
     Attributes:
         mode: "auto" runs it when the first result is flagged, or first of all when the clouds
-            look like a partial overlap; "always" on every pair; "off" never (default "auto").
+            look like a partial overlap; "always" on every pair; "quick" only its feature match
+            where that goes first (partial overlaps), nothing after a flagged result; "off" never
+            (default "auto").
         partial_pvalue: below this p-value of :func:`o3dsoft.preprocess.same_profile_pvalue` the
             clouds are taken for a partial overlap, and the feature match runs before the
             network (default 0.01).

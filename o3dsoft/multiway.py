@@ -103,8 +103,9 @@ class Edge:
             pruned).
         pruned: the optimisation's line process rejected it as a wrong loop closure.
         seconds: time of the pairwise registration (s, lower is better).
-        searched: the global search ran on this pair (only for scans that no quick alignment
-            joined, when the search mode is "auto").
+        searched: the global search ran on this pair: with the search mode "auto", the quick
+            search's feature match on scans that look like a partial overlap, and the whole
+            search on those of scans that no quick alignment joined.
     """
 
     source: int
@@ -280,12 +281,14 @@ def multiway(
     model = model if model is not None else load_model(config.register.weights, config.register.device)
     t_start = time.perf_counter()
 
-    # Register the pairs that may overlap (T_i_j maps scan j onto scan i), first without the
-    # global search: most pairs of a scene either align at once or do not overlap at all.
+    # Register the pairs that may overlap (T_i_j maps scan j onto scan i), first with the quick
+    # search (the feature match on pairs that look like a partial overlap, then the network):
+    # most pairs of a scene either align at once or do not overlap at all. Without the feature
+    # match, the network's wrong poses of rooms alike were trusted and kept the search away.
     pairs = choose_pairs(points, config, guesses)
     quick = config.register
     if quick.search.mode == "auto":  # flagged edges are left out or registered again: no full-resolution ICP for them
-        quick = replace(quick, search=replace(quick.search, mode="off"), refine_flagged=False)
+        quick = replace(quick, search=replace(quick.search, mode="quick"), refine_flagged=False)
     found: Dict[Tuple[int, int], Tuple[Edge, RegistrationResult]] = {}
     for done, (i, j) in enumerate(pairs, start=1):
         found[i, j] = _register_edge(points, names, i, j, quick, model, guesses, config.init_max_rotation)

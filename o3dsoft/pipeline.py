@@ -414,7 +414,7 @@ def _register(
         search_reason = "the search mode is 'always'"
     elif search.mode == "auto" and not verifier.confident() and not second_ends:
         search_reason = "no estimate was trusted"
-    if search_reason:
+    if search_reason and search.mode != "quick":  # "quick": the feature match that went first is all of it
         _search(pair, verifier, model, search_model, features_done=features_first)
 
     # Select the most trusted, then refine it at full resolution, where it is trusted or not.

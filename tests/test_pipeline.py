@@ -20,7 +20,7 @@ from o3dsoft.symmetry import SymmetryConfig
 from o3dsoft.transforms import euler_to_matrix, rigid, rotation_angle_deg
 
 from .conftest import EXAMPLES, apply, blob, python_output, random_transform
-from .fakes import NO_SECOND, AlwaysWrongModel, NearSightedModel, blob_pair, record_icp
+from .fakes import NO_SECOND, AlwaysWrongModel, NearSightedModel, blob_pair, moved_bunny, record_icp
 
 
 def test_register_small_motion_recovered_after_icp(tiny_model_path):
@@ -392,6 +392,23 @@ def test_a_stray_point_at_1e12_is_dropped_and_the_pair_registers_as_without_it()
     assert np.allclose(res.transformation, clean.transformation, atol=1e-9) and res.confidence == pytest.approx(clean.confidence)
     swapped = register(tgt, np.vstack([src, [[1e12, -1e12, 5e11]]]))  # counts follow the clouds' roles
     assert swapped.removed["target_strays"] == 1 and swapped.removed["source_strays"] == 0
+
+
+def test_the_quick_search_is_the_feature_match_that_goes_first_alone():
+    # multiway's first pass: the feature match on a partial overlap, and nothing after a flagged result.
+    from benchmarks.indoor_rooms import views
+
+    clouds, poses = views(12, pixels=64)  # two depth views of a room, 30 degrees apart
+    T = np.linalg.inv(poses[3]) @ poses[4]
+    model = AlwaysWrongModel(T[:3, :3] @ euler_to_matrix([180.0, 0.0, 0.0]))
+    quick = RegisterConfig(second_network=NO_SECOND, search=SearchConfig(mode="quick"))
+    res = register(clouds[4], clouds[3], quick, model=model)
+    assert res.searched and not res.likely_failed and model.batches == []  # the feature match was trusted: no network
+    assert pair_errors(res.transformation, T).rotation_deg < 1.0
+    src, tgt, T = moved_bunny(0)  # one cloud moved: complete, no feature match first
+    model = AlwaysWrongModel(T[:3, :3] @ euler_to_matrix([180.0, 0.0, 0.0]))
+    res = register(src, tgt, quick, model=model)
+    assert res.likely_failed and not res.searched and model.batches == [1]  # the network once, no search after it
 
 
 def test_the_networks_estimate_of_scans_is_screened_first_and_kept_when_nothing_else_is():
