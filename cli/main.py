@@ -402,6 +402,16 @@ def register(
         click.echo(
             f"Warning: the alignment is likely wrong (confidence {result.confidence:.2f}: {result.failure_reason}). Check it visually (--render).", err=True
         )
+    if errors is not None and errors["final"].rotation_deg > SWAPPED_GT_DEG:
+        from ..transforms import rotation_angle_deg
+
+        inverse = rotation_angle_deg(T_gt[:3, :3] @ result.transformation[:3, :3])  # the turn from the inverse's rotation, R_gt^T
+        if inverse < SWAPPED_GT_DEG / 5:  # a ground truth the other way round: the error is twice its turn
+            click.echo(
+                f"Note: the result turns {inverse:.2g} deg from the inverse of --gt: it may map the target onto the source; --gt takes T_target_source "
+                "(or the clouds are given the other way round)",
+                err=True,
+            )
     # The outputs last, so that a failed write still leaves the result on screen.
     if strict and result.likely_failed:  # a failed run leaves no result for a pipeline to pick up
         held = [opt for opt, p in (("--out", out_path), ("--save-transform", save_transform)) if p is not None]
@@ -534,7 +544,7 @@ def _format_result(source, target, result, errors, model_info, config, read=None
     without = ", without their isolated points" if result.removed.get("source_isolated") or result.removed.get("target_isolated") else ""
     T = result.transformation
     lines = [
-        f"o3dsoft register  {source} -> {target}",
+        f"o3dsoft register {source} -> {target}",
         f"  points: source {result.num_source}, target {result.num_target} (after cleaning{grid}{without}"
         + ("" if read is None else f"; {read[0]} and {read[1]} read")
         + f"); scale {result.scale:.4g} units (the clouds' radius, which --icp-distance is relative to); ICP point-to-{result.icp_method}",
@@ -730,6 +740,8 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
 # (none is, on the bunny's, 3DMatch's or odometry's scans; 7 to 15 of 18 to 24 on turntable views
 # of symmetric objects whose poses came out 60 to 180 degrees off).
 PRUNED_WARNING = 0.25
+# Over this rotation error (degrees), a result within a fifth of it of the inverse of --gt is named.
+SWAPPED_GT_DEG = 5.0
 
 
 def _each_once(paths: Sequence[Path], what: str) -> None:
@@ -780,6 +792,8 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     from ..odometry import odometry as run_odometry
 
     _each_once(sweeps, "sweep")
+    for p in sweeps:
+        io.check_readable(p)
     if len(sweeps) < 2:
         raise click.UsageError(f"{sweeps[0]}: one sweep; odometry needs at least two")
     names = [str(p) for p in sweeps]
@@ -867,7 +881,7 @@ def _format_odometry(result, out_dir: Path, reference=None) -> str:
     path = sum(float(np.linalg.norm(T[:3, 3])) for T in motions)
     seconds = [step.timings_ms.get("total", 0.0) / 1000.0 for step in result.steps[1:]]
     lines = [
-        f"o3dsoft odometry  {len(result.names)} sweeps, world frame: {result.names[0]}",
+        f"o3dsoft odometry {len(result.names)} sweeps, world frame: {result.names[0]}",
         f"Path: {_tidy(path):.4g} units in all (the motions' lengths summed); the last sweep {_tidy(float(np.linalg.norm(result.poses[-1][:3, 3]))):.4g} units from the first.",
         f"Steps flagged likely failed: {sum(result.flagged)} of {len(motions)}.",
     ]
@@ -894,7 +908,7 @@ def _format_multiway(result, out_dir: Path, merged_points: int, frame_file: Opti
 
     world = result.names[result.world]
     frame = f"that of {frame_file} ({world} held at its pose there)" if frame_file is not None else world
-    lines = [f"o3dsoft multiway  {len(result.names)} scans, world frame: {frame}", "", "Scans:"]
+    lines = [f"o3dsoft multiway {len(result.names)} scans, world frame: {frame}", "", "Scans:"]
     for name, pose, by in zip(result.names, result.poses, result.placed_by):
         if by is None:
             lines.append(f"  {name}: not joined (no trusted alignment reaches {world})")

@@ -335,15 +335,16 @@ class Shapes(NamedTuple):
 
 
 def resolve_data_root(path: Optional[str], option: str = "--data") -> Path:
-    """The ModelNet40 folder: the given path, else $O3DSOFT_DATA, else an InputError saying how to
-    get it (`option`: the command-line option that gives the folder, named in the error)."""
+    """The ModelNet40 folder: the given path, else $O3DSOFT_DATA, else a UsageError saying how to
+    get it (`option`: the command-line option that gives the folder, named in the error); a
+    UsageError too where the path is no folder (the CLI exits 2, as for a missing file)."""
     chosen = path or os.environ.get(DATA_ENV)
     how = _HOW_TO_GET.replace("--data PATH", f"{option} PATH")
     if not chosen:
-        raise InputError(f"no ModelNet40 data given. {how}")
+        raise UsageError(f"no ModelNet40 data given. {how}")
     root = Path(chosen).expanduser()
     if not root.is_dir():
-        raise InputError(f"{root}: {'not a folder' if root.exists() else 'no such folder'}. {how}")
+        raise UsageError(f"{root}: {'not a folder' if root.exists() else 'no such folder'}. {how}")
     return root
 
 

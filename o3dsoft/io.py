@@ -56,9 +56,11 @@ def check_extension(path: Path, allowed, what: str) -> str:
     return ext
 
 
-def _check_readable(path: Path) -> None:
+def check_readable(path: Path) -> None:
+    """Raise UsageError where `path` does not exist or is a folder, InputError where it cannot be read."""
     if not path.exists():
-        raise UsageError(f"{path}: no such file")
+        pattern = any(c in path.name for c in "*?[")  # a shell pattern that matched no file is passed on as written
+        raise UsageError(f"{path}: no such file" + (" (a pattern that matched no file)" if pattern else ""))
     if path.is_dir():
         raise UsageError(f"{path}: is a folder, not a file")
     if not os.access(path, os.R_OK):
@@ -411,7 +413,7 @@ def read_points(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS, seed: in
     """
     path = Path(path)
     ext = check_extension(path, READ_EXTENSIONS, "a point cloud")
-    _check_readable(path)
+    check_readable(path)
     if ext == ".npy":
         return _read_npy_points(path)
     if ext in TABLE_EXTENSIONS:
@@ -663,7 +665,7 @@ def read_scans(path: PathLike, mesh_points: int = DEFAULT_MESH_POINTS) -> List[T
     """
     path = Path(path)
     check_extension(path, READ_EXTENSIONS, "a point cloud")
-    _check_readable(path)
+    check_readable(path)
     if path.suffix.lower() != ".e57":
         return [(str(path), read_points(path, mesh_points=mesh_points))]
     import pye57
@@ -799,6 +801,12 @@ def check_writable(path: PathLike) -> None:
         raise UsageError(f"{path}: cannot write, it is a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise InputError(f"{path}: cannot write in folder {folder} (permission denied)")
+    try:  # what os.access does not tell: a folder that takes no new file (/proc, some mounts; any, for root)
+        fd, probe = tempfile.mkstemp(prefix=".o3dsoft-check-", dir=folder)
+    except OSError as e:
+        raise InputError(f"{path}: cannot create a file in folder {folder} ({e.strerror or e})") from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def check_outputs_apart(outputs: Dict[str, Optional[PathLike]], inputs: Dict[str, Optional[PathLike]]) -> None:
@@ -1170,7 +1178,7 @@ def read_transform(path: PathLike, about: Optional[np.ndarray] = None) -> np.nda
             rigid transform (R not orthonormal with det +1 within 1e-3, last row not 0 0 0 1).
     """
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     if path.suffix.lower() == ".npy":
         try:
             T = np.load(path, allow_pickle=False)
@@ -1251,7 +1259,7 @@ def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np
         InputError: names the line or scan and what was wrong.
     """
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     if path.suffix.lower() == ".json":
         found = _poses_by_name(path, names)
     else:

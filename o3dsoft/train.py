@@ -393,8 +393,8 @@ def _training_sources(config: TrainConfig, train_pairs: PairDataset) -> List[_Pa
     extra = training_parts(config.extra_protocol)
     try:
         shapes = load_pairs(config.extra_data, "train", extra[0][0], config.seed, config.extra_points_per_shape).shapes
-    except InputError as e:
-        raise InputError(f"the second dataset (extra_data, --extra-data): {e}") from None
+    except (InputError, UsageError) as e:
+        raise type(e)(f"the second dataset (extra_data, --extra-data): {e}") from None
     return _scaled(parts, 1 - config.extra_share) + _scaled([_Part(p, w, shapes) for p, w in extra], config.extra_share)
 
 

@@ -69,6 +69,17 @@ def test_register_table_with_ground_truth_and_outputs(pair_files, tiny_model_pat
     assert "(not counted: the program's start-up and imports; the outputs asked for are timed on their own lines)" in r.output
 
 
+def test_register_names_a_ground_truth_the_other_way_round(pair_files, tiny_model_path):
+    d, _, T = pair_files
+    write_transform(d / "inverse.txt", np.linalg.inv(T))
+    notes = []
+    for gt in ("gt.txt", "inverse.txt"):
+        r = run("register", d / "src.ply", d / "tgt.pcd", "--weights", tiny_model_path, "--gt", d / gt, "--icp-distance", "0.5")
+        assert r.exit_code == 0, r.output
+        notes.append("it may map the target onto the source; --gt takes T_target_source" in r.output)
+    assert notes == [False, True]  # the right result is twice the pair's turn from the inverse (2 x 4.7 degrees)
+
+
 def test_the_aligned_source_keeps_its_colours_and_normals(pair_files, tiny_model_path):
     d, src, T = pair_files
     colors = np.random.default_rng(3).random(src.shape)
@@ -252,6 +263,7 @@ def test_no_refine(pair_files, tiny_model_path):
         ),
         (lambda d: (d / "w.pt").write_bytes(b"junk"), ["src.ply", "tgt.pcd", "--weights", "w.pt"], 1, "w.pt: not a readable TorchScript model file"),
         (None, ["src.ply", "tgt.pcd", "--out", "no_dir/out.ply"], 1, "folder no_dir does not exist"),
+        (None, ["src.ply", "tgt.pcd", "--out", "/proc/out.ply"], 1, "/proc/out.ply: cannot create a file in folder /proc"),  # before the work
         (None, ["src.ply", "tgt.pcd", "--out", "out.off"], 2, "unknown extension '.off'"),
         (None, ["src.ply", "tgt.pcd", "--points", "0"], 2, "Invalid value for '--points'"),
         (None, ["src.ply", "tgt.pcd", "--points", "4"], 2, "num_points=4 is below the network's neighbourhood size"),

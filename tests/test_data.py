@@ -95,14 +95,14 @@ def test_modelnet_splits_and_categories(modelnet_root):
 
 def test_missing_data_says_how_to_get_it(tmp_path, monkeypatch):
     monkeypatch.delenv("O3DSOFT_DATA", raising=False)
-    with pytest.raises(InputError, match="O3DSOFT_DATA"):
+    with pytest.raises(UsageError, match="O3DSOFT_DATA"):
         resolve_data_root(None)
-    with pytest.raises(InputError, match="no such folder"):
+    with pytest.raises(UsageError, match="no such folder"):
         resolve_data_root(str(tmp_path / "nope"))
     (tmp_path / "shape_names.txt").write_text("a\n")
-    with pytest.raises(InputError, match="shape_names.txt: not a folder"):
+    with pytest.raises(UsageError, match="shape_names.txt: not a folder"):
         resolve_data_root(str(tmp_path / "shape_names.txt"))
-    with pytest.raises(InputError, match="nope: no such folder.* pass its folder with --extra-data PATH"):
+    with pytest.raises(UsageError, match="nope: no such folder.* pass its folder with --extra-data PATH"):
         resolve_data_root(str(tmp_path / "nope"), "--extra-data")
     with pytest.raises(InputError, match="no ModelNet40 test split here"):
         load_modelnet40(tmp_path, "test")

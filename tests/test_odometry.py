@@ -139,7 +139,7 @@ def test_odometry_command_writes_poses_multiway_reads(tmp_path):
     out = tmp_path / "odo"
     r = CliRunner().invoke(main, ["odometry", *map(str, files), "--out", str(out), "--gt", str(gt), "--no-progress"])
     assert r.exit_code == 0, r.output
-    assert "o3dsoft odometry  4 sweeps" in r.output and "Steps flagged likely failed: 0 of 3." in r.output
+    assert "o3dsoft odometry 4 sweeps" in r.output and "Steps flagged likely failed: 0 of 3." in r.output
     assert "Against --gt (lower is better): step errors median" in r.output
     rows = (out / "poses.txt").read_text().splitlines()
     assert len(rows) == 4 and all(len(row.split()) == 12 for row in rows)
@@ -181,3 +181,10 @@ def test_the_odometry_warning_says_whether_a_flagged_step_stayed_in_the_map(tmp_
     assert "Warning: 1 step(s) flagged likely failed" in r.output and "frame_2.ply (confidence" in r.output and "left out of the map)" in r.output
     doc = json.loads((tmp_path / "odo" / "poses.json").read_text())
     assert [entry.get("in_map") for entry in doc["sweeps"]] == [None, True, False, True]
+
+
+def test_odometry_command_names_a_pattern_that_matched_no_file(tmp_path):
+    # The shell passes a pattern that matches nothing on as written: one path, which is no file.
+    r = CliRunner().invoke(main, ["odometry", str(tmp_path / "frame_*.ply"), "--out", str(tmp_path / "odo"), "--no-progress"])
+    assert r.exit_code == 2 and "frame_*.ply: no such file (a pattern that matched no file)" in r.output, r.output
+    assert not (tmp_path / "odo").exists()

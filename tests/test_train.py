@@ -160,7 +160,7 @@ def test_checkpoints_written_before_the_relative_setting_resume_and_initialise(m
 def test_train_cli_missing_data(tmp_path, monkeypatch):
     monkeypatch.delenv("O3DSOFT_DATA", raising=False)
     r = CliRunner().invoke(main, ["train", "--out", str(tmp_path / "o"), "--max-steps", "1"])
-    assert r.exit_code == 1 and "O3DSOFT_DATA" in r.output and "Traceback" not in r.output
+    assert r.exit_code == 2 and "O3DSOFT_DATA" in r.output and "Traceback" not in r.output  # usage, as a missing file
     r = CliRunner().invoke(main, ["train", "--protocol", "bogus"])
     assert r.exit_code == 2 and "unknown protocol 'bogus'" in r.output
 
