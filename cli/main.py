@@ -646,7 +646,8 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     was pruned) and OUT/merged.ply. With --init, pairs start from their initial poses and the
     result stays in their frame; scans that no trusted alignment joins to the world scan are then
     placed by their initial poses (relative to the nearest joined scan) in poses.json, not in
-    merged.ply. Exit status 3 when a scan is not joined to the world scan.
+    merged.ply. Exit status 3 when a scan is not joined to the world scan, or when a quarter or
+    more of the trusted alignments disagreed with the others (pruned): the poses may be wrong.
     """
     from tqdm import tqdm
 
@@ -719,7 +720,8 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
         click.echo(f"Picture: {render_path}", err=as_json)
     trusted = [e for e in result.edges if not e.likely_failed]
     pruned = [e for e in trusted if e.pruned]
-    if trusted and len(pruned) >= PRUNED_WARNING * len(trusted):  # one wrong loop closure is pruned as designed; many say the poses disagree
+    disagree = bool(trusted) and len(pruned) >= PRUNED_WARNING * len(trusted)  # one wrong loop closure is pruned as designed; many say the poses disagree
+    if disagree:
         click.echo(
             f"Warning: {len(pruned)} of {len(trusted)} trusted alignments disagreed with the others and were pruned: the scans' poses may be wrong "
             "(a symmetric or repeated shape fits several ways); check them (--render)",
@@ -733,6 +735,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
             f"Warning: {len(left_out)} scan(s) that no trusted alignment joins to {names[result.world]} were left out of the merged cloud: {', '.join(left_out)}{also}",
             err=True,
         )
+    if left_out or disagree:  # written, but not a result to pick up unchecked
         sys.exit(3)
 
 

@@ -568,3 +568,4 @@ def test_cli_warns_where_many_trusted_alignments_are_pruned(tmp_path, scans, mon
     monkeypatch.setattr(multiway_module, "multiway", all_pruned)
     r = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "b"), "--no-progress"])
     assert "trusted alignments disagreed with the others and were pruned: the scans' poses may be wrong" in r.output
+    assert r.exit_code == 3 and (tmp_path / "b" / "poses.json").exists()  # written, and doubted as scans left out are
