@@ -22,7 +22,7 @@ their points: on a lattice, points coincide at many poses, so coinciding says no
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, NamedTuple, Optional, Tuple
+from typing import Callable, List, NamedTuple, Optional, Tuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from . import refine as refine_stage
 from .confidence import Features, Scorer
 from .preprocess import flat_normal
-from .transforms import apply_transform, euler_to_matrix, rigid
+from .transforms import apply_transform, axis_angle_to_matrix, euler_to_matrix, rigid
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,12 @@ class DegeneracyConfig:
         held_from: from a caller's guess, on a flagged result (``constraint`` below
             ``min_constraint``), the directions of motion whose eigenvalue is below this share of
             the largest are left at the guess (:func:`held_motion`); 0: off.
+        probe_below: a trusted result whose ``constraint`` is below this (and at least
+            ``min_constraint``) is probed along the motion its surfaces hold least
+            (:func:`probe_starts`; a mug's body turns freely on the other view while its handle,
+            which fixes the pose, finds no partner); 0: off.
+        probe_steps: how far the probe moves the pose each way, in radians of turn or shares of
+            the pair's scale of shift.
     """
 
     min_constraint: float = 2e-3
@@ -66,6 +72,8 @@ class DegeneracyConfig:
     line_neighbours: int = 6
     max_points: int = 5000
     held_from: float = 0.1
+    probe_below: float = 0.015
+    probe_steps: Tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
 
 
 class Degeneracy(NamedTuple):
@@ -73,11 +81,15 @@ class Degeneracy(NamedTuple):
     higher is better; 0: some motion leaves the fit unchanged); flatness: the best fit 30 degrees
     away over the result's (0-1, lower is better; about 1: any turn fits as well); both None where
     the clouds share their points (not measured); reason: why the pose is not determined, in
-    words, or None."""
+    words, or None; loosest: (6,) the unit motion the surfaces hold least (the normal equations'
+    parameters: rotation times the pair's scale, then translation, in the target's frame) and
+    centre: (3,) the centre of the matched points it turns about, where measured."""
 
     constraint: Optional[float]
     flatness: Optional[float]
     reason: Optional[str]
+    loosest: Optional[np.ndarray] = None
+    centre: Optional[np.ndarray] = None
 
 
 # Clouds that share their points: their points fix the pose, and neither measurement is taken.
@@ -115,11 +127,12 @@ def assess(
     moved = apply_transform(transformation, source)
     plane = flat_normal(target)
     equations = _normal_equations(moved, target, distance, scale, config, plane)
-    constraint, free = 0.0, ""
+    constraint, free, loosest, centre = 0.0, "", None, None
     if equations is not None:
         basis = np.eye(6) if plane is None else _within(plane)
         eigenvalues, vectors = np.linalg.eigh(basis.T @ equations[0] @ basis)
         constraint = float(max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300))
+        loosest, centre = basis @ vectors[:, 0], equations[1]
         loose = eigenvalues < config.min_constraint * max(eigenvalues[-1], 1e-300)
         free = ", ".join(_motion_in_words(basis @ v) for v in vectors[:, loose].T)
         free = f"; the surfaces hold no {free} (target frame)" if free else ""
@@ -144,7 +157,20 @@ def assess(
             f"the clouds fit about as well turned {config.turn_deg:g} degrees (flatness {flatness:.2f}): the pose is not determined "
             "(points that fill a volume or a ball, or a pose where the clouds meet only on a patch such as the ground)"
         )
-    return Degeneracy(constraint, flatness, reason)
+    return Degeneracy(constraint, flatness, reason, loosest, centre)
+
+
+def probe_starts(transformation: np.ndarray, loosest: np.ndarray, centre: np.ndarray, scale: float, steps: Tuple[float, ...]) -> List[np.ndarray]:
+    """(4, 4) poses to start ICP from: `transformation` moved each way by each of `steps` along
+    the (6,) motion `loosest` (:attr:`Degeneracy.loosest`: rotation times `scale`, then
+    translation), turning about `centre` (3,) in the target's frame."""
+    starts = []
+    for step in steps:
+        for sign in (1.0, -1.0):
+            m = sign * step * scale * loosest
+            R = axis_angle_to_matrix(m[:3] / scale)
+            starts.append(rigid(R, centre - R @ centre + m[3:]) @ transformation)
+    return starts
 
 
 LINE_SPREAD = 0.25  # a flat cloud's points follow a line where their spread across it is at most this share of along it (variances)

@@ -144,8 +144,10 @@ class RegistrationResult:
             is flagged with confidence 0). None where the clouds share their points.
         copy_transformation: (4, 4) where both clouds look complete and the trusted pose shows no
             shared point: the result followed by a half turn of the source about one of its
-            axes, refined by ICP, that fits the clouds closest (:mod:`o3dsoft.symmetry`); None
-            where not probed or every copy came back to the result.
+            axes, refined by ICP, that fits the clouds closest (:mod:`o3dsoft.symmetry`); or,
+            where the surfaces hold a trusted pose loosely (``degeneracy.probe_below``), a pose
+            ICP reached from it moved along the motion they hold least that fits about as
+            closely; None where not probed or every copy came back to the result.
         copy_fit: its input Chamfer distance over the result's (higher is better for the
             result; at most ``symmetry.max_ratio`` = 1.1: the two fit as closely, the shape is
             symmetric, and the confidence is halved).
@@ -437,6 +439,11 @@ def _register(
     clock.lap("score")
     geometry = _assess(pair, best)
     clock.lap("degeneracy")
+    closer, alike = _probe_loosest(pair, verifier, best, geometry)
+    if closer is not None:  # along the motion the surfaces hold least, ICP found a pose that fits clearly closer
+        best, geometry = closer, _assess(pair, closer)
+        target_side = _target_side(pair, best, level)
+    clock.lap("degeneracy")
     if search.mode == "auto" and not search_reason and geometry.reason and (guess or not pair.scans) and verifier.shares_no_point(best):
         # Trusted, but the pose does not hold and shows no shared point: on two independent
         # samplings a wrong pose that fits a part closely is trusted strictly and fits as well
@@ -465,6 +472,8 @@ def _register(
         clock.lap("degeneracy")
     # Whether a symmetric copy fits as closely: nothing measured on the clouds tells the two apart.
     copy = _probe_symmetry(pair, verifier, best, geometry)
+    if copy.reason is None and alike.reason is not None:
+        copy = alike
     clock.lap("symmetry")
     clock.timings_ms["total"] = sum(clock.timings_ms.values())
     return _result(best, pair, verifier, network, search_reason, geometry, copy, target_side, clock.timings_ms, level), pair.clouds(level)
@@ -537,6 +546,56 @@ def _probe_symmetry(pair: PreparedPair, verifier: Verifier, best: Attempt, geome
     work = pair.clouds("work")
     icp = lambda T: refine_stage.icp(*work, T, pair.distance, config.icp).transformation  # noqa: E731 - ICP alone: the copies are not scored
     return symmetry_stage.probe(*work, best.fine.transformation, icp, config.symmetry, verifier.admissible)
+
+
+def _probe_loosest(
+    pair: PreparedPair, verifier: Verifier, best: Attempt, geometry: degeneracy_stage.Degeneracy
+) -> Tuple[Optional[Attempt], symmetry_stage.Symmetry]:
+    """Where a trusted result's pose is held loosely (``constraint`` under
+    ``degeneracy.probe_below``), ICP from the pose moved along the motion its surfaces hold least
+    (:func:`o3dsoft.degeneracy.probe_starts`), on the screen clouds. A part that fits closely (a
+    mug's body) can hold a pose that leaves the part that fixes it (the handle) without partners;
+    the right pose then fits both clouds clearly closer. Of the poses reached away from the result
+    that the reported confidence trusts, the one that fits the screen clouds closest is refined and
+    scored on the work clouds; returns it where it fits them ``search.undetermined_gain`` times
+    closer (input Chamfer distance; else None), and, where it fits within ``symmetry.max_ratio``
+    of the result, that pose as a copy that fits as closely (its reason says so; else
+    :data:`~o3dsoft.symmetry.NOT_PROBED`)."""
+    config = pair.config
+    settings = config.degeneracy
+    none = (None, symmetry_stage.NOT_PROBED)
+    loose = geometry.constraint is not None and geometry.constraint < settings.probe_below
+    if not (config.refine and loose and geometry.reason is None and geometry.loosest is not None and geometry.centre is not None):
+        return none
+    if verifier.reported(best).trust < config.confidence.likely_failed_below:
+        return none
+    T0 = best.fine.transformation
+    screen = pair.clouds("screen")
+    reached = []
+    for start in degeneracy_stage.probe_starts(T0, geometry.loosest, geometry.centre, pair.norm.scale, settings.probe_steps):
+        s = verifier.refine(start, start, "screen", by=best.by)
+        if not verifier.same_pose(s.fine.transformation, T0) and verifier.reported(s).trust >= config.confidence.likely_failed_below:
+            reached.append((input_chamfer_distance(*screen, s.fine.transformation), s))
+    if not reached:
+        return none
+    found = min(reached, key=lambda r: r[0])[1]
+    found = verifier.reported(verifier.refine(found.fine.transformation, found.coarse, icp=config.icp.tight(), by=best.by))
+    T = found.fine.transformation
+    if verifier.same_pose(T, T0) or found.trust < config.confidence.likely_failed_below:
+        return none
+    work = pair.clouds("work")
+    ratio = input_chamfer_distance(*work, T) / max(input_chamfer_distance(*work, T0), 1e-300)
+    if ratio * config.search.undetermined_gain <= 1.0:
+        return verifier.reported(_refine_full(pair, verifier, found)), symmetry_stage.NOT_PROBED
+    if ratio > config.symmetry.max_ratio:
+        return none
+    turn = rotation_angle_deg(T[:3, :3] @ T0[:3, :3].T)
+    reason = (
+        f"the surfaces hold the pose loosely (constraint {geometry.constraint:.1e}): moved along the motion they hold least, ICP finds a pose "
+        f"{turn:.0f} degrees away that fits the clouds {'closer' if ratio < 1 else 'as closely'} (input Chamfer distance {ratio:.2f} times "
+        "the result's), and nothing measured on the clouds tells the two apart"
+    )
+    return None, symmetry_stage.Symmetry(T, ratio, turn, reason)
 
 
 def _closed_objects(pair: PreparedPair) -> bool:

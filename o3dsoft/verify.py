@@ -208,6 +208,14 @@ class Verifier:
         )
         return max(int(near.sum()), 1)
 
+    def same_pose(self, T: np.ndarray, T0: np.ndarray) -> bool:
+        """The (4, 4) poses agree, as :meth:`agreeing` counts (``confidence.agree_deg``,
+        ``agree_shift``, at the source's centre)."""
+        c = self.config.confidence
+        centre = self.pair.clouds("work")[0].mean(axis=0)
+        moved = T[:3, :3] @ centre + T[:3, 3]
+        return bool(near_poses(T[None, :3, :3], moved[None], T0[:3, :3], T0[:3, :3] @ centre + T0[:3, 3], self.pair.norm.scale, c.agree_deg, c.agree_shift)[0])
+
     def in_contact(self, attempts: List[Attempt], min_contact: float) -> List[Attempt]:
         """Those of `attempts` that bring at least `min_contact` (``search.min_contact`` for the
         choice) times as many points within the tight distance (``Features.fitness_tight``) as the
