@@ -551,7 +551,7 @@ def _probe_symmetry(pair: PreparedPair, verifier: Verifier, best: Attempt, geome
 def _probe_loosest(
     pair: PreparedPair, verifier: Verifier, best: Attempt, geometry: degeneracy_stage.Degeneracy
 ) -> Tuple[Optional[Attempt], symmetry_stage.Symmetry]:
-    """Where a trusted result's pose is held loosely (``constraint`` under
+    """Where a trusted result's pose of two scans is held loosely (``constraint`` under
     ``degeneracy.probe_below``), ICP from the pose moved along the motion its surfaces hold least
     (:func:`o3dsoft.degeneracy.probe_starts`), on the screen clouds. A part that fits closely (a
     mug's body) can hold a pose that leaves the part that fixes it (the handle) without partners;
@@ -565,7 +565,8 @@ def _probe_loosest(
     settings = config.degeneracy
     none = (None, symmetry_stage.NOT_PROBED)
     loose = geometry.constraint is not None and geometry.constraint < settings.probe_below
-    if not (config.refine and loose and geometry.reason is None and geometry.loosest is not None and geometry.centre is not None):
+    # Scans only: on small clouds (not scans) a pose a few degrees away fits as closely, and complete shapes have the symmetry probe.
+    if not (pair.scans and config.refine and loose and geometry.reason is None and geometry.loosest is not None and geometry.centre is not None):
         return none
     if verifier.reported(best).trust < config.confidence.likely_failed_below:
         return none
