@@ -790,10 +790,21 @@ def make_folder(path: PathLike) -> Path:
 
 
 def check_writable(path: PathLike) -> None:
-    """Raise InputError unless a file can be written at `path`: its folder exists and is
-    writable; UsageError where `path` is a folder (checked before long work, so that it fails at
-    once)."""
-    path = Path(path)
+    """Raise InputError unless a file can be written at `path`: its folder exists, is writable
+    and takes a new file; UsageError where `path` is a folder (checked before long work, so that
+    it fails at once)."""
+    folder = _output_folder(Path(path))
+    try:  # what os.access does not tell: a folder that takes no new file (/proc, some mounts; any, for root)
+        fd, probe = tempfile.mkstemp(prefix=".o3dsoft-check-", dir=folder)
+    except OSError as e:
+        raise InputError(f"{path}: cannot create a file in folder {folder} ({e.strerror or e})") from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def _output_folder(path: Path) -> Path:
+    """The folder of the output file `path`, checked: it exists and is writable, and `path` is
+    not a folder (InputError, UsageError)."""
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise InputError(f"{path}: cannot write, folder {folder} does not exist")
@@ -801,12 +812,7 @@ def check_writable(path: PathLike) -> None:
         raise UsageError(f"{path}: cannot write, it is a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise InputError(f"{path}: cannot write in folder {folder} (permission denied)")
-    try:  # what os.access does not tell: a folder that takes no new file (/proc, some mounts; any, for root)
-        fd, probe = tempfile.mkstemp(prefix=".o3dsoft-check-", dir=folder)
-    except OSError as e:
-        raise InputError(f"{path}: cannot create a file in folder {folder} ({e.strerror or e})") from None
-    os.close(fd)
-    os.unlink(probe)
+    return folder
 
 
 def check_outputs_apart(outputs: Dict[str, Optional[PathLike]], inputs: Dict[str, Optional[PathLike]]) -> None:
@@ -848,16 +854,16 @@ def atomic_output(path: PathLike) -> Iterator[Path]:
     the file reaches the disk.
 
     The temporary name keeps the extension, so writers that pick a format by extension work.
-    Raises InputError (UsageError for a folder) if the file cannot be written there
-    (:func:`check_writable`).
+    Raises InputError (UsageError for a folder) if the file cannot be written there (the checks
+    of :func:`check_writable`; its temporary file is the test that the folder takes one).
     """
     path = Path(path)
-    check_writable(path)
+    folder = _output_folder(path)
     prefix, suffix = _temporary_affixes(path)
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
+        fd, tmp_name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=folder)
     except OSError as e:
-        raise InputError(f"{path}: cannot write ({e.strerror})") from None
+        raise InputError(f"{path}: cannot create a file in folder {folder} ({e.strerror or e})") from None
     os.close(fd)
     tmp = Path(tmp_name)
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual mode

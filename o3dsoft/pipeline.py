@@ -568,7 +568,7 @@ def _probe_loosest(
     # Scans only: on small clouds (not scans) a pose a few degrees away fits as closely, and complete shapes have the symmetry probe.
     if not (pair.scans and config.refine and loose and geometry.reason is None and geometry.loosest is not None and geometry.centre is not None):
         return none
-    if verifier.reported(best).trust < config.confidence.likely_failed_below:
+    if best.trust < config.confidence.likely_failed_below:  # `best` carries the reported confidence
         return none
     T0 = best.fine.transformation
     screen = pair.clouds("screen")

@@ -199,22 +199,20 @@ class Verifier:
         itself included where it is kept (at least 1)."""
         if not self.attempts:
             return 1
-        c = self.config.confidence
-        centre = self.pair.clouds("work")[0].mean(axis=0)
-        T = np.stack([a.fine.transformation for a in self.attempts])
-        T0 = attempt.fine.transformation
-        near = near_poses(
-            T[:, :3, :3], T[:, :3, :3] @ centre + T[:, :3, 3], T0[:3, :3], T0[:3, :3] @ centre + T0[:3, 3], self.pair.norm.scale, c.agree_deg, c.agree_shift
-        )
-        return max(int(near.sum()), 1)
+        return max(int(self._near(np.stack([a.fine.transformation for a in self.attempts]), attempt.fine.transformation).sum()), 1)
 
     def same_pose(self, T: np.ndarray, T0: np.ndarray) -> bool:
-        """The (4, 4) poses agree, as :meth:`agreeing` counts (``confidence.agree_deg``,
-        ``agree_shift``, at the source's centre)."""
+        """The (4, 4) poses agree, as :meth:`agreeing` counts."""
+        return bool(self._near(T[None], T0)[0])
+
+    def _near(self, T: np.ndarray, T0: np.ndarray) -> np.ndarray:
+        """(K,) which of the (K, 4, 4) poses `T` agree with the (4, 4) `T0`: within
+        ``confidence.agree_deg`` of turn and ``agree_shift`` of the scale apart at the source's centre."""
         c = self.config.confidence
         centre = self.pair.clouds("work")[0].mean(axis=0)
-        moved = T[:3, :3] @ centre + T[:3, 3]
-        return bool(near_poses(T[None, :3, :3], moved[None], T0[:3, :3], T0[:3, :3] @ centre + T0[:3, 3], self.pair.norm.scale, c.agree_deg, c.agree_shift)[0])
+        return near_poses(
+            T[:, :3, :3], T[:, :3, :3] @ centre + T[:, :3, 3], T0[:3, :3], T0[:3, :3] @ centre + T0[:3, 3], self.pair.norm.scale, c.agree_deg, c.agree_shift
+        )
 
     def in_contact(self, attempts: List[Attempt], min_contact: float) -> List[Attempt]:
         """Those of `attempts` that bring at least `min_contact` (``search.min_contact`` for the
