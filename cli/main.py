@@ -355,8 +355,11 @@ def register(
             raise click.UsageError(f"{opt} {p}: {'is a folder; ' if p.is_dir() else ''}give a file name with an extension")
     if render_path is not None and render_path.suffix.lower() != ".png":
         raise click.UsageError(f"--render {render_path}: give a .png file name")
-    if save_transform is not None and save_transform.suffix.lower() in set(io.READ_EXTENSIONS + (".png",)) - {".txt", ".csv", ".npy"}:
-        raise click.UsageError(f"--save-transform {save_transform}: a transform is written as text (.txt) or .npy, not as {save_transform.suffix}")
+    if save_transform is not None and save_transform.suffix.lower() in set(io.READ_EXTENSIONS + (".png", ".json")) - {".txt", ".csv", ".npy"}:
+        raise click.UsageError(
+            f"--save-transform {save_transform}: a transform is written as text (.txt) or .npy, not as {save_transform.suffix}"
+            + (" (--json prints the whole result as JSON)" if save_transform.suffix.lower() == ".json" else "")
+        )
     if out_path is not None:
         io.check_extension(out_path, io.WRITE_EXTENSIONS, "--out")
     io.check_outputs_apart(
@@ -829,7 +832,7 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     with io.atomic_output(out_dir / "poses.json") as tmp:
         tmp.write_text(json.dumps(payload, indent=2))
     with io.atomic_output(out_dir / "poses.txt") as tmp:
-        tmp.write_text("".join(" ".join(f"{v:.9g}" for v in pose[:3].reshape(-1)) + "\n" for pose in result.poses))
+        tmp.write_text("".join(" ".join(f"{v:.17g}" for v in pose[:3].reshape(-1)) + "\n" for pose in result.poses))  # every bit, as poses.json
     click.echo(json.dumps(payload, indent=2) if as_json else _format_odometry(result, out_dir, reference))
     flagged = [
         f"{n} (confidence {s.confidence:.3f}: {s.failure_reason}; "
@@ -881,11 +884,10 @@ def _format_odometry(result, out_dir: Path, reference=None) -> str:
     from ..odometry import errors_against
 
     motions = [step.transformation for step in result.steps[1:]]
-    path = sum(float(np.linalg.norm(T[:3, 3])) for T in motions)
     seconds = [step.timings_ms.get("total", 0.0) / 1000.0 for step in result.steps[1:]]
     lines = [
         f"o3dsoft odometry {len(result.names)} sweeps, world frame: {result.names[0]}",
-        f"Path: {_tidy(path):.4g} units in all (the motions' lengths summed); the last sweep {_tidy(float(np.linalg.norm(result.poses[-1][:3, 3]))):.4g} units from the first.",
+        f"Path: {_tidy(result.path):.4g} units in all (the motions' lengths summed); the last sweep {_tidy(result.last_from_first):.4g} units from the first.",
         f"Steps flagged likely failed: {sum(result.flagged)} of {len(motions)}.",
     ]
     if reference is not None:

@@ -37,6 +37,7 @@ _LAZY = {
     "VotesConfig": "config",
     "RestartConfig": "config",
     "ScreenConfig": "config",
+    "SecondNetworkConfig": "config",
     "RegistrationResult": "pipeline",
     "register": "pipeline",
     "multiway": "multiway",
@@ -56,7 +57,7 @@ _LAZY = {
 if TYPE_CHECKING:  # for type checkers and IDEs, which do not run __getattr__
     from .coarse import CoarseModel, load_model
     from .confidence import ConfidenceConfig
-    from .config import FeatureSearchConfig, RegisterConfig, RestartConfig, ScreenConfig, SearchConfig, StartsConfig, VotesConfig
+    from .config import FeatureSearchConfig, RegisterConfig, RestartConfig, ScreenConfig, SearchConfig, SecondNetworkConfig, StartsConfig, VotesConfig
     from .degeneracy import DegeneracyConfig
     from .io import read_points, read_poses, read_scans, read_transform, write_points, write_transform
     from .metrics import pair_errors, rotation_error_deg
@@ -99,6 +100,7 @@ __all__ = [
     "RestartConfig",
     "ScreenConfig",
     "SearchConfig",
+    "SecondNetworkConfig",
     "StartsConfig",
     "SymmetryConfig",
     "UntrustedModelWarning",

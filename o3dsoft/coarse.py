@@ -385,6 +385,17 @@ def cached_model(path: Union[str, Path, None] = None, device: str = "cpu") -> Co
         return _LOADED[key]
 
 
+def check_loaded(given: Any, name: str, setting: str) -> None:
+    """Raise UsageError unless `given`, a caller's argument `name`, is None or a network
+    :func:`load_model` loaded (or an object that stands in for one: its ``config`` and ``run``); a
+    model's name or file instead says to name it in `setting`."""
+    if given is None or isinstance(given, CoarseModel) or (hasattr(given, "config") and callable(getattr(given, "run", None))):
+        return
+    if isinstance(given, (str, os.PathLike)):
+        raise UsageError(f"{name} is a loaded network (o3dsoft.coarse.load_model), got the name {str(given)!r}: name a model in {setting}")
+    raise UsageError(f"{name} must be a network o3dsoft.coarse.load_model loaded, got {type(given).__name__}")
+
+
 def _check_contract(model: CoarseModel) -> None:
     """Run the network once on two small random clouds and check what it returns, so that a
     file whose o3dsoft.json describes another network fails here, in one line."""

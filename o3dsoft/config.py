@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import typing
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Optional, Tuple, Union
@@ -63,6 +64,9 @@ class StartsConfig:
     points: int = 256
     refine: int = 3
     weights: Optional[str] = "partial"
+
+    def __post_init__(self) -> None:
+        _weights_as_text(self)
 
 
 @dataclass(frozen=True)
@@ -256,6 +260,9 @@ class SecondNetworkConfig:
     shared_check: int = 10
     turns: int = 0
 
+    def __post_init__(self) -> None:
+        _weights_as_text(self)
+
 
 @dataclass(frozen=True)
 class RegisterConfig:
@@ -304,7 +311,7 @@ class RegisterConfig:
         refine_flagged: refine a result that the work clouds flag at full resolution too
             (default True); False: return it as the work clouds left it, which saves the most
             expensive ICP for callers that discard flagged results (multiway's first pass).
-        weights: TorchScript model file, or a shipped model's name; None: the shipped default.
+        weights: TorchScript model file (text or a Path), or a shipped model's name; None: the shipped default.
         device: torch device of the network ("cpu", "cuda", "cuda:1"...; default "cpu").
         seed: seed of the point sampling and of the search's RANSAC: the same input and seed
             give the same result (default 0); to the bit with point-to-point ICP, to about 1e-15
@@ -337,6 +344,9 @@ class RegisterConfig:
     confidence: ConfidenceConfig = field(default_factory=ConfidenceConfig)
     degeneracy: DegeneracyConfig = field(default_factory=DegeneracyConfig)
     symmetry: SymmetryConfig = field(default_factory=SymmetryConfig)
+
+    def __post_init__(self) -> None:
+        _weights_as_text(self)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -428,6 +438,13 @@ class RegisterConfig:
                 "degeneracy: min_constraint must be in [0, 1), neighbours and line_neighbours at least 3 and max_flatness positive; "
                 f"got {degeneracy.min_constraint}, {degeneracy.neighbours}, {degeneracy.line_neighbours}, {degeneracy.max_flatness}"
             )
+
+
+def _weights_as_text(settings) -> None:
+    """Set the ``weights`` field of the frozen `settings` to the text of the path it holds, where
+    it holds one (``Path("run/model.pt")``), so that configs compare and write to JSON as text."""
+    if isinstance(settings.weights, os.PathLike):
+        object.__setattr__(settings, "weights", os.fspath(settings.weights))
 
 
 def check_settings(settings) -> None:

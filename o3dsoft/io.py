@@ -230,6 +230,10 @@ def _check_pcd(path: Path) -> None:
     if found is None:
         return
     fields, data_start = found
+    names = [name.lower() for name in fields.get("FIELDS", ["x", "y", "z"])]
+    missing = [axis for axis in "xyz" if axis not in names]
+    if missing:
+        raise InputError(f"{path}: its FIELDS are {' '.join(fields.get('FIELDS', []))}: no {', '.join(missing)}; expected x, y and z")
     form, count = fields["DATA"][:1], fields.get("POINTS", [""])[0]
     if not count.isdigit():
         return
@@ -1206,13 +1210,20 @@ def _with_last_row(T: np.ndarray) -> np.ndarray:
     return np.vstack([T[:3], [0.0, 0.0, 0.0, 1.0]]) if T.shape == (3, 4) else T.copy()
 
 
+# A rotation read whose R R^T is this close to I is taken as written: float64 products of
+# rotations are orthonormal to about 1e-15; a text of 9 digits to about 1e-9.
+EXACT_WITHIN = 1e-12
+
+
 def _rigid_as_read(T: np.ndarray, where: str, about: Optional[np.ndarray] = None) -> np.ndarray:
     """The (4, 4) transform read at `where` ((3, 4) [R | t] or (4, 4)), checked rigid within
-    READ_TOLERANCE, with the nearest rotation and an exact last row (so that the stricter checks
-    downstream hold); the translation keeps where the point `about` (3,) goes (None: the origin)."""
+    READ_TOLERANCE, with the nearest rotation where it is further than :data:`EXACT_WITHIN` from
+    orthonormal (so that the stricter checks downstream hold; nearer, kept, so that what
+    :func:`write_transform` wrote reads back bit for bit) and an exact last row; the translation
+    keeps where the point `about` (3,) goes (None: the origin)."""
     T = _with_last_row(T)
     check_rigid(T, where, tol=READ_TOLERANCE)
-    return nearest_rigid(T, about, keep_within=0.0)
+    return nearest_rigid(T, about, keep_within=EXACT_WITHIN)
 
 
 def _parse_matrix_text(path: Path) -> np.ndarray:

@@ -266,12 +266,13 @@ def multiway(
         InputError: fewer than two scans, a scan that cannot be registered (empty, degenerate),
             or an initial pose that is not a rigid 4x4 transform.
     """
-    from .coarse import load_model
+    from .coarse import check_loaded, load_model
 
     config = MultiwayConfig() if config is None else config
     if not isinstance(config, MultiwayConfig):
         raise UsageError(f"config must be an o3dsoft.MultiwayConfig (its register field holds a RegisterConfig), got {type(config).__name__}")
     config.validate()
+    check_loaded(model, "model", "MultiwayConfig(register=RegisterConfig(weights=...))")
     names = tuple(names) if names is not None else None  # any iterable of names
     if names is not None and len(set(names)) != len(names):
         raise InputError(f"two scans share the name {next(n for n in names if names.count(n) > 1)!r}; give each its own")

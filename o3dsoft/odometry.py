@@ -28,7 +28,7 @@ from .errors import UsageError
 from .metrics import PairErrors, pair_errors
 from .pair import CloudLike, as_points, named_clouds
 from .pipeline import RegistrationResult, register
-from .preprocess import clean_points
+from .preprocess import clean_points, local_origin
 from .transforms import apply_transform
 
 # A flagged step whose sweep has at least this share of its points within ICP's distance of the
@@ -84,6 +84,10 @@ class OdometryResult:
         mapped: per sweep, whether the local maps of the sweeps after it hold it (the first and
             every trusted sweep; a flagged one only where it fits its map and lies near the motion
             guessed for it).
+        origins: per sweep, the (3,) point of its frame about which its motions are measured:
+            :func:`~o3dsoft.preprocess.local_origin` (the median of its points where they lie far
+            from their frame's origin, georeferenced sweeps: a turn of 0.1 degrees about an origin
+            4e6 m away moves them 7 km; else zeros, the frame's origin).
     """
 
     names: Tuple[str, ...]
@@ -91,6 +95,23 @@ class OdometryResult:
     steps: Tuple[Optional[RegistrationResult], ...]
     timings_s: Dict[str, float]
     mapped: Tuple[bool, ...] = ()
+    origins: Tuple[np.ndarray, ...] = ()
+
+    @property
+    def path(self) -> float:
+        """The length of the path (sweep units): each step's motion measured at its sweep's
+        ``origins`` point (the sensor's, for sweeps in their sensor's frame), summed."""
+        return sum(_moved(step.transformation, origin) for step, origin in zip(self.steps[1:], self._origins[1:]))  # type: ignore[union-attr]
+
+    @property
+    def last_from_first(self) -> float:
+        """How far (sweep units) the last sweep's pose moves its ``origins`` point from where the
+        first sweep's frame has it: the distance between the ends of the path."""
+        return _moved(self.poses[-1], self._origins[-1])
+
+    @property
+    def _origins(self) -> Tuple[np.ndarray, ...]:
+        return self.origins or tuple(np.zeros(3) for _ in self.names)
 
     @property
     def flagged(self) -> Tuple[bool, ...]:
@@ -145,12 +166,13 @@ def odometry(
             distinct points, degenerate): every sweep is checked before the first is registered.
         UsageError: `config` is not an OdometryConfig, or a setting is invalid.
     """
-    from .coarse import cached_model
+    from .coarse import cached_model, check_loaded
 
     config = OdometryConfig() if config is None else config
     if not isinstance(config, OdometryConfig):
         raise UsageError(f"config must be an o3dsoft.OdometryConfig (its register field holds a RegisterConfig), got {type(config).__name__}")
     config.validate()
+    check_loaded(model, "model", "OdometryConfig(register=RegisterConfig(weights=...))")
     sweeps, names = named_clouds(sweeps, names, "sweep", "odometry")
     model = model if model is not None else cached_model(config.register.weights, config.register.device)
     points = _checked_sweeps(sweeps, names, model.config.k)
@@ -160,9 +182,11 @@ def odometry(
     poses: List[np.ndarray] = [np.eye(4)]
     steps: List[Optional[RegistrationResult]] = [None]
     guesses: List[Optional[np.ndarray]] = [None]
+    origins = tuple(local_origin(p) for p in points)
     for k in range(1, len(points)):
-        local_map = _local_map(points, poses, steps, guesses, k, config.map_sweeps)
-        guess = _guess(poses, steps, guesses, k, config.constant_velocity)
+        kept = _kept(steps, guesses, origins, k)
+        local_map = _local_map(points, poses, kept, k, config.map_sweeps)
+        guess = _guess(poses, steps, kept, k, config.constant_velocity)
         # Before any motion is known the guess is only "where the last sweep was": the first
         # step is registered as any pair is (ICP from the identity slid a room view 1.1 m off, trusted).
         step = register(
@@ -173,9 +197,9 @@ def odometry(
         guesses.append(guess)
         if progress is not None:
             progress(k + 1, len(points))
-    kept = set(_kept(steps, guesses, len(points)))
-    mapped = tuple(j in kept for j in range(len(points)))
-    return OdometryResult(names, tuple(poses), tuple(steps), {"total": round(time.perf_counter() - start, 3)}, mapped)
+    in_map = set(_kept(steps, guesses, origins, len(points)))
+    mapped = tuple(j in in_map for j in range(len(points)))
+    return OdometryResult(names, tuple(poses), tuple(steps), {"total": round(time.perf_counter() - start, 3)}, mapped, origins)
 
 
 class OdometryErrors(NamedTuple):
@@ -195,12 +219,21 @@ class OdometryErrors(NamedTuple):
 
 def errors_against(result: OdometryResult, reference: Sequence[np.ndarray]) -> OdometryErrors:
     """`result` against (4, 4) reference poses world_T_sweep per sweep, in any world frame (taken
-    relative to the first sweep's, as the result's are)."""
+    relative to the first sweep's, as the result's are); translations measured at each sweep's
+    ``result.origins`` point."""
     base = np.linalg.inv(reference[0])
     truth = [base @ P for P in reference]
-    steps = [pair_errors(step.transformation, np.linalg.inv(truth[k]) @ truth[k + 1]) for k, step in enumerate(result.steps[1:])]  # type: ignore[union-attr]
-    path = sum(float(np.linalg.norm(truth[k + 1][:3, 3] - truth[k][:3, 3])) for k in range(len(truth) - 1))
-    return OdometryErrors(np.array([e.rotation_deg for e in steps]), np.array([e.translation for e in steps]), pair_errors(result.poses[-1], truth[-1]), path)
+    origins = result._origins
+    motions = [np.linalg.inv(truth[k]) @ truth[k + 1] for k in range(len(truth) - 1)]
+    steps = [pair_errors(step.transformation, motions[k], origins[k + 1]) for k, step in enumerate(result.steps[1:])]  # type: ignore[union-attr]
+    path = sum(_moved(T, origins[k + 1]) for k, T in enumerate(motions))
+    drift = pair_errors(result.poses[-1], truth[-1], origins[-1])
+    return OdometryErrors(np.array([e.rotation_deg for e in steps]), np.array([e.translation for e in steps]), drift, path)
+
+
+def _moved(T: np.ndarray, origin: np.ndarray) -> float:
+    """How far (4, 4) `T` moves the (3,) point `origin`."""
+    return float(np.linalg.norm(T[:3, :3] @ origin + T[:3, 3] - origin))
 
 
 def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> List[np.ndarray]:
@@ -213,45 +246,37 @@ def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_point
     return points
 
 
-def _kept(steps: Sequence[Optional[RegistrationResult]], guesses: Sequence[Optional[np.ndarray]], k: int) -> List[int]:
+def _kept(steps: Sequence[Optional[RegistrationResult]], guesses: Sequence[Optional[np.ndarray]], origins: Sequence[np.ndarray], k: int) -> List[int]:
     """The sweeps before k that the map keeps (the first always): those whose step was trusted,
     or flagged with at least :data:`MAP_MIN_FITNESS` of its points on the map it was registered
     onto (on sparse sweeps the confidence flags right steps) and within :data:`MAP_MAX_TURN` and
-    :data:`MAP_MAX_SHIFT` of the (4, 4) motion guessed for it, `guesses[j]`."""
+    :data:`MAP_MAX_SHIFT` of the (4, 4) motion guessed for it, `guesses[j]` (the shift measured
+    at its sweep's (3,) point `origins[j]`)."""
 
-    def keeps(step: Optional[RegistrationResult], guess: Optional[np.ndarray]) -> bool:
+    def keeps(step: Optional[RegistrationResult], guess: Optional[np.ndarray], origin: np.ndarray) -> bool:
         if step is None or not step.likely_failed:
             return True
         if step.fitness < MAP_MIN_FITNESS or guess is None:
             return False
-        off = pair_errors(step.transformation, guess)
+        off = pair_errors(step.transformation, guess, origin)
         return off.rotation_deg <= MAP_MAX_TURN and off.translation <= MAP_MAX_SHIFT * step.scale
 
-    return [j for j in range(k) if keeps(steps[j], guesses[j])]
+    return [j for j in range(k) if keeps(steps[j], guesses[j], origins[j])]
 
 
-def _local_map(
-    points: Sequence[np.ndarray],
-    poses: Sequence[np.ndarray],
-    steps: Sequence[Optional[RegistrationResult]],
-    guesses: Sequence[Optional[np.ndarray]],
-    k: int,
-    size: int,
-) -> np.ndarray:
-    """(M, 3) the last `size` sweeps before sweep k that the map keeps (:func:`_kept`), in sweep k-1's
+def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], kept: Sequence[int], k: int, size: int) -> np.ndarray:
+    """(M, 3) the last `size` of the sweeps `kept` before sweep k (:func:`_kept`), in sweep k-1's
     frame (its pose's: the motion found from there composes back to the right pose whatever
     that pose is)."""
     into = np.linalg.inv(poses[k - 1])
-    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in _kept(steps, guesses, k)[-size:]])
+    return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in kept[-size:]])
 
 
-def _guess(
-    poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], guesses: Sequence[Optional[np.ndarray]], k: int, constant_velocity: bool
-) -> np.ndarray:
-    """(4, 4) the guess of sweep k-1 _T_ sweep k: the last kept sweep's pose (:func:`_kept`)
-    carried on, once per sweep since, by the last motion between two kept sweeps (constant
-    velocity; the identity without it or before any): a step left out of the map is not repeated."""
-    kept = _kept(steps, guesses, k)
+def _guess(poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], kept: Sequence[int], k: int, constant_velocity: bool) -> np.ndarray:
+    """(4, 4) the guess of sweep k-1 _T_ sweep k: the last of the sweeps `kept` before k
+    (:func:`_kept`) at its pose, carried on, once per sweep since, by the last motion between two
+    kept sweeps (constant velocity; the identity without it or before any): a step left out of
+    the map is not repeated."""
     velocity = np.eye(4)
     if constant_velocity:
         moves = [j for j in kept if j >= 1 and (j - 1) in kept]

@@ -28,7 +28,6 @@ are :class:`o3dsoft.config.RegisterConfig`, one nested config per stage.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from typing import Any, Callable, Dict, Optional, Tuple
 
@@ -74,8 +73,10 @@ __all__ = ["register", "RegisterConfig", "RegistrationResult", "SEARCH_MODES", "
 
 @dataclass(frozen=True, eq=False)  # arrays have no single truth value: results compare (and hash) by identity
 class RegistrationResult:
-    """The result of registering a source cloud onto a target cloud. Frozen; two results compare
-    equal only when they are the same object (compare ``transformation`` with ``np.allclose``).
+    """The result of registering a source cloud onto a target cloud. Frozen, its transforms
+    read-only arrays (``np.array(result.transformation)`` gives a copy to change); two results
+    compare equal only when they are the same object (compare ``transformation`` with
+    ``np.allclose``).
 
     Attributes:
         transformation: (4, 4) float64 T_target_source: p_target = T @ p_source.
@@ -199,6 +200,16 @@ class RegistrationResult:
     search_reason: Optional[str] = None
     target_consistency: Optional[float] = None
 
+    def __post_init__(self) -> None:
+        # A read-only float64 copy of each transform: a caller scaling its own copy in place
+        # cannot change the result, nor another result that shares the array.
+        for name in TRANSFORM_FIELDS:
+            value = getattr(self, name)
+            if value is not None:
+                frozen = np.array(value, dtype=np.float64)
+                frozen.flags.writeable = False
+                object.__setattr__(self, name, frozen)
+
     def __repr__(self) -> str:
         """A few lines: the verdict, the main scores (with units) and the transform."""
         verdict = f"likely failed: {self.failure_reason}" if self.likely_failed else "trusted"
@@ -312,11 +323,9 @@ def register(
         raise UsageError(f"config must be an o3dsoft.RegisterConfig, got {type(config).__name__}")
     check_settings(config)  # before any stage reads one (the network's own limits: config.validate)
     coarse_stage.torch_runs()
-    for name, given in (("model", model), ("search_model", search_model)):
-        if isinstance(given, (str, os.PathLike)):
-            raise UsageError(
-                f"{name} is a loaded network (o3dsoft.coarse.load_model), got the name {str(given)!r}: name a model in RegisterConfig(weights=...)"
-            )
+    coarse_stage.check_loaded(model, "model", "RegisterConfig(weights=...)")
+    coarse_stage.check_loaded(search_model, "search_model", "RegisterConfig(search=SearchConfig(starts=StartsConfig(weights=...)))")
+    _check_weights(config, model is None, search_model is None)
     src, tgt = as_points(source, source_name), as_points(target, target_name)
     centre = sample_median(src)  # a point in the source's middle: a stray point does not move it
     if init is not None:
@@ -339,6 +348,23 @@ def register(
     # precision, each transform taking the source's middle point where it did.
     result = _started_at(_moved_back(result, origin), init)
     return _each_transform(result, lambda T: nearest_rigid(T, centre))
+
+
+def _check_weights(config: RegisterConfig, main: bool, search: bool) -> None:
+    """Raise UsageError naming the setting whose model file does not exist (nor names a shipped
+    model): every network the pipeline may load (the main and the search network only where
+    `main` and `search`: not passed in), before any runs, so that a mistyped name fails on the
+    first pair rather than on the first pair hard enough to reach its stage."""
+    for name, weights, loaded in (
+        ("weights", config.weights, main),
+        ("second_network.weights", config.second_network.weights, True),
+        ("search.starts.weights", config.search.starts.weights, search),
+    ):
+        if loaded and (weights is not None or name == "weights"):
+            try:
+                coarse_stage.weights_file(weights)
+            except UsageError as e:
+                raise UsageError(f"{name}: {e}") from None
 
 
 def _started_at(result: RegistrationResult, init: Optional[np.ndarray]) -> RegistrationResult:

@@ -281,6 +281,7 @@ def test_no_refine(pair_files, tiny_model_path):
         (None, ["src.ply", "tgt.pcd", "--icp-absolute"], 2, "--icp-absolute needs --icp-distance, in the clouds' units"),
         (None, ["src.ply", "tgt.pcd", "--render", "fig.txt"], 2, "--render fig.txt: give a .png file name"),
         (None, ["src.ply", "tgt.pcd", "--save-transform", "T.ply"], 2, "--save-transform T.ply: a transform is written as text (.txt) or .npy, not as .ply"),
+        (None, ["src.ply", "tgt.pcd", "--save-transform", "T.json"], 2, "not as .json (--json prints the whole result as JSON)"),
         (None, ["src.ply", "tgt.pcd", "--second-turns", "24"], 2, "Invalid value for '--second-turns'"),
     ],
 )

@@ -430,6 +430,16 @@ def test_a_rounded_rotation_made_exact_still_moves_the_clouds_where_the_file_doe
         assert np.linalg.norm(apply_transform(pose, centre[None]) - apply_transform(written, centre[None])) < 1e-6
 
 
+@pytest.mark.parametrize("ext", ["txt", "npy"])
+def test_a_written_transform_reads_back_bit_for_bit(tmp_path, ext):
+    from o3dsoft.transforms import nearest_rigid
+
+    rng = np.random.default_rng(7)
+    for k in range(20):  # rigid to float64 precision, as register's results are; some georeferenced
+        T = nearest_rigid(rigid(euler_to_matrix(rng.uniform(-180.0, 180.0, 3)), rng.uniform(-5.0, 5.0, 3) + (k % 2) * np.array([5e5, 5e6, 300.0])))
+        assert np.array_equal(read_transform(write_transform(tmp_path / f"T{k}.{ext}", T)), T)
+
+
 @pytest.mark.parametrize(
     "text,match",
     [
@@ -662,6 +672,10 @@ def test_a_pcd_of_double_coordinates_is_read_as_written(tmp_path, pts):
     cut.write_bytes(cut.read_bytes()[: -50 * rows.itemsize])
     with pytest.raises(InputError, match="cut.pcd: the header declares 200 points, but the file ends after 150"):
         read_points(cut)
+    flat = np.zeros(len(pts), dtype=[("x", "<f4"), ("y", "<f4")])  # a 2D scan's x and y alone
+    flat["x"], flat["y"] = pts[:, 0], pts[:, 1]
+    with pytest.raises(InputError, match="flat.pcd: its FIELDS are x y: no z; expected x, y and z"):
+        read_points(_pcd(tmp_path / "flat.pcd", [("x", 4, "F"), ("y", 4, "F")], flat))
 
 
 def test_a_las_of_a_cloud_spanning_more_than_its_integers_hold_at_the_finest_step_is_written_coarser(tmp_path, pts):

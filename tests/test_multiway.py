@@ -511,7 +511,7 @@ def test_scans_left_apart_are_searched_nearest_in_the_sequence_first(monkeypatch
     calls = []
     monkeypatch.setattr(mw, "register", _recording_register(calls))
     clouds = [blob(np.random.default_rng(k), 300) for k in range(4)]
-    multiway(clouds, MultiwayConfig(neighbours="all"), names=["a", "b", "c", "d"], model=object())
+    multiway(clouds, MultiwayConfig(neighbours="all"), names=["a", "b", "c", "d"], model=AlwaysWrongModel(np.eye(3)))
     assert [mode for _, _, mode, _, _ in calls[:6]] == ["quick"] * 6  # the first pass: the feature match on partial overlaps, no more
     searched = [(s, t) for s, t, mode, _, _ in calls if mode == "auto"]
     assert searched == [("b", "a"), ("c", "b"), ("d", "c"), ("c", "a"), ("d", "b"), ("d", "a")]
@@ -528,11 +528,11 @@ def test_pairs_from_initial_poses_are_held_near_the_turn_between_them(monkeypatc
     ):
         calls = []
         monkeypatch.setattr(mw, "register", _recording_register(calls))
-        multiway(clouds, config, model=object(), init_poses=[np.eye(4), np.eye(4), None])
+        multiway(clouds, config, model=AlwaysWrongModel(np.eye(3)), init_poses=[np.eye(4), np.eye(4), None])
         assert {(s, t): (bound, given) for s, t, _, bound, given in calls}[("scan1", "scan0")] == (held, True)
         assert all(bound == config.register.max_rotation for s, t, _, bound, given in calls if not given)  # no guess, no bound
     with pytest.raises(InputError, match="init_max_rotation must be in"):
-        multiway(clouds, MultiwayConfig(init_max_rotation=0.0), model=object())
+        multiway(clouds, MultiwayConfig(init_max_rotation=0.0), model=AlwaysWrongModel(np.eye(3)))
 
 
 def test_icp_options_set_multiways_icp(tmp_path, scans, monkeypatch):

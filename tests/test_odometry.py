@@ -9,7 +9,7 @@ from click.testing import CliRunner
 import o3dsoft
 from o3dsoft.cli.main import main
 from o3dsoft.errors import InputError, UsageError
-from o3dsoft.odometry import OdometryConfig, _guess, _local_map, odometry
+from o3dsoft.odometry import OdometryConfig, _guess, _kept, _local_map, errors_against, odometry
 from o3dsoft.transforms import euler_to_matrix, rigid
 
 from .conftest import ring_sweep
@@ -61,24 +61,37 @@ def test_the_first_step_is_registered_without_a_guess_and_the_later_ones_from_th
     assert all(o3dsoft.pair_errors(p, t).translation < 0.05 for p, t in zip(result.poses, truth))
 
 
+def _map(points, poses, steps, guesses, k, size, origins=None):
+    """The local map before sweep k, of the sweeps :func:`_kept` keeps."""
+    return _local_map(points, poses, _kept(steps, guesses, origins or [np.zeros(3)] * len(steps), k), k, size)
+
+
 def test_the_local_map_and_the_guess_leave_flagged_steps_that_fit_poorly_or_moved_far_out():
     points = [np.full((k + 1, 3), float(k)) for k in range(6)]  # sweep k has k + 1 points
     poses = [np.eye(4)] * 6
     guesses = [None] + [np.eye(4)] * 5
     # steps 2 and 4 flagged, their sweeps off the map; step 1 flagged on the map, at its guess (kept)
     steps = [None] + [SimpleNamespace(likely_failed=k in (1, 2, 4), fitness=0.9 if k == 1 else 0.2, transformation=np.eye(4), scale=10.0) for k in range(1, 6)]
-    assert len(_local_map(points, poses, steps, guesses, 5, 3)) == 1 + 2 + 4  # sweeps 0, 1 and 3: 2 and 4 flagged
-    assert len(_local_map(points, poses, steps, guesses, 4, 2)) == 2 + 4  # sweeps 1 and 3
-    assert len(_local_map(points, poses, steps, guesses, 1, 5)) == 1  # the first alone
+    assert len(_map(points, poses, steps, guesses, 5, 3)) == 1 + 2 + 4  # sweeps 0, 1 and 3: 2 and 4 flagged
+    assert len(_map(points, poses, steps, guesses, 4, 2)) == 2 + 4  # sweeps 1 and 3
+    assert len(_map(points, poses, steps, guesses, 1, 5)) == 1  # the first alone
     moved = [rigid(np.eye(3), np.array([k, 0.0, 0.0])) for k in range(6)]  # world_T_sweep: in sweep k-1's frame
-    assert np.array_equal(_local_map(points, moved, steps, guesses, 4, 1), points[3])
-    assert np.allclose(_local_map(points, moved, steps, guesses, 4, 2)[:2], points[1] + [-2.0, 0.0, 0.0])
+    assert np.array_equal(_map(points, moved, steps, guesses, 4, 1), points[3])
+    assert np.allclose(_map(points, moved, steps, guesses, 4, 2)[:2], points[1] + [-2.0, 0.0, 0.0])
     # A flagged step that fits its map closely but turned far from its guess (a wide ICP distance
     # finds most of a street sweep near the map 95 degrees off), or shifted far, is left out too.
     for far in (rigid(euler_to_matrix([0.0, 0.0, 95.0]), np.zeros(3)), rigid(np.eye(3), np.array([2.0, 0.0, 0.0]))):
         turned = list(steps)
         turned[1] = SimpleNamespace(likely_failed=True, fitness=0.97, transformation=far, scale=10.0)
-        assert len(_local_map(points, poses, turned, guesses, 4, 3)) == 1 + 4  # sweeps 0 and 3
+        assert len(_map(points, poses, turned, guesses, 4, 3)) == 1 + 4  # sweeps 0 and 3
+    # Shifts are measured at each sweep's own middle: a turn of 2 degrees about the origin of a
+    # georeferenced frame shifts its sweep by 140 km there, and by nothing where its points are.
+    utm = np.array([5e5, 4e6, 300.0])
+    about_utm = rigid(euler_to_matrix([0.0, 0.0, 2.0]), utm - euler_to_matrix([0.0, 0.0, 2.0]) @ utm)
+    turned = list(steps)
+    turned[1] = SimpleNamespace(likely_failed=True, fitness=0.97, transformation=about_utm, scale=10.0)
+    assert len(_map(points, poses, turned, guesses, 4, 3, [np.zeros(3), utm] + [np.zeros(3)] * 4)) == 1 + 2 + 4  # sweeps 0, 1 and 3
+    assert len(_map(points, poses, turned, guesses, 4, 3)) == 1 + 4  # measured at the frame's origin: left out
 
     # The guess: sweep 5 after the flagged step 4 is the last trusted sweep (3) carried on twice by
     # the last motion between two trusted sweeps (0 -> 1; 2 -> 3 follows a flagged one).
@@ -86,9 +99,26 @@ def test_the_local_map_and_the_guess_leave_flagged_steps_that_fit_poorly_or_move
     steps[1].transformation, steps[3].transformation, steps[4].transformation = velocity, np.eye(4), rigid(np.eye(3), np.array([50.0, 0, 0]))
     poses = [np.eye(4), velocity, velocity, velocity @ rigid(np.eye(3), np.array([0.0, 3.0, 0.0])), np.eye(4) * 7]
     poses[4][3, 3] = 1.0
-    guess = _guess(poses, steps, guesses, 5, True)
+    kept = _kept(steps, guesses, [np.zeros(3)] * 6, 5)
+    guess = _guess(poses, steps, kept, 5, True)
     assert np.allclose(poses[4] @ guess, poses[3] @ velocity @ velocity)
-    assert np.allclose(poses[4] @ _guess(poses, steps, guesses, 5, False), poses[3])  # without constant velocity: where sweep 3 is
+    assert np.allclose(poses[4] @ _guess(poses, steps, kept, 5, False), poses[3])  # without constant velocity: where sweep 3 is
+
+
+def test_georeferenced_sweeps_give_the_path_and_errors_they_give_near_the_origin():
+    # The same sweeps 5e6 units from their frames' origin: each motion is the same motion about a
+    # point there, so a turn of 0.01 degrees moves the frame's origin by 700 units.
+    sweeps, truth = _sequence(5)
+    utm = rigid(np.eye(3), np.array([5e5, 4e6, 300.0]))
+    near = odometry(sweeps, OdometryConfig(map_sweeps=3))
+    far = odometry([s + utm[:3, 3] for s in sweeps], OdometryConfig(map_sweeps=3))
+    far_truth = [utm @ P @ np.linalg.inv(utm) for P in truth]
+    assert far.flagged == near.flagged and far.mapped == near.mapped
+    assert near.path == pytest.approx(4 * np.hypot(0.6, 0.1), rel=1e-3)  # the sensor's path: its frame's origin
+    errors = errors_against(far, far_truth)
+    assert errors.path == pytest.approx(far.path, rel=0.02) and 0.8 * near.path < far.path < 1.5 * near.path  # at the sweeps' middles
+    assert errors.translation.max() < 0.05 and errors.drift.translation < 0.05 and errors.drift.rotation_deg < 0.3, errors
+    assert far.last_from_first == pytest.approx(errors_against(far, far_truth).path, rel=0.1)
 
 
 @pytest.mark.parametrize("size", [1, 3])

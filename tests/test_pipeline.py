@@ -53,9 +53,23 @@ def test_the_result_is_rigid_to_float64_precision_and_reads_as_a_summary(tiny_mo
     again = pickle.loads(pickle.dumps(res))
     assert res == res and res != again and res in [res] and len({res, again}) == 2
     assert np.array_equal(again.transformation, res.transformation)
+    for name in ("transformation", "coarse_transformation", "network_transformation"):  # frozen: its arrays too
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(res, name)[:3, 3] *= 1000.0
     text = repr(res)
     assert text.startswith("RegistrationResult(trusted; confidence") and "cloud units (lower is better)" in text
     assert len(text) < 600 and text.count("\n") == 5
+
+
+def test_weights_given_as_a_path_are_held_as_text(tiny_model_path):
+    import json
+
+    config = RegisterConfig(weights=tiny_model_path, second_network=o3dsoft.SecondNetworkConfig(weights=tiny_model_path))
+    assert config.weights == config.second_network.weights == str(tiny_model_path)
+    assert json.loads(json.dumps(config.to_dict()))["weights"] == str(tiny_model_path)
+    src, tgt, T = blob_pair(seed=1)
+    res = register(src, tgt, replace(config, icp=ICPConfig(distance=0.5)))
+    assert pair_errors(res.transformation, T).rotation_deg < 1e-3
 
 
 @pytest.mark.parametrize("units", [1e-3, 1.0, 1e3])
@@ -676,6 +690,21 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
             "search.screen.points must be at least 1, got 0",
         ),
         (lambda s, t: register(s, t, RegisterConfig(icp=ICPConfig(noise_rounds=-1))), InputError, "icp.noise_rounds must not be negative, got -1"),
+        (lambda s, t: register(s, t, model=123), UsageError, "model must be a network o3dsoft.coarse.load_model loaded, got int"),
+        (lambda s, t: register(s, t, search_model=object()), UsageError, "search_model must be a network o3dsoft.coarse.load_model loaded, got object"),
+        # A mistyped model fails on every pair, not only on those hard enough to reach its stage.
+        (
+            lambda s, t: register(s, t, RegisterConfig(second_network=o3dsoft.SecondNetworkConfig(weights="incongruentt"))),
+            UsageError,
+            "second_network.weights: incongruentt: weights file not found",
+        ),
+        (
+            lambda s, t: register(s, t, RegisterConfig(search=SearchConfig(starts=StartsConfig(weights="partail")))),
+            UsageError,
+            "search.starts.weights: partail: weights file not found",
+        ),
+        (lambda s, t: o3dsoft.multiway([s, t], model="default"), UsageError, "name a model in MultiwayConfig\\(register=RegisterConfig\\(weights="),
+        (lambda s, t: o3dsoft.odometry([s, t], model="default"), UsageError, "name a model in OdometryConfig\\(register=RegisterConfig\\(weights="),
     ],
     ids=[
         "config-dict",
@@ -698,6 +727,12 @@ def test_array_likes_users_pass_are_taken_or_refused_with_one_clear_error():
         "icp-points-0",
         "screen-points-0",
         "noise-rounds-negative",
+        "model-int",
+        "search-model-object",
+        "second-weights-typo",
+        "starts-weights-typo",
+        "multiway-model-name",
+        "odometry-model-name",
     ],
 )
 def test_library_misuse_is_one_clear_o3dsoft_error(call, error, message):
@@ -936,7 +971,7 @@ def _turned_pair(euler_deg):
     return src, apply(T, src), T
 
 
-def test_a_flagged_first_network_is_followed_by_the_second_one(monkeypatch):
+def test_a_flagged_first_network_is_followed_by_the_second_one(monkeypatch, tmp_path):
     from o3dsoft import coarse
     from o3dsoft.config import SecondNetworkConfig
 
@@ -945,20 +980,22 @@ def test_a_flagged_first_network_is_followed_by_the_second_one(monkeypatch):
     second = NearSightedModel(np.eye(3))
     second.R_true = T[:3, :3]
     second.config = replace(second.config)  # k=8, like the first
+    weights = tmp_path / "second.pt"
+    weights.touch()  # a file, as register checks before it runs; the fake loader gives the network
 
-    def fake_cached_model(weights, device="cpu"):
-        asked.append((weights, device))
-        return second if weights == "second.pt" else coarse.load_model(weights, device)
+    def fake_cached_model(path, device="cpu"):
+        asked.append((path, device))
+        return second if path == str(weights) else coarse.load_model(path, device)
 
     monkeypatch.setattr(coarse, "cached_model", fake_cached_model)
     off = SearchConfig(mode="off")
     first = AlwaysWrongModel(euler_to_matrix([0.0, 0.0, 180.0]))  # a half turn about z, far from either pair's truth: flagged
-    config = RegisterConfig(num_points=800, search=off, second_network=SecondNetworkConfig(weights="second.pt", iterations=2))
+    config = RegisterConfig(num_points=800, search=off, second_network=SecondNetworkConfig(weights=weights, iterations=2))
     second_only_finds_under_50 = register(src, tgt, config, model=first)
     # NearSightedModel finds rotations under 50 degrees only: from the pose as given it returns the
     # identity, so the result stays flagged, with both networks' estimates tried.
     assert second_only_finds_under_50.likely_failed and second_only_finds_under_50.attempts == 2
-    assert asked == [("second.pt", "cpu")] and "second_network" in second_only_finds_under_50.timings_ms
+    assert asked == [(str(weights), "cpu")] and "second_network" in second_only_finds_under_50.timings_ms
 
     src, tgt, T = _turned_pair([40.0, 0.0, 0.0])
     second.R_true = T[:3, :3]
