@@ -796,6 +796,7 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     from .. import io
     from ..odometry import OdometryConfig
     from ..odometry import odometry as run_odometry
+    from ..preprocess import local_origin
 
     _each_once(sweeps, "sweep")
     for p in sweeps:
@@ -807,7 +808,8 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     clouds = [io.read_points(p) for p in sweeps]
     for p, c in zip(sweeps, clouds):
         _warn_float32(p, c)
-    reference = io.read_poses(gt_path, names, what="sweeps") if gt_path is not None else None
+    # A rounded rotation made exact about each sweep's own points, as register --gt does about its clouds' (georeferenced sweeps).
+    reference = io.read_poses(gt_path, names, [local_origin(c) for c in clouds], what="sweeps") if gt_path is not None else None
     missing = [n for n, pose in zip(names, reference or ()) if pose is None]
     if missing:
         raise click.UsageError(f"--gt {gt_path}: no pose for {len(missing)} sweep(s): {', '.join(missing[:5])}")

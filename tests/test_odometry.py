@@ -1,5 +1,6 @@
 import importlib
 import json
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -119,6 +120,28 @@ def test_georeferenced_sweeps_give_the_path_and_errors_they_give_near_the_origin
     assert errors.path == pytest.approx(far.path, rel=0.02) and 0.8 * near.path < far.path < 1.5 * near.path  # at the sweeps' middles
     assert errors.translation.max() < 0.05 and errors.drift.translation < 0.05 and errors.drift.rotation_deg < 0.3, errors
     assert far.last_from_first == pytest.approx(errors_against(far, far_truth).path, rel=0.1)
+
+
+def test_the_odometry_command_measures_georeferenced_sweeps_against_a_rounded_reference_at_their_points(tmp_path):
+    # A reference of 6-digit rotations (as published), its translations for the rounded rotations:
+    # made exact about the frame's origin, 5e6 units away, it would move the sweeps by metres.
+    sweeps, truth = _sequence(3, seed=1)
+    utm = rigid(np.eye(3), np.array([5e5, 4e6, 300.0]))
+    files, rows = [], []
+    for k, (sweep, P) in enumerate(zip(sweeps, truth)):
+        files.append(tmp_path / f"frame_{k}.ply")
+        o3dsoft.write_points(files[-1], sweep + utm[:3, 3])
+        far = utm @ P @ np.linalg.inv(utm)
+        far[:3, :3] = np.round(far[:3, :3], 6)
+        far[:3, 3] = utm[:3, 3] + P[:3, 3] - far[:3, :3] @ utm[:3, 3]
+        rows.append(" ".join(f"{v:.17g}" for v in far[:3].reshape(-1)))
+    gt = tmp_path / "gt.txt"
+    gt.write_text("\n".join(rows) + "\n")
+    r = CliRunner().invoke(main, ["odometry", *map(str, files), "--out", str(tmp_path / "odo"), "--gt", str(gt), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    errors = re.search(r"the last sweep ([0-9.e+-]+) deg / ([0-9.e+-]+) units off \(([0-9.e+-]+) % of the reference path", r.output)
+    assert errors is not None, r.output
+    assert float(errors[1]) < 0.3 and float(errors[2]) < 0.05 and float(errors[3]) < 5.0, r.output
 
 
 @pytest.mark.parametrize("size", [1, 3])
