@@ -113,9 +113,7 @@ def run_job(job: PairJob, config) -> dict:
         return {**row, "status": "failed", "error": str(e), "seconds": time.perf_counter() - t0}
     row.update(
         status="ok",
-        T_target_source=" ".join(
-            f"{v:.17g}" for v in result.transformation.reshape(-1)
-        ),  # every bit, as write_transform: georeferenced translations are millions of units
+        T_target_source=" ".join(f"{v:.17g}" for v in result.transformation.reshape(-1)),  # every bit: georeferenced translations
         fitness=result.fitness,
         confidence=result.confidence,
         likely_failed=result.likely_failed,

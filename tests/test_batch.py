@@ -110,6 +110,12 @@ def test_sequential_rows_report_the_missing_file_and_run_the_rest(tmp_path, pair
             assert r["rotation_error_deg"] < 1.0 and not r["likely_failed"]
     on_disk = _rows(tmp_path / "r.csv")
     assert list(on_disk) == [2, 3, 4, 5, 6]  # the pairs file's order
+    # The file's transform is the library's to the bit (georeferenced translations need every digit).
+    job = read_pair_jobs(pairs_file)[0]
+    from o3dsoft import read_points, register
+
+    alone = register(read_points(job.source), read_points(job.target), CONFIG, source_name=job.source, target_name=job.target)
+    assert np.array_equal(np.array(on_disk[2]["T_target_source"].split(), float).reshape(4, 4), alone.transformation)
     assert list(csv.reader(open(tmp_path / "r.csv")))[0] == list(COLUMNS)
 
 
