@@ -1144,11 +1144,16 @@ def _bench_options(fn):
     return _pipeline_options(_apply_options(options, fn))
 
 
-def _run_bench(name, pairs, count, description, recall=None, titles=None, units=None, *, methods, seed, out, overwrite, no_progress, jobs, **pipeline):
+def _run_bench(
+    name, pairs, count, description, recall=None, titles=None, units=None, ready=None, *, methods, seed, out, overwrite, no_progress, jobs, **pipeline
+):
+    """Run the bench's methods on `pairs`; `ready`, where given, is called once every setting and
+    model is checked and the run folder made, before the first pair (what it writes then is not
+    left behind by a run refused)."""
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
-    from ..coarse import cached_model, load_model
+    from ..coarse import cached_model, load_model, torch_device
 
     config = BenchConfig(methods=check_methods(methods) if methods else BenchConfig().methods, seed=seed, register=_register_config(**pipeline))
     if recall is not None:  # thresholds per protocol (folder of scans)
@@ -1157,6 +1162,7 @@ def _run_bench(name, pairs, count, description, recall=None, titles=None, units=
     if pipeline.get("weights") is not None and not needs_model:
         click.echo(f"Warning: --weights {pipeline['weights']} is not used: no method asked ({', '.join(config.methods)}) runs the network", err=True)
     device = config.register.device
+    torch_device(device)  # an unknown or absent device, whichever methods run
     model = load_model(config.register.weights, device) if needs_model else None
     if needs_model and config.register.second_network.weights is not None:
         cached_model(config.register.second_network.weights, device)  # a file that is no model fails now, not at each flagged pair
@@ -1164,6 +1170,8 @@ def _run_bench(name, pairs, count, description, recall=None, titles=None, units=
     search_model = load_model(config.register.search.starts.weights, device) if searches else None
     description = {"command": shlex.join(["o3dsoft", *sys.argv[1:]]), **description, "jobs": jobs}
     folder = prepare_folder(out or Path("runs") / f"bench-{name}-{time.strftime('%Y%m%d-%H%M%S')}", overwrite)
+    if ready is not None:
+        pairs = ready(pairs)
     result = run(
         pairs,
         count,
@@ -1210,12 +1218,17 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
     from ..bench import export_pairs as write_pairs
     from ..bench import import_pairs as read_pairs
     from ..coarse import sha256_of
-    from ..data import get_protocol
+    from ..data import get_protocol, resolve_data_root
 
     check_methods(common["methods"])
     seed = common["seed"]
     if import_pairs:
-        made = [opt for opt, given in (("--protocol", protocols), ("--limit", limit), ("--data", data), ("--export-pairs", export_pairs)) if given]
+        sized = click.get_current_context().get_parameter_source("points_per_shape") is not click.core.ParameterSource.DEFAULT
+        made = [
+            opt
+            for opt, given in (("--protocol", protocols), ("--limit", limit), ("--data", data), ("--points-per-shape", sized), ("--export-pairs", export_pairs))
+            if given
+        ]
         if made:
             raise click.UsageError(f"--import-pairs scores the file's pairs as they are; {', '.join(made)} make(s) pairs: leave it out")
         pairs = read_pairs(import_pairs)
@@ -1230,18 +1243,23 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
             "benchmark": "modelnet40",
             "protocols": list(protocols),
             "limit": limit,
-            "data": data,
+            "data": str(resolve_data_root(data).resolve()),  # --data or $O3DSOFT_DATA, as read
             "seed": seed,
             "points_per_shape": points_per_shape,
         }
-        if export_pairs:
-            if export_pairs.exists() and not common["overwrite"]:
-                raise click.UsageError(f"--export-pairs {export_pairs}: the file exists; choose another name or pass --overwrite")
-            pairs = list(iterator)
-            write_pairs(export_pairs, pairs)
-            click.echo(f"wrote {len(pairs)} pairs to {export_pairs}", err=True)
-            iterator = iter(pairs)
-    _run_bench("modelnet40", iterator, count, description, **common)
+        if export_pairs and export_pairs.exists() and not common["overwrite"]:
+            raise click.UsageError(f"--export-pairs {export_pairs}: the file exists; choose another name or pass --overwrite")
+
+    def export(pairs):
+        """The pairs, written to --export-pairs first (once the run is sure to start)."""
+        if not export_pairs:
+            return pairs
+        pairs = list(pairs)
+        write_pairs(export_pairs, pairs)
+        click.echo(f"wrote {len(pairs)} pairs to {export_pairs}", err=True)
+        return iter(pairs)
+
+    _run_bench("modelnet40", iterator, count, description, ready=export, **common)
 
 
 _MIN_OVERLAP = click.option(
@@ -1357,7 +1375,9 @@ def _run_scan_bench(folders, min_overlap, turns, noise, common, unit="m"):
         thresholds = " and ".join(f"{d:g} deg / {t:.3g} {unit}" for d, t in scans.recall)
         titles[name] = f"{name} ({scans.kind}: success within {thresholds})"
         recall[name], units[name] = scans.recall, unit
-        description.append({"folder": name, "kind": scans.kind, "unit": unit, "recall": [list(r) for r in scans.recall], "pairs": scans.table})
+        description.append(
+            {"folder": name, "path": scans.path, "kind": scans.kind, "unit": unit, "recall": [list(r) for r in scans.recall], "pairs": scans.table}
+        )
     if len(recall) < len(folders):
         raise UsageError("two folders have the same name; give folders of different names")
     pairs = [p for scans in folders for p in scans.pairs]

@@ -197,6 +197,7 @@ class ScanFolder(NamedTuple):
     table: List[dict]
     left_out: Tuple[Tuple[str, int], ...] = ()
     guessed_from: Optional[float] = None  # the first scan's size (units) `kind` was guessed from; None: given
+    path: str = ""  # the folder, absolute: where a run's scans came from
 
 
 def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto", unit: str = "m") -> ScanFolder:
@@ -270,7 +271,7 @@ def scan_folder(folder: Path, min_overlap: float = 0.3, kind: str = "auto", unit
     size = scene_size(next(iter(clouds.values())))  # of the first scan
     guessed = size if kind == "auto" else None
     kind = guess_kind(size * UNITS[unit]) if kind == "auto" else kind
-    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size, UNITS[unit]), table, left_out, guessed)
+    return ScanFolder(name, pairs, kind, recall_thresholds(kind, size, UNITS[unit]), table, left_out, guessed, str(Path(folder).resolve()))
 
 
 def _relative_name(path: Path, folder: Path) -> str:
@@ -855,6 +856,8 @@ class BenchRun(NamedTuple):
 def prepare_folder(out: Path, overwrite: bool) -> Path:
     """Create the run folder; refuse an existing one that holds anything unless `overwrite`."""
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        return make_folder(out)  # refused as every command refuses a folder a file stands in for
     empty = out.is_dir() and not any(out.iterdir())  # made beforehand, or left by a run killed before it wrote
     if out.exists() and not empty and not overwrite:
         raise UsageError(f"{out}: the output folder exists; choose another --out or pass --overwrite")

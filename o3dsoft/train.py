@@ -665,7 +665,14 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             optimiser.load_state_dict(ckpt["optimiser"])
             if "scheduler" in ckpt:  # checkpoints of earlier versions had none (constant lr)
                 scheduler.load_state_dict(ckpt["scheduler"])
-    if lead:
+        # The states bring back the saved learning rate; the run goes on at this call's (--lr
+        # given with --resume), on the schedule of this call's epochs, from the step it is at.
+        scheduler.base_lrs = [config.lr] * len(optimiser.param_groups)
+        for group in optimiser.param_groups:
+            group["initial_lr"] = config.lr
+            group["lr"] = config.lr * _lr_factor(config, total_steps)(scheduler.last_epoch)
+    finished = _out_of_steps(config, state) or state["epoch"] >= config.epochs  # resumed at its end
+    if lead and not finished:  # a finished run keeps the settings it was trained with
         _write_settings(out, config, fresh=not resume)
     net = model
     if world > 1:
@@ -713,15 +720,20 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
                 advice = "no checkpoint was written; once the folder is writable again (space, permissions), start the run again with --overwrite"
             raise O3dsoftError(f"{ckpt_path}: could not write the checkpoint ({e}); {advice}") from None
 
+    done = _out_of_steps(config, state)
+    if finished:
+        reached = f"max_steps = {config.max_steps}" if done else f"its {config.epochs} epochs"
+        kept = (out / "model.pt").is_file() and (out / "model_card.json").is_file()
+        log(
+            f"the run has already reached {reached} (step {state['global_step']}): nothing to train; "
+            + ("its files are left as they are" if kept else "its model is exported")
+            + ". Raise --max-steps or --epochs to go on"
+        )
+        if kept:
+            return out / "model.pt"
     dataset = _TrainingPairs([train_pairs])
     stop = _StopBetweenSteps(world == 1)
     last_ckpt = started = time.monotonic()
-    done = _out_of_steps(config, state)
-    if done or state["epoch"] >= config.epochs:
-        reached = f"max_steps = {config.max_steps}" if done else f"its {config.epochs} epochs"
-        log(
-            f"the run has already reached {reached} (step {state['global_step']}): nothing to train; the model is exported again. Raise --max-steps or --epochs to go on"
-        )
     try:
         while state["epoch"] < config.epochs and not done:
             epoch = state["epoch"]

@@ -4,6 +4,7 @@ import os
 import re
 import shutil
 import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,6 +68,7 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     assert (out / "cdf_rotation_error.png").stat().st_size > 1000 and (out / "recall_vs_angle.png").is_file()
     config = json.loads((out / "config.json").read_text())
     assert config["bench"]["global_"]["voxel"] == 0.05 and config["protocols"] == ["dcp"]
+    assert summary["description"]["data"] == str(Path(modelnet_root).resolve())  # where the shapes came from
     from benchmarks.results_table import markdown
 
     md = markdown(out)
@@ -92,9 +94,29 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
     # Options that make pairs do not go with a pairs file, and an export does not replace a file unasked.
     r = _bench(["modelnet40", "--import-pairs", str(tmp_path / "pairs.npz"), "--limit", "1", "--method", "icp", "--out", str(tmp_path / "x")])
     assert r.exit_code == 2 and "--limit make(s) pairs" in r.output
+    r = _bench(["modelnet40", "--import-pairs", str(tmp_path / "pairs.npz"), "--points-per-shape", "64", "--method", "icp", "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "--points-per-shape make(s) pairs" in r.output
     export = ["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--export-pairs", str(tmp_path / "pairs.npz")]
     r = _bench([*export, "--out", str(tmp_path / "y")])
     assert r.exit_code == 2 and "the file exists" in r.output
+    # The data read through $O3DSOFT_DATA is named in the run's files too.
+    r = CliRunner().invoke(
+        main,
+        ["bench", "modelnet40", "--protocol", "dcp", "--limit", "1", "--method", "icp", "--out", str(tmp_path / "env")],
+        env={"O3DSOFT_DATA": str(modelnet_root)},
+    )
+    assert r.exit_code == 0 and json.loads((tmp_path / "env" / "summary.json").read_text())["description"]["data"] == str(Path(modelnet_root).resolve())
+    (tmp_path / "file").write_text("")  # --out naming a file: said so, with or without --overwrite
+    for extra in ([], ["--overwrite"]):
+        r = _bench(
+            ["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--out", str(tmp_path / "file"), *extra]
+        )
+        assert r.exit_code == 1 and "cannot create this folder" in r.output and "output folder exists" not in r.output, r.output
+    # A run refused (its folder exists, an unknown device) writes no pairs file either.
+    export[-1] = str(tmp_path / "new.npz")
+    for refused in (["--out", str(out)], ["--device", "foo", "--out", str(tmp_path / "z")]):
+        r = _bench([*export, *refused])
+        assert r.exit_code == 2 and not (tmp_path / "new.npz").exists() and not (tmp_path / "z").exists(), r.output
 
 
 def test_pairs_file_round_trip(modelnet_root, tmp_path):
@@ -513,6 +535,7 @@ def test_bench_scans_command(listed_scans, two_scans, tmp_path):
     assert "room: 1 of 1 pairs (rgbd, from its first scan's size, 4" in r.output and " m: --unit or --kind if that is not so)" in r.output
     summary = json.loads((tmp_path / "s" / "summary.json").read_text())
     assert summary["recall_thresholds"]["room"] == [{"rotation_deg": 2.0, "translation": 0.05}, {"rotation_deg": 15.0, "translation": 0.3}]
+    assert [f["path"] for f in summary["description"]["folders"]] == [str(listed_scans.resolve()), str(two_scans.resolve())]  # where the scans came from
     rows = {(s["protocol"], s["method"]): s for s in summary["summaries"]}
     assert "recall_15deg" in rows["room", "icp"] and "recall_5deg" in rows["scans", "icp"]
     assert rows["scans", "fpfh-ransac+icp"]["pairs"] == 2

@@ -49,6 +49,17 @@ def test_resume_continues_exactly(modelnet_root, tmp_path, extra):
     assert a["scheduler"]["_last_lr"] == b["scheduler"]["_last_lr"]
 
 
+def test_a_learning_rate_given_on_resume_is_the_one_trained_with(modelnet_root, tmp_path):
+    for name, lr in (("same", 1e-3), ("other", 0.05)):
+        train(_config(modelnet_root, tmp_path / name, max_steps=2, eval_pairs=0, lr=1e-3, lr_schedule="cosine"), log=lambda m: None)
+        train(_config(modelnet_root, tmp_path / name, max_steps=4, eval_pairs=0, lr=lr, lr_schedule="cosine"), resume=True, log=lambda m: None)
+    same, other = (torch.load(tmp_path / name / "checkpoint.pt", weights_only=False) for name in ("same", "other"))
+    assert other["scheduler"]["base_lrs"] == [0.05] and [g["lr"] for g in other["optimiser"]["param_groups"]] == other["scheduler"]["_last_lr"]
+    assert other["scheduler"]["_last_lr"][0] == pytest.approx(50 * same["scheduler"]["_last_lr"][0], rel=0.02)  # the same cosine, 50 times higher
+    assert any(not torch.equal(same["model"][k], other["model"][k]) for k in same["model"])  # trained at that rate
+    assert json.loads((tmp_path / "other" / "config.json").read_text())["lr"] == 0.05
+
+
 def test_ctrl_c_keeps_the_steps_done_and_resume_goes_on_exactly(modelnet_root, tmp_path, monkeypatch):
     import os
     import signal
@@ -567,10 +578,13 @@ def test_train_on_a_device_the_machine_lacks_is_one_line(modelnet_root, tmp_path
 
 def test_resuming_a_finished_run_says_there_is_nothing_to_train(modelnet_root, tmp_path):
     train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), log=lambda m: None)
+    files = {name: (tmp_path / name).read_bytes() for name in ("config.yaml", "config.json", "model.pt", "model_card.json", "checkpoint.pt")}
     said = []
-    train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=said.append)
-    assert any("already reached max_steps = 2" in line for line in said), said
+    train(_config(modelnet_root, tmp_path, max_steps=1, eval_pairs=0), resume=True, log=said.append)
+    assert any("already reached max_steps = 1" in line and "its files are left as they are" in line for line in said), said
     assert not any("resumed at" in line for line in said), said  # not "resumed at epoch 1" before "nothing to train"
+    # The run's settings still say how its model was trained (max_steps 2, not this call's 1).
+    assert {name: (tmp_path / name).read_bytes() for name in files} == files
     said.clear()
     train(_config(modelnet_root, tmp_path, max_steps=3, eval_pairs=0), resume=True, log=said.append)
     assert any("resumed at epoch 1, step 2" in line for line in said), said
