@@ -10,15 +10,17 @@ import dataclasses
 import difflib
 import typing
 from pathlib import Path
-from typing import Any, Dict, Tuple, Union
+from typing import Any, Dict, Optional, Tuple, Union
 
 from .errors import InputError, UsageError
 
 PathLike = Union[str, Path]
 
 
-def read_config(path: PathLike, cls: type) -> Dict[str, Any]:
-    """Checked settings of dataclass `cls` from a YAML file, as keyword arguments.
+def read_config(path: PathLike, cls: type, lines: Optional[Dict[str, int]] = None) -> Dict[str, Any]:
+    """Checked settings of dataclass `cls` from a YAML file, as keyword arguments; `lines`, where
+    given, receives the line of each top-level key (for errors found once the settings are merged
+    with others).
 
     Nested dataclass fields (e.g. ``net:``) are read as nested mappings and returned as
     instances, starting from that field's defaults.
@@ -42,10 +44,11 @@ def read_config(path: PathLike, cls: type) -> Dict[str, Any]:
         raise InputError(f"{path}{where}: not valid YAML ({getattr(e, 'problem', e)})") from None
     if node is None:
         return {}
-    return _read_mapping(path, node, cls)
+    return _read_mapping(path, node, cls, {} if lines is None else lines)
 
 
-def _read_mapping(path: Path, node, cls: type) -> Dict[str, Any]:
+def _read_mapping(path: Path, node, cls: type, lines: Dict[str, int]) -> Dict[str, Any]:
+    """The settings of the YAML mapping `node`, each checked; the line of each key into `lines`."""
     import yaml
 
     if not isinstance(node, yaml.MappingNode):
@@ -58,7 +61,7 @@ def _read_mapping(path: Path, node, cls: type) -> Dict[str, Any]:
         key, line = key_node.value, key_node.start_mark.line + 1
         if key in first_line:  # YAML keeps the last silently: a setting given twice is a mistake
             raise InputError(f"{path} line {line}: {key!r} is given twice (first on line {first_line[key]})")
-        first_line[key] = line
+        first_line[key] = lines[key] = line
         if key not in fields:
             close = difflib.get_close_matches(str(key), fields, n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -67,11 +70,12 @@ def _read_mapping(path: Path, node, cls: type) -> Dict[str, Any]:
         if dataclasses.is_dataclass(expected):
             if isinstance(value_node, yaml.ScalarNode) and value_node.value in ("", "null", "~"):
                 raise InputError(f"{path} line {line}: {key!r} must be a mapping")
-            nested = expected(**_read_mapping(path, value_node, expected))
+            within: Dict[str, int] = {}
+            nested = expected(**_read_mapping(path, value_node, expected, within))
             try:
                 getattr(nested, "validate", lambda: None)()
             except InputError as e:  # its ranges, named where the file gives them
-                raise InputError(f"{path} line {line}: {e}") from None
+                raise InputError(f"{path} line {within.get(getattr(e, 'field', ''), line)}: {e}") from None
             out[key] = nested
             continue
         try:

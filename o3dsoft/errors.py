@@ -51,12 +51,22 @@ def counted(n: int, noun: str) -> str:
     return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
+class OutOfRange(InputError):
+    """A setting out of its range; ``field`` names it (so that a config file's reader can add the
+    line that gives it)."""
+
+    def __init__(self, message: str, field: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
 def refuse_out_of_range(settings: object, checks: "list[tuple[str, bool, str]]", kind: str) -> None:
-    """Raise InputError naming the first of `checks` ((field, in range, what it must be), in
-    order) that fails, with the value `settings` holds: "{kind} setting k = 0 must be at least 1"."""
+    """Raise OutOfRange (an InputError) naming the first of `checks` ((field, in range, what it
+    must be), in order) that fails, with the value `settings` holds: "{kind} setting k = 0 must be
+    at least 1"."""
     for name, ok, expected in checks:
         if not ok:
-            raise InputError(f"{kind} setting {name} = {getattr(settings, name)!r} must be {expected}")
+            raise OutOfRange(f"{kind} setting {name} = {getattr(settings, name)!r} must be {expected}", name)
 
 
 def first_line(error: BaseException) -> str:

@@ -39,7 +39,7 @@ from .data import (
     resolve_data_root,
     training_parts,
 )
-from .errors import InputError, O3dsoftError, UsageError, refuse_out_of_range
+from .errors import InputError, O3dsoftError, OutOfRange, UsageError, refuse_out_of_range
 from .io import atomic_output, make_folder, remove_stale_temporaries
 from .metrics import pair_errors, summarise
 from .model import NetConfig, SoftAlignNet, count_parameters, match_loss, overlap_labels, overlap_loss, registration_loss, virtual_point_loss
@@ -446,11 +446,17 @@ def settings_from(
     out = Path(given.get("out", defaults.get("out", TrainConfig.out)))
     if resume and config_file is None and (out / "config.yaml").is_file():
         config_file = out / "config.yaml"
-    settings = read_config(config_file, TrainConfig) if config_file else {}
+    lines: Dict[str, int] = {}
+    settings = read_config(config_file, TrainConfig, lines) if config_file else {}
     settings = {**defaults, **settings, **given}
     network = settings.pop("net", NetConfig())
     config = TrainConfig(net=replace(network, **(net or {})), **settings)
-    config.validate()
+    try:
+        config.validate()
+    except OutOfRange as e:  # a value the file gives: named with its line
+        if e.field in lines and e.field not in given:
+            raise InputError(f"{config_file} line {lines[e.field]}: {e}") from None
+        raise
     return config
 
 
@@ -467,8 +473,8 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
     Returns:
         The path of the exported model file.
     Raises:
-        UsageError: ``config.out`` holds a run and neither `resume` nor `overwrite` is set; the
-            device is not on this machine.
+        UsageError: ``config.out`` holds a run and neither `resume` nor `overwrite` is set, or
+            `resume` is set and it holds no checkpoint; the device is not on this machine.
     """
     config.validate()
     torch_device(config.device)
@@ -480,7 +486,7 @@ def train(config: TrainConfig, resume: bool = False, log: Callable[[str], None] 
         raise UsageError(f"{config.out}: holds {what} ({', '.join(held)}); {go_on}--overwrite starts a new one there, or choose another --out")
     if resume and not saved:  # before the data: with no checkpoint there is nothing to go on with
         started = " (a run stopped before its first checkpoint: --overwrite starts it again)" if held else ""
-        raise InputError(f"{Path(config.out) / 'checkpoint.pt'}: no checkpoint to resume from{started}")
+        raise UsageError(f"{Path(config.out) / 'checkpoint.pt'}: no checkpoint to resume from{started}")
     rank, world, device = _setup_distributed(config)
     try:
         return _train(config, resume, log if rank == 0 else (lambda message: None), rank, world, device)

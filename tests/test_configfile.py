@@ -5,7 +5,7 @@ from o3dsoft.cli.main import main
 from o3dsoft.configfile import read_config, write_config
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.model import NetConfig
-from o3dsoft.train import TrainConfig
+from o3dsoft.train import TrainConfig, settings_from
 
 from .conftest import REPO
 
@@ -41,7 +41,7 @@ def test_values_are_checked_and_converted(tmp_path):
         ("net:\n  k: 8\n  k: 16\n", r"line 3: 'k' is given twice \(first on line 2\)"),
         ("net:\n  shared_encoder: 1\n", r"'shared_encoder' must be true or false"),
         ("net: 3\n", r"line 1: expected a mapping of NetConfig settings"),
-        ("epochs: 1\nnet:\n  k: 0\n", r"train.yaml line 2: net setting k = 0 must be at least 1"),
+        ("epochs: 1\nnet:\n  k: 0\n", r"train.yaml line 3: net setting k = 0 must be at least 1"),  # the line of k itself
         ("net:\n  radius: -1\n", r"net setting radius = -1.0 must be positive"),
         ("net:\n  channels: []\n", r"net setting channels = \(\) must be a list of one or more positive widths"),
         ("net:\n  channels: [0, 8]\n", r"net setting channels = \(0, 8\)"),
@@ -87,6 +87,12 @@ def test_command_line_overrides_the_config_file(modelnet_root, tmp_path):
     r = CliRunner().invoke(main, ["train", "--config", str(_yaml(tmp_path, "net:\n  k: 0\n")), "--data", str(modelnet_root), "--out", str(bad)])
     assert r.exit_code == 1 and "net setting k = 0 must be at least 1" in r.output and "Traceback" not in r.output
     assert not bad.exists()
+    # A training setting out of range is named with the file's line, unless the command line gives it.
+    ranged = _yaml(tmp_path, "batch_size: 2\nepochs: -3\n")
+    r = CliRunner().invoke(main, ["train", "--config", str(ranged), "--data", str(modelnet_root), "--out", str(bad)])
+    assert r.exit_code == 1 and "train.yaml line 2: training setting epochs = -3 must be at least 1" in r.output and not bad.exists(), r.output
+    with pytest.raises(InputError, match="^training setting epochs = 0 must be at least 1$"):  # not the file's value: no line of it
+        settings_from({"epochs": 0}, {}, ranged)
 
 
 @pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "configs").glob("*.yaml")))

@@ -132,7 +132,7 @@ def test_init_from_a_checkpoint(modelnet_root, tmp_path):
 
 
 def test_resume_errors(modelnet_root, tmp_path):
-    with pytest.raises(InputError, match="no checkpoint to resume from"):
+    with pytest.raises(UsageError, match="no checkpoint to resume from"):
         train(_config(modelnet_root, tmp_path, max_steps=1), resume=True)
     (tmp_path / "checkpoint.pt").write_bytes(b"garbage")
     with pytest.raises(InputError, match="unreadable checkpoint"):
@@ -522,7 +522,7 @@ def test_a_run_stopped_before_its_first_checkpoint_is_named_so(modelnet_root, tm
     for name in ("checkpoint.pt", "model.pt", "model_card.json"):
         (tmp_path / name).unlink()
     with pytest.raises(
-        InputError, match=r"checkpoint.pt: no checkpoint to resume from \(a run stopped before its first checkpoint: --overwrite starts it again\)"
+        UsageError, match=r"checkpoint.pt: no checkpoint to resume from \(a run stopped before its first checkpoint: --overwrite starts it again\)"
     ):
         train(_config(modelnet_root, tmp_path, max_steps=1), resume=True)
     with pytest.raises(
@@ -531,7 +531,7 @@ def test_a_run_stopped_before_its_first_checkpoint_is_named_so(modelnet_root, tm
         train(_config(modelnet_root, tmp_path, max_steps=1), log=lambda m: None)
     assert "--resume" not in str(refused.value)
     r = CliRunner().invoke(main, ["train", "--out", str(tmp_path / "empty"), "--resume"])
-    assert r.exit_code == 1 and "no checkpoint to resume from" in r.output and "data" not in r.output, r.output
+    assert r.exit_code == 2 and "no checkpoint to resume from" in r.output and "data" not in r.output, r.output
 
 
 def test_a_run_resumes_with_its_data_named_another_way_and_not_with_other_data(modelnet_root, tmp_path, monkeypatch):
