@@ -885,12 +885,11 @@ def _format_odometry(result, out_dir: Path, reference=None) -> str:
 
     from ..odometry import errors_against
 
-    motions = [step.transformation for step in result.steps[1:]]
     seconds = [step.timings_ms.get("total", 0.0) / 1000.0 for step in result.steps[1:]]
     lines = [
         f"o3dsoft odometry {len(result.names)} sweeps, world frame: {result.names[0]}",
         f"Path: {_tidy(result.path):.4g} units in all (the motions' lengths summed); the last sweep {_tidy(result.last_from_first):.4g} units from the first.",
-        f"Steps flagged likely failed: {sum(result.flagged)} of {len(motions)}.",
+        f"Steps flagged likely failed: {sum(result.flagged)} of {len(result.steps) - 1}.",
     ]
     if reference is not None:
         rotation, translation, drift, travelled = errors_against(result, reference)
@@ -1147,9 +1146,9 @@ def _bench_options(fn):
 def _run_bench(
     name, pairs, count, description, recall=None, titles=None, units=None, ready=None, *, methods, seed, out, overwrite, no_progress, jobs, **pipeline
 ):
-    """Run the bench's methods on `pairs`; `ready`, where given, is called once every setting and
-    model is checked and the run folder made, before the first pair (what it writes then is not
-    left behind by a run refused)."""
+    """Run the bench's methods on `pairs`; `ready`, where given, is called with the pairs once
+    every setting and model is checked and the run folder made, and returns the pairs to run (what
+    it writes then is not left behind by a run refused)."""
     from dataclasses import replace
 
     from ..bench import BenchConfig, check_methods, prepare_folder, run
@@ -1214,6 +1213,7 @@ def _run_bench(
 @_friendly_errors
 def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, import_pairs, **common):
     """Every method on the ModelNet40 test pairs of each protocol: table, CSV, JSON, plots."""
+    from .. import io
     from ..bench import BENCH_PROTOCOLS, check_methods, modelnet_pairs
     from ..bench import export_pairs as write_pairs
     from ..bench import import_pairs as read_pairs
@@ -1249,6 +1249,8 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
         }
         if export_pairs and export_pairs.exists() and not common["overwrite"]:
             raise click.UsageError(f"--export-pairs {export_pairs}: the file exists; choose another name or pass --overwrite")
+        if export_pairs:
+            io.check_writable(export_pairs)
 
     def export(pairs):
         """The pairs, written to --export-pairs first (once the run is sure to start)."""

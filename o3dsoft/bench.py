@@ -576,7 +576,7 @@ def score(pair: BenchPair, result: MethodResult) -> Tuple[dict, PairErrors]:
     }
     for stage in STAGES:
         row[f"time_{stage}_ms"] = result.times_ms.get(stage, "")
-    row["transform"] = " ".join(f"{v:.9g}" for v in result.transform.reshape(-1))
+    row["transform"] = " ".join(f"{v:.17g}" for v in result.transform.reshape(-1))  # every bit: georeferenced scans
     return row, e
 
 
@@ -856,12 +856,10 @@ class BenchRun(NamedTuple):
 def prepare_folder(out: Path, overwrite: bool) -> Path:
     """Create the run folder; refuse an existing one that holds anything unless `overwrite`."""
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        return make_folder(out)  # refused as every command refuses a folder a file stands in for
-    empty = out.is_dir() and not any(out.iterdir())  # made beforehand, or left by a run killed before it wrote
-    if out.exists() and not empty and not overwrite:
+    held = out.is_dir() and any(out.iterdir())  # empty: made beforehand, or left by a run killed before it wrote
+    if held and not overwrite:
         raise UsageError(f"{out}: the output folder exists; choose another --out or pass --overwrite")
-    return make_folder(out)
+    return make_folder(out)  # a file of that name: refused, as every command refuses it
 
 
 class PairOutcome(NamedTuple):

@@ -56,8 +56,8 @@ class StartsConfig:
         points: points per cloud for the batch of network passes (default 256).
         refine: how many of the best-ranked estimates are polished by ICP on the network's samples
             (``num_points``) before the most confident is verified (default 3).
-        weights: a second network run from 15 starts around the pose as given (a file or a
-            shipped model's name; default "partial", trained on cropped, noisy clouds); None:
+        weights: a second network run from 15 starts around the pose as given (a file, as text or
+            a Path, or a shipped model's name; default "partial", trained on cropped, noisy clouds); None:
             only the main network's cube starts (so none after the feature match).
     """
 
@@ -224,7 +224,7 @@ class SecondNetworkConfig:
     own, so the search must find one clearly better to replace it (``replace_odds``).
 
     Attributes:
-        weights: a model file or a shipped model's name (default "incongruent", trained on
+        weights: a model file (text or a Path) or a shipped model's name (default "incongruent", trained on
             independently sampled pairs; weights/o3dsoft_incongruent.json); None: off.
         iterations: its passes, each from the estimate so far (default 3: it recovers about 60 %
             of the remaining rotation per pass, docs/incongruent.md).

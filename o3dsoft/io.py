@@ -1177,7 +1177,8 @@ def read_transform(path: PathLike, about: Optional[np.ndarray] = None) -> np.nda
     A 3x4 [R | t] text is accepted too (the last row is implied).
 
     Published ground truths are often rounded (3DMatch's are orthonormal to about 2e-4): a
-    rotation block within 1e-3 of orthonormal is accepted and replaced by the nearest rotation,
+    rotation block within 1e-3 of orthonormal is accepted and replaced by the nearest rotation
+    (within :data:`EXACT_WITHIN`, as :func:`write_transform` writes them, kept to the bit),
     with the translation changed so that the transform still moves the point `about` (3,) where
     the file's does: pass the moved cloud's :func:`~o3dsoft.preprocess.local_origin`. (About the
     frame's origin, a rotation changed by 4e-7 moves a cloud 5e6 m away, georeferenced, by 2 m.)
@@ -1267,8 +1268,8 @@ def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np
             name, else by its file name.
         text (any other extension): one pose per line in the scans' order, 12 numbers (a 3x4
             [R | t] row by row, as KITTI's pose files) or 16 (4x4 row by row).
-    Rotations within 1e-3 of orthonormal are replaced by the nearest rotation, as
-    :func:`read_transform` does, each pose keeping where it moves its scan's point in `about`
+    Rotations within 1e-3 of orthonormal are replaced by the nearest rotation (kept within
+    :data:`EXACT_WITHIN`), as :func:`read_transform` does, each pose keeping where it moves its scan's point in `about`
     (one (3,) point per scan, e.g. its :func:`~o3dsoft.preprocess.local_origin`; None: the origin).
 
     Raises:

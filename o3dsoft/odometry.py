@@ -28,8 +28,8 @@ from .errors import UsageError
 from .metrics import PairErrors, pair_errors
 from .pair import CloudLike, as_points, named_clouds
 from .pipeline import RegistrationResult, register
-from .preprocess import clean_points, local_origin
-from .transforms import apply_transform
+from .preprocess import clean_points, local_origin, scene_size
+from .transforms import apply_transform, in_frame_at
 
 # A flagged step whose sweep has at least this share of its points within ICP's distance of the
 # map stays in it: on sparse sweeps the confidence flags right steps, and a map without them loses
@@ -84,10 +84,8 @@ class OdometryResult:
         mapped: per sweep, whether the local maps of the sweeps after it hold it (the first and
             every trusted sweep; a flagged one only where it fits its map and lies near the motion
             guessed for it).
-        origins: per sweep, the (3,) point of its frame about which its motions are measured:
-            :func:`~o3dsoft.preprocess.local_origin` (the median of its points where they lie far
-            from their frame's origin, georeferenced sweeps: a turn of 0.1 degrees about an origin
-            4e6 m away moves them 7 km; else zeros, the frame's origin).
+        origins: per sweep, the (3,) point of its frame about which its motions are measured
+            (:func:`frame_point`): the sensor's, zeros, unless its coordinates are georeferenced.
     """
 
     names: Tuple[str, ...]
@@ -182,7 +180,7 @@ def odometry(
     poses: List[np.ndarray] = [np.eye(4)]
     steps: List[Optional[RegistrationResult]] = [None]
     guesses: List[Optional[np.ndarray]] = [None]
-    origins = tuple(local_origin(p) for p in points)
+    origins = tuple(frame_point(p) for p in points)
     for k in range(1, len(points)):
         kept = _kept(steps, guesses, origins, k)
         local_map = _local_map(points, poses, kept, k, config.map_sweeps)
@@ -208,7 +206,7 @@ class OdometryErrors(NamedTuple):
     rotation_deg, translation: (K-1,) each step's motion previous_T_sweep against the reference's
         (degrees, sweep units).
     drift: the last sweep's pose against the reference's (:class:`~o3dsoft.metrics.PairErrors`).
-    path: the reference's path, its positions' steps summed (sweep units).
+    path: the reference's path, its motions measured at the result's ``origins`` summed (sweep units).
     """
 
     rotation_deg: np.ndarray
@@ -233,7 +231,24 @@ def errors_against(result: OdometryResult, reference: Sequence[np.ndarray]) -> O
 
 def _moved(T: np.ndarray, origin: np.ndarray) -> float:
     """How far (4, 4) `T` moves the (3,) point `origin`."""
-    return float(np.linalg.norm(T[:3, :3] @ origin + T[:3, 3] - origin))
+    return float(np.linalg.norm(in_frame_at(T, origin)[:3, 3]))
+
+
+# A sweep whose points lie this many times their size from its frame's origin is georeferenced:
+# no sensor sees that far (a narrow forward view's median lies about twice its size out).
+GEOREFERENCED_BEYOND = 1000.0
+
+
+def frame_point(points: np.ndarray) -> np.ndarray:
+    """(3,) the point of a sweep's frame at which its motions are measured: the frame's origin
+    (zeros: the sensor, for a sweep in its sensor's frame), or, for (N, 3) `points` more than
+    :data:`GEOREFERENCED_BEYOND` times their :func:`~o3dsoft.preprocess.scene_size` from it
+    (georeferenced coordinates: a turn of 0.1 degrees about an origin 4e6 m away moves the
+    sweep 7 km), their median (:func:`~o3dsoft.preprocess.local_origin`)."""
+    centre = local_origin(points)
+    if not centre.any():
+        return centre
+    return centre if np.linalg.norm(centre) > GEOREFERENCED_BEYOND * scene_size(points[np.isfinite(points).all(axis=1)]) else np.zeros(3)
 
 
 def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> List[np.ndarray]:

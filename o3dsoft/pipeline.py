@@ -210,6 +210,11 @@ class RegistrationResult:
                 frozen.flags.writeable = False
                 object.__setattr__(self, name, frozen)
 
+    def __setstate__(self, state: Dict[str, Any]) -> None:
+        # Unpickled (a worker pool's result) or deep-copied: read-only again.
+        self.__dict__.update(state)
+        self.__post_init__()
+
     def __repr__(self) -> str:
         """A few lines: the verdict, the main scores (with units) and the transform."""
         verdict = f"likely failed: {self.failure_reason}" if self.likely_failed else "trusted"
@@ -353,12 +358,12 @@ def register(
 def _check_weights(config: RegisterConfig, main: bool, search: bool) -> None:
     """Raise UsageError naming the setting whose model file does not exist (nor names a shipped
     model): every network the pipeline may load (the main and the search network only where
-    `main` and `search`: not passed in), before any runs, so that a mistyped name fails on the
+    `main` and `search`: not passed in; the search network not with the search off), before any runs, so that a mistyped name fails on the
     first pair rather than on the first pair hard enough to reach its stage."""
     for name, weights, loaded in (
         ("weights", config.weights, main),
         ("second_network.weights", config.second_network.weights, True),
-        ("search.starts.weights", config.search.starts.weights, search),
+        ("search.starts.weights", config.search.starts.weights, search and config.search.mode != "off"),
     ):
         if loaded and (weights is not None or name == "weights"):
             try:

@@ -653,8 +653,9 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             state = ckpt["state"]
             init_record = ckpt.get("init")
             torch.set_rng_state(ckpt["torch_rng"])
-        if not (_out_of_steps(config, state) or state["epoch"] >= config.epochs):  # else: nothing to train, said below
-            log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
+    finished = _out_of_steps(config, state) or state["epoch"] >= config.epochs  # resumed at its end: nothing to train, said below
+    if resume and not finished:
+        log(f"resumed at epoch {state['epoch'] + 1}, step {state['step_in_epoch']}")
 
     train_pairs, test_pairs = _splits(config, protocol)
     parts = _training_sources(config, train_pairs)
@@ -671,13 +672,14 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
             optimiser.load_state_dict(ckpt["optimiser"])
             if "scheduler" in ckpt:  # checkpoints of earlier versions had none (constant lr)
                 scheduler.load_state_dict(ckpt["scheduler"])
+            else:
+                scheduler.last_epoch = state["global_step"]
         # The states bring back the saved learning rate; the run goes on at this call's (--lr
         # given with --resume), on the schedule of this call's epochs, from the step it is at.
         scheduler.base_lrs = [config.lr] * len(optimiser.param_groups)
         for group in optimiser.param_groups:
             group["initial_lr"] = config.lr
             group["lr"] = config.lr * _lr_factor(config, total_steps)(scheduler.last_epoch)
-    finished = _out_of_steps(config, state) or state["epoch"] >= config.epochs  # resumed at its end
     if lead and not finished:  # a finished run keeps the settings it was trained with
         _write_settings(out, config, fresh=not resume)
     net = model
@@ -729,7 +731,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     done = _out_of_steps(config, state)
     if finished:
         reached = f"max_steps = {config.max_steps}" if done else f"its {config.epochs} epochs"
-        kept = (out / "model.pt").is_file() and (out / "model_card.json").is_file()
+        kept = _exported_at(out, state["global_step"])
         log(
             f"the run has already reached {reached} (step {state['global_step']}): nothing to train; "
             + ("its files are left as they are" if kept else "its model is exported")
@@ -819,6 +821,17 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
 
         dist.barrier()  # the other ranks return only once rank 0 has written the model
     return out / "model.pt"
+
+
+def _exported_at(out: Path, step: int) -> bool:
+    """The run folder `out` holds the model of its checkpoint's `step`: model.pt, and a card
+    that gives that step and model.pt's sha256 (an export that failed or was cut short after the
+    last checkpoint leaves an earlier one)."""
+    try:
+        card = json.loads((out / "model_card.json").read_text())
+        return card.get("steps") == step and card.get("sha256") == sha256_of(out / "model.pt")
+    except (OSError, ValueError):
+        return False
 
 
 def _epoch_record(epoch: int, losses: Sequence[float]) -> dict:

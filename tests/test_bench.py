@@ -112,6 +112,8 @@ def test_modelnet40_run_folder_and_table(modelnet_root, tiny_model_path, tmp_pat
             ["modelnet40", "--data", str(modelnet_root), "--protocol", "dcp", "--limit", "1", "--method", "icp", "--out", str(tmp_path / "file"), *extra]
         )
         assert r.exit_code == 1 and "cannot create this folder" in r.output and "output folder exists" not in r.output, r.output
+    r = _bench([*export[:-1], str(tmp_path / "no_folder" / "p.npz"), "--out", str(tmp_path / "z")])  # nowhere to write it: before the run
+    assert r.exit_code != 0 and "no_folder" in r.output and not (tmp_path / "z").exists(), r.output
     # A run refused (its folder exists, an unknown device) writes no pairs file either.
     export[-1] = str(tmp_path / "new.npz")
     for refused in (["--out", str(out)], ["--device", "foo", "--out", str(tmp_path / "z")]):

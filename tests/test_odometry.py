@@ -106,6 +106,16 @@ def test_the_local_map_and_the_guess_leave_flagged_steps_that_fit_poorly_or_move
     assert np.allclose(poses[4] @ _guess(poses, steps, kept, 5, False), poses[3])  # without constant velocity: where sweep 3 is
 
 
+def test_motions_are_measured_at_the_sensor_unless_the_sweep_is_georeferenced():
+    from o3dsoft.odometry import frame_point
+
+    rng = np.random.default_rng(0)
+    ahead = rng.uniform([18.0, -3.0, -2.0], [22.0, 3.0, 2.0], (500, 3))  # a narrow forward view, 20 m out
+    assert not frame_point(ahead).any()  # its sensor's frame: measured at the sensor
+    far = ahead + [5e5, 4e6, 300.0]
+    assert np.allclose(frame_point(far), np.median(far, axis=0))
+
+
 def test_georeferenced_sweeps_give_the_path_and_errors_they_give_near_the_origin():
     # The same sweeps 5e6 units from their frames' origin: each motion is the same motion about a
     # point there, so a turn of 0.01 degrees moves the frame's origin by 700 units.

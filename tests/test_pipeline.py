@@ -53,9 +53,12 @@ def test_the_result_is_rigid_to_float64_precision_and_reads_as_a_summary(tiny_mo
     again = pickle.loads(pickle.dumps(res))
     assert res == res and res != again and res in [res] and len({res, again}) == 2
     assert np.array_equal(again.transformation, res.transformation)
-    for name in ("transformation", "coarse_transformation", "network_transformation"):  # frozen: its arrays too
-        with pytest.raises(ValueError, match="read-only"):
-            getattr(res, name)[:3, 3] *= 1000.0
+    import copy
+
+    for kept in (res, pickle.loads(pickle.dumps(res)), copy.deepcopy(res)):  # frozen: its arrays too, however copied
+        for name in ("transformation", "coarse_transformation", "network_transformation"):
+            with pytest.raises(ValueError, match="read-only"):
+                getattr(kept, name)[:3, 3] *= 1000.0
     text = repr(res)
     assert text.startswith("RegistrationResult(trusted; confidence") and "cloud units (lower is better)" in text
     assert len(text) < 600 and text.count("\n") == 5
@@ -70,6 +73,9 @@ def test_weights_given_as_a_path_are_held_as_text(tiny_model_path):
     src, tgt, T = blob_pair(seed=1)
     res = register(src, tgt, replace(config, icp=ICPConfig(distance=0.5)))
     assert pair_errors(res.transformation, T).rotation_deg < 1e-3
+    # The search's network is not asked for with the search off: its name is not checked either.
+    off = SearchConfig(mode="off", starts=StartsConfig(weights="nope"))
+    assert register(src, tgt, replace(config, icp=ICPConfig(distance=0.5), search=off)).transformation.shape == (4, 4)
 
 
 @pytest.mark.parametrize("units", [1e-3, 1.0, 1e3])

@@ -585,6 +585,13 @@ def test_resuming_a_finished_run_says_there_is_nothing_to_train(modelnet_root, t
     assert not any("resumed at" in line for line in said), said  # not "resumed at epoch 1" before "nothing to train"
     # The run's settings still say how its model was trained (max_steps 2, not this call's 1).
     assert {name: (tmp_path / name).read_bytes() for name in files} == files
+    # An export cut short after the last checkpoint (a card of another step) is made again.
+    card = json.loads(files["model_card.json"])
+    (tmp_path / "model_card.json").write_text(json.dumps({**card, "steps": 1}))
+    said.clear()
+    train(_config(modelnet_root, tmp_path, max_steps=2, eval_pairs=0), resume=True, log=said.append)
+    assert any("its model is exported" in line for line in said), said
+    assert json.loads((tmp_path / "model_card.json").read_text())["steps"] == 2
     said.clear()
     train(_config(modelnet_root, tmp_path, max_steps=3, eval_pairs=0), resume=True, log=said.append)
     assert any("resumed at epoch 1, step 2" in line for line in said), said
