@@ -1254,3 +1254,20 @@ def test_icp_options_set_the_benchs_icp(listed_scans, monkeypatch):
     assert [(c.distance, c.absolute, c.method) for c in seen] == [(0.02, True, "point")]
     r = _bench([*args, "--icp-absolute", "--overwrite"])
     assert r.exit_code == 2 and "--icp-absolute needs --icp-distance, in the clouds' units" in r.output
+
+
+def test_the_partial_overlap_benchmark_cuts_pairs_to_the_share_asked():
+    from scipy.spatial import cKDTree
+
+    from benchmarks.partial_overlap import LEVEL_TOLERANCE, PARTNER_SPACINGS, _spacing, cut
+
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(0, 4, (12000, 2)), rng.normal(0, 0.002, 12000)]  # one surface sampled twice, 2 x 6,000 points
+    source, target = plane[:6000], plane[6000:]
+    radius = PARTNER_SPACINGS * max(_spacing(source), _spacing(target))
+    for level in (0.8, 0.4):
+        kept_s, kept_t, reached = cut(source, target, level, rng)
+        assert abs(reached - level) <= LEVEL_TOLERANCE
+        assert set(map(tuple, kept_s)) <= set(map(tuple, source)) and set(map(tuple, kept_t)) <= set(map(tuple, target))
+        shares = [np.mean(np.isfinite(cKDTree(b).query(a, distance_upper_bound=radius)[0])) for a, b in ((kept_s, kept_t), (kept_t, kept_s))]
+        assert all(abs(share - level) <= LEVEL_TOLERANCE for share in shares), shares
