@@ -961,10 +961,13 @@ def float32_rounding(path: PathLike, points: np.ndarray) -> Optional[float]:
     return rounding if _rounded_beyond_share(finite, rounding) else None
 
 
-def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray] = None, normals: Optional[np.ndarray] = None) -> Path:
+def write_points(
+    path: PathLike, points: np.ndarray, colors: Optional[np.ndarray] = None, normals: Optional[np.ndarray] = None, width: Optional[int] = None
+) -> Path:
     """Write (N, 3) points to any of the point formats (by extension), atomically; with (N, 3)
     `colors` (0-1) and `normals` where the format holds them (colours: .ply, .pcd, .las, .pts;
-    normals: .ply, .pcd, .xyzn), ignored elsewhere.
+    normals: .ply, .pcd, .xyzn), ignored elsewhere; `width`: a .pcd's points are rows of that
+    many (an organised cloud, a range image's: HEIGHT N / width; None: one row), ignored elsewhere.
 
     The files are written here rather than by Open3D, whose writers report success after a
     failed write (a full disk left a truncated file): binary little-endian PLY of float64
@@ -981,6 +984,8 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
     for name, values in (("colors", colors), ("normals", normals)):
         if values is not None and np.shape(values) != points.shape:
             raise ValueError(f"{name} must be (N, 3) as the points {points.shape}, got {np.shape(values)}")
+    if width is not None and not (width >= 1 and len(points) % width == 0):
+        raise ValueError(f"width must divide the {len(points)} points into rows, got {width}")
     rgb = None if colors is None else _colour_bytes(np.asarray(colors))
     with atomic_output(path) as tmp, open(tmp, "wb") as f:
         if ext == ".npy":
@@ -1017,9 +1022,11 @@ def write_points(path: PathLike, points: np.ndarray, colors: Optional[np.ndarray
             if rgb is not None:
                 rows["rgb"] = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2].astype(np.uint32)
             n, k = len(points), len(fields)
+            across = n if width is None else width
             header = (
                 f"# .PCD v0.7\nVERSION 0.7\nFIELDS {' '.join(name for name, _ in fields)}\nSIZE {' '.join(t[-1] for _, t in fields)}\n"
-                f"TYPE {' '.join(['F'] * k)}\nCOUNT {' '.join(['1'] * k)}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
+                f"TYPE {' '.join(['F'] * k)}\nCOUNT {' '.join(['1'] * k)}\nWIDTH {across}\nHEIGHT {n // max(across, 1)}\nVIEWPOINT 0 0 0 1 0 0 0\n"
+                f"POINTS {n}\nDATA binary\n"
             )
             f.write(header.encode("ascii") + rows.tobytes())
         else:
@@ -1153,12 +1160,27 @@ def write_moved(path: PathLike, source: PathLike, points: np.ndarray, T: np.ndar
     per-point attributes the output holds: a LAS/LAZ source written as .las keeps every dimension
     (intensity, returns, classification, GPS time, colour), its coordinates moved; colours
     (:func:`read_attributes`) go into .ply, .pcd, .las and .pts, and normals, turned by T, into
-    .ply, .pcd and .xyzn."""
+    .ply, .pcd and .xyzn; an organised PCD source (a range image's rows, its invalid points NaN)
+    written as .pcd keeps its WIDTH and HEIGHT."""
     path, source = Path(path), Path(source)
     if path.suffix.lower() == ".las" and source.suffix.lower() in (".las", ".laz"):
         return _write_las_moved(path, source, T)
     colors, normals = read_attributes(source, len(points))
-    return write_points(path, apply_transform(T, points), colors, None if normals is None else normals @ T[:3, :3].T)
+    return write_points(path, apply_transform(T, points), colors, None if normals is None else normals @ T[:3, :3].T, _pcd_width(path, source, len(points)))
+
+
+def _pcd_width(path: Path, source: Path, count: int) -> Optional[int]:
+    """The WIDTH of the organised PCD `source` (HEIGHT over 1) of `count` points where `path` is a
+    .pcd too; else None (one row)."""
+    if path.suffix.lower() != ".pcd" or source.suffix.lower() != ".pcd":
+        return None
+    found = _pcd_header(source)
+    if found is None:
+        return None
+    width, height = (found[0].get(key, [""])[0] for key in ("WIDTH", "HEIGHT"))
+    if width.isdigit() and height.isdigit() and int(height) > 1 and int(width) * int(height) == count:
+        return int(width)
+    return None
 
 
 def _sync(path: Path) -> None:

@@ -659,6 +659,29 @@ def _pcd(path, fields, rows, data="binary"):
     return path
 
 
+def test_an_organised_pcd_moved_keeps_its_rows_and_its_invalid_points(tmp_path):
+    from o3dsoft.io import write_moved
+
+    rng = np.random.default_rng(2)
+    grid = rng.uniform(-1.0, 1.0, (8 * 25, 3))
+    grid[rng.random(len(grid)) < 0.1] = np.nan  # no return: kept as NaN where the range image has the pixel
+    source = write_points(tmp_path / "scan.pcd", grid, width=25)
+    assert "WIDTH 25\nHEIGHT 8\n" in source.read_bytes()[:400].decode("ascii", "replace")
+    read = read_points(source)
+    assert read.shape == grid.shape and np.array_equal(np.isnan(read), np.isnan(grid))
+    T = rigid(euler_to_matrix([10.0, 20.0, 30.0]), [1.0, 2.0, 3.0])
+    moved = write_moved(tmp_path / "moved.pcd", source, read, T)
+    assert "WIDTH 25\nHEIGHT 8\n" in moved.read_bytes()[:400].decode("ascii", "replace")
+    again = read_points(moved)
+    assert np.array_equal(np.isnan(again), np.isnan(grid)) and np.allclose(
+        again[~np.isnan(grid).any(axis=1)], apply_transform(T, grid)[~np.isnan(grid).any(axis=1)], atol=1e-5
+    )
+    flat = write_moved(tmp_path / "moved.ply", source, read, T)  # other formats: the points in one list, as before
+    assert read_points(flat).shape[0] <= len(grid)
+    with pytest.raises(ValueError, match="width must divide the 200 points into rows, got 30"):
+        write_points(tmp_path / "bad.pcd", grid, width=30)
+
+
 def test_a_pcd_of_double_coordinates_is_read_as_written(tmp_path, pts):
     """PCL writes 8-byte x, y, z (georeferenced clouds); Open3D's binary reader gives other numbers."""
     rows = np.zeros(len(pts), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("intensity", "<f4"), ("ring", "<u2")])
