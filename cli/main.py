@@ -1247,9 +1247,9 @@ def bench_modelnet40(protocols, limit, data, points_per_shape, export_pairs, imp
             "seed": seed,
             "points_per_shape": points_per_shape,
         }
-        if export_pairs and export_pairs.exists() and not common["overwrite"]:
-            raise click.UsageError(f"--export-pairs {export_pairs}: the file exists; choose another name or pass --overwrite")
         if export_pairs:
+            if export_pairs.exists() and not common["overwrite"]:
+                raise click.UsageError(f"--export-pairs {export_pairs}: the file exists; choose another name or pass --overwrite")
             io.check_writable(export_pairs)
 
     def export(pairs):

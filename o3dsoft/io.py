@@ -1022,10 +1022,10 @@ def write_points(
             if rgb is not None:
                 rows["rgb"] = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2].astype(np.uint32)
             n, k = len(points), len(fields)
-            across = n if width is None else width
+            across, down = (n, 1) if width is None else (width, n // width)
             header = (
                 f"# .PCD v0.7\nVERSION 0.7\nFIELDS {' '.join(name for name, _ in fields)}\nSIZE {' '.join(t[-1] for _, t in fields)}\n"
-                f"TYPE {' '.join(['F'] * k)}\nCOUNT {' '.join(['1'] * k)}\nWIDTH {across}\nHEIGHT {n // max(across, 1)}\nVIEWPOINT 0 0 0 1 0 0 0\n"
+                f"TYPE {' '.join(['F'] * k)}\nCOUNT {' '.join(['1'] * k)}\nWIDTH {across}\nHEIGHT {down}\nVIEWPOINT 0 0 0 1 0 0 0\n"
                 f"POINTS {n}\nDATA binary\n"
             )
             f.write(header.encode("ascii") + rows.tobytes())

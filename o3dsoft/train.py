@@ -665,7 +665,8 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
     if steps_per_epoch == 0:
         raise InputError(f"the training split has {len(train_pairs)} shapes, fewer than one batch of {config.batch_size} per process")
     total_steps = config.epochs * steps_per_epoch
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, _lr_factor(config, total_steps))
+    schedule = _lr_factor(config, total_steps)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, schedule)
     if resume:
         # After the scheduler's construction, which resets the learning rate to the schedule's start.
         with _damaged(ckpt_path):
@@ -679,7 +680,7 @@ def _train(config: TrainConfig, resume: bool, log: Callable[[str], None], rank: 
         scheduler.base_lrs = [config.lr] * len(optimiser.param_groups)
         for group in optimiser.param_groups:
             group["initial_lr"] = config.lr
-            group["lr"] = config.lr * _lr_factor(config, total_steps)(scheduler.last_epoch)
+            group["lr"] = config.lr * schedule(scheduler.last_epoch)
     if lead and not finished:  # a finished run keeps the settings it was trained with
         _write_settings(out, config, fresh=not resume)
     net = model
