@@ -17,7 +17,7 @@ import platform
 import signal
 import subprocess
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
 
@@ -30,6 +30,7 @@ from .data import DEFAULT_POINTS_PER_SHAPE, get_protocol, load_pairs
 from .errors import InputError, O3dsoftError, UsageError, counted, first_line, release_interrupt, spawn_context, terminate_as_interrupt
 from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, input_chamfer_distance, modified_chamfer_distance, pair_errors, summarise, within
+from .pair import SCAN_POINTS, icp_for_pair, registration_grid
 from .pipeline import RegisterConfig, register
 from .preprocess import local_origin, normalisation_for, scene_size
 from .transforms import apply_transform, random_rotation, rigid, rotation_angle_deg
@@ -81,10 +82,12 @@ class BenchConfig:
 
     Attributes:
         methods: names from METHODS, in the order of the table.
-        register: o3dsoft's settings (its ICP is also the one after every '+icp' baseline).
+        register: o3dsoft's settings (its ICP, point-to-plane on scans as in ``register``, is
+            also the one after every '+icp' baseline and the oracle's: :func:`peer_settings`).
         identity_icp: Open3D ICP from the identity: correspondence distance, relative to the
             pair's scale, refined over the same schedule.
-        global_: FPFH + RANSAC / FGR settings.
+        global_: FPFH + RANSAC / FGR settings (on scans their voxel is the grid ``register``
+            uses: :func:`peer_settings`).
         kiss: KISS-Matcher + small_gicp settings.
         seed: seed of the pairs and of RANSAC.
         recall: (degrees, distance in cloud units) thresholds of the recall columns, tightest
@@ -449,6 +452,20 @@ class MethodResult(NamedTuple):
     error: Optional[str] = None  # why the method raised on this pair: then the pose as given (identity) is scored
 
 
+def peer_settings(source: np.ndarray, target: np.ndarray, config: BenchConfig, scale: float) -> Tuple[refine_stage.ICPConfig, baselines.GlobalConfig]:
+    """How the oracle and the peers run on one pair of (N, 3) and (M, 3) clouds of `scale` (the
+    larger radius, cloud units): the ICP that ``register`` runs on such a pair (its method decided
+    as for the pipeline: point-to-plane on scans), on the clouds as given; and the FPFH settings,
+    on scans on the grid ``register`` would use (Open3D's tutorial takes 5 cm on RGB-D fragments in
+    metres, where that grid is 3.7 cm and 0.05 of the scale 9-10 cm), else 0.05 of the scale."""
+    finite = (source[np.isfinite(source).all(axis=1)], target[np.isfinite(target).all(axis=1)])
+    grid = registration_grid(finite, config.register)
+    scans = grid is not None or max(map(len, finite)) > SCAN_POINTS
+    icp = icp_for_pair(config.register.icp, finite[1], None, scans)
+    global_ = replace(config.global_, voxel=grid / scale) if scans and grid is not None else config.global_
+    return icp, global_
+
+
 def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel], search_model: Optional[CoarseModel] = None) -> List[MethodResult]:
     """Run every method of `config` on one pair (`search_model`: o3dsoft's search network, else
     loaded when needed)."""
@@ -456,6 +473,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
     src, tgt = pair.source.astype(np.float64), pair.target.astype(np.float64)
     scale = normalisation_for(src, tgt).scale
     icp_distance = config.register.icp.distance_for(scale)
+    icp_config, global_config = peer_settings(src, tgt, config, scale)
     out: Dict[str, MethodResult] = {}
 
     def clock() -> float:
@@ -491,7 +509,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
 
     def oracle() -> None:
         t0 = clock()
-        T = refine_stage.icp(src, tgt, pair.transform, icp_distance, config.register.icp).transformation
+        T = refine_stage.icp(src, tgt, pair.transform, icp_distance, icp_config).transformation
         out["oracle"] = MethodResult("oracle", T, {"icp": clock() - t0, "total": clock() - t0})
 
     def icp() -> None:
@@ -501,12 +519,12 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
 
     def feature_methods() -> None:
         t0 = clock()
-        fs = baselines.fpfh_features(src, scale, config.global_)
-        ft = baselines.fpfh_features(tgt, scale, config.global_)
+        fs = baselines.fpfh_features(src, scale, global_config)
+        ft = baselines.fpfh_features(tgt, scale, global_config)
         features_ms = clock() - t0
         for name, solve in (
-            ("fpfh-ransac", lambda: baselines.ransac(fs, ft, scale, config.seed + pair.index, config.global_)),
-            ("fgr", lambda: baselines.fgr(fs, ft, scale, config.global_)),
+            ("fpfh-ransac", lambda: baselines.ransac(fs, ft, scale, config.seed + pair.index, global_config)),
+            ("fgr", lambda: baselines.fgr(fs, ft, scale, global_config)),
         ):
             if name not in methods and f"{name}+icp" not in methods:
                 continue
@@ -517,7 +535,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
             out[name] = MethodResult(name, T, {"features": features_ms, stage: solve_ms, "total": features_ms + solve_ms})
             if f"{name}+icp" in methods:
                 t0 = clock()
-                T_fine = refine_stage.icp(src, tgt, T, icp_distance, config.register.icp).transformation
+                T_fine = refine_stage.icp(src, tgt, T, icp_distance, icp_config).transformation
                 icp_ms = clock() - t0
                 out[f"{name}+icp"] = MethodResult(
                     f"{name}+icp", T_fine, {"features": features_ms, stage: solve_ms, "icp": icp_ms, "total": features_ms + solve_ms + icp_ms}

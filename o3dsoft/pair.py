@@ -103,6 +103,29 @@ ISOLATED_MAX_SHARE_OFF_GRID = 0.1
 ISOLATED_FAR_OUT = 2.0
 
 
+def registration_grid(clouds: Clouds, config: RegisterConfig) -> Optional[float]:
+    """The voxel grid (cloud units) the (N, 3) and (M, 3) cleaned clouds are registered on: the
+    config's (0: none), else :func:`~o3dsoft.preprocess.data_grid` where a cloud has more than
+    ``config.attempt_points`` points (smaller clouds are tried whole); None: no grid."""
+    if config.voxel is not None:
+        return config.voxel or None
+    if max(map(len, clouds)) > config.attempt_points:
+        return data_grid(*clouds, config.data_voxel)
+    return None
+
+
+def icp_for_pair(icp: refine_stage.ICPConfig, target: np.ndarray, voxel: Optional[float], scans: bool) -> refine_stage.ICPConfig:
+    """ICP's settings for one pair: normals within a few point spacings only where the grid
+    `voxel` (None: none) spaced the points evenly, and method "auto" decided: point-to-plane on
+    `scans`, the paper's point-to-point on the rest and where the (M, 3) `target` is flat (a 2D
+    scan, whose normals all leave its plane: they hold no motion within it)."""
+    if voxel is None:
+        icp = replace(icp, normal_within=0.0)
+    if icp.method == "auto":
+        icp = replace(icp, method="plane" if scans and flat_normal(target) is None else "point")
+    return icp
+
+
 class PreparedPair:
     """Both clouds at every resolution the pipeline uses, in their original frames:
 
@@ -148,12 +171,7 @@ class PreparedPair:
         # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds; even out the density.
         self.cleaned = (clean_points(as_points(source, names[0]), names[0], min_points=k), clean_points(as_points(target, names[1]), names[1], min_points=k))
         self.full: Clouds = (self.cleaned[0].points, self.cleaned[1].points)
-        if config.voxel is not None:
-            self.voxel = config.voxel or None
-        elif max(map(len, self.full)) > config.attempt_points:  # clouds small enough are tried whole
-            self.voxel = data_grid(*self.full, config.data_voxel)
-        else:
-            self.voxel = None
+        self.voxel = registration_grid(self.full, config)
         self.isolated = (0, 0)  # points left out as scattered outliers, per cloud
         if self.voxel is not None:
             self.full = self._grid(self.full, self.voxel, names, k)
@@ -178,13 +196,7 @@ class PreparedPair:
                 self._without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID, ISOLATED_FAR_OUT) for c in self.full
             )
             self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
-        if self.voxel is None:  # normals within a few point spacings only where a grid spaced the points evenly
-            config = replace(config, icp=replace(config.icp, normal_within=0.0))
-        if config.icp.method == "auto":  # point-to-plane on scans, the paper's point-to-point on the rest
-            # and on a flat target (a 2D scan), whose normals all leave its plane: they hold no motion within it
-            plane = self.scans and flat_normal(self.full[1]) is None
-            config = replace(config, icp=replace(config.icp, method="plane" if plane else "point"))
-        self.config = config
+        self.config = config = replace(config, icp=icp_for_pair(config.icp, self.full[1], self.voxel, self.scans))
         clock.lap("clean")
         # The network's samples, normalised together (own centroids, one common scale).
         self.norm = normalisation_for(*self.full)

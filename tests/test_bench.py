@@ -18,6 +18,7 @@ from o3dsoft.cli.main import main
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.io import read_points, read_transform
 from o3dsoft.metrics import pair_errors
+from o3dsoft.pipeline import RegisterConfig
 from o3dsoft.preprocess import scene_size
 from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid, rotation_angle_deg
 
@@ -337,6 +338,34 @@ def two_scans(tmp_path):
         "camera 0 0 0 0 0 0 1\nbmesh bun000.ply 0 0 0 0 0 0 1\nbmesh bun045.ply -0.0520211 -0.000383981 -0.0109223 0.00548449 -0.294635 -0.0038555 0.955586\n"
     )
     return folder
+
+
+@pytest.mark.parametrize("kind", ["scans", "modelnet40"])
+def test_the_peers_and_the_oracle_refine_with_the_icp_register_runs_and_match_on_its_grid(kind, two_scans, modelnet_root, monkeypatch):
+    """On scans the oracle and the '+icp' peers refine point-to-plane, as register does there, and
+    FPFH is computed on register's grid (here a given one); on ModelNet40's shapes point-to-point,
+    at 0.05 of the scale."""
+    from o3dsoft import baselines
+    from o3dsoft import refine as refine_stage
+    from o3dsoft.pair import PreparedPair
+
+    if kind == "scans":
+        pair = bench.scan_folder(two_scans, 0.3).pairs[0]
+    else:
+        _, pairs = bench.modelnet_pairs(str(modelnet_root), ["dcp"], 1, seed=0)
+        pair = next(pairs)
+    methods, voxels = [], []
+    real_icp, real_features = refine_stage.icp, baselines.fpfh_features
+    monkeypatch.setattr(refine_stage, "icp", lambda *a, **k: methods.append(a[4].method) or real_icp(*a, **k))
+    monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale, config: voxels.append(config.voxel * scale) or real_features(points, scale, config))
+    config = bench.BenchConfig(methods=("oracle", "fpfh-ransac+icp"), register=RegisterConfig(voxel=0.003 if kind == "scans" else None))
+    results = {r.method: r for r in bench.run_methods(pair, config, None)}
+    prepared = PreparedPair(pair.source.astype(np.float64), pair.target.astype(np.float64), config.register, 20)
+    scale = bench.normalisation_for(pair.source, pair.target).scale
+    assert methods == [prepared.config.icp.method] * 2 == (["plane"] * 2 if kind == "scans" else ["point"] * 2)
+    assert voxels == pytest.approx([0.003 if kind == "scans" else 0.05 * scale] * 2)
+    assert prepared.voxel == (0.003 if kind == "scans" else None)
+    assert pair_errors(results["oracle"].transform, pair.transform, pair.origin).rotation_deg < 1.0
 
 
 def test_scan_pairs_from_a_conf(two_scans):
