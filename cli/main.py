@@ -784,7 +784,8 @@ def _each_once(paths: Sequence[Path], what: str) -> None:
 def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress, **pipeline):
     """The poses of SWEEPS (files in the order they were taken, e.g. a LiDAR's or a depth camera's
     frames; a shell glob sorts them by name) in the frame of the first: each sweep registered onto
-    the last --map-sweeps sweeps from a constant-velocity guess.
+    the last --map-sweeps sweeps from a constant-velocity guess, and held within 45 degrees of it
+    (--max-rotation sets another bound).
 
     Writes OUT/poses.json (world_T_sweep per sweep, each step's confidence) and OUT/poses.txt (one
     3x4 pose per line, as KITTI's files; multiway --init reads either to close loops). A flagged

@@ -21,6 +21,7 @@ their points: on a lattice, points coincide at many poses, so coinciding says no
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, List, NamedTuple, Optional, Tuple
 
@@ -237,6 +238,11 @@ def _normal_equations(
     return J.T @ J / len(J), centre, scale
 
 
+# :func:`held_motion` keeps no motion that turns the source more than this many degrees beyond the
+# turn it was given (the projection is linear, and valid for small motions only).
+HELD_MAX_EXTRA_TURN = 1.0
+
+
 def held_motion(
     source: np.ndarray, target: np.ndarray, transformation: np.ndarray, distance: float, config: DegeneracyConfig = DegeneracyConfig()
 ) -> np.ndarray:
@@ -249,8 +255,10 @@ def held_motion(
     Args:
         source: (N, 3), as the guess placed it; target: (M, 3); distance: cloud units.
     Returns:
-        (4, 4) float64; the identity where under 6 points lie within `distance`; `transformation`
-        itself where ``held_from`` is 0.
+        (4, 4) float64; the identity where under 6 points lie within `distance`, or where the
+        motion kept would turn the source more than :data:`HELD_MAX_EXTRA_TURN` degrees beyond
+        `transformation`'s own turn (a motion too large for the projection, which is linear);
+        `transformation` itself where ``held_from`` is 0.
     """
     from scipy.spatial.transform import Rotation
 
@@ -268,6 +276,11 @@ def held_motion(
     start = np.linalg.solve(T[:3, :3], centre - T[:3, 3])  # the source point T moves to the centre
     motion = np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec() * scale, centre - start])  # about that point
     kept = held @ (held.T @ motion)
+    if np.linalg.norm(kept[:3]) / scale > np.linalg.norm(motion[:3]) / scale + math.radians(HELD_MAX_EXTRA_TURN):
+        # The projection is linear: on a motion far from small (a turn and a long slide) it can
+        # trade the slide for a turn larger than the motion's own (a wall: 25 -> 165 degrees).
+        # Undone along the free directions, such a motion leaves only the guess.
+        return np.eye(4)
     R = Rotation.from_rotvec(kept[:3] / scale).as_matrix()
     return rigid(R, start + kept[3:] - R @ start)
 

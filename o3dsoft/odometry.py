@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numbers
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
@@ -53,11 +53,17 @@ class OdometryConfig:
             (:data:`MAP_MAX_TURN`, :data:`MAP_MAX_SHIFT`) is left out of it (it reaches back past).
         constant_velocity: start each sweep at the last motion repeated (else where the previous
             sweep is); after a step left out of the map, from the last kept sweep's pose and motion.
+        guess_max_rotation: a sweep registered from its guess (every sweep after the second) is
+            held within this many degrees of it (``RegisterConfig.max_rotation``, where `register`
+            sets none), as multiway holds pairs near their initial poses: a sensor seldom turns
+            that far between frames, and where a frame shows too little to fix its pose (a flat
+            wall) the search can find and trust a pose turned far from the guess; None: no bound.
         register: the registration's settings (the same for every sweep).
     """
 
     map_sweeps: int = 10
     constant_velocity: bool = True
+    guess_max_rotation: Optional[float] = 45.0
     register: RegisterConfig = field(default_factory=RegisterConfig)
 
     def validate(self) -> None:
@@ -67,6 +73,9 @@ class OdometryConfig:
             raise UsageError(f"constant_velocity must be True or False, got {self.constant_velocity!r}")
         if not isinstance(self.register, RegisterConfig):
             raise UsageError(f"register must be an o3dsoft.RegisterConfig, got {type(self.register).__name__}")
+        bound = self.guess_max_rotation
+        if bound is not None and (isinstance(bound, bool) or not isinstance(bound, numbers.Real) or not 0 < bound <= 180):
+            raise UsageError(f"guess_max_rotation must be in (0, 180] degrees or None, got {bound!r}")
 
 
 @dataclass(frozen=True, eq=False)  # compared by identity: arrays have no single truth value
@@ -181,6 +190,9 @@ def odometry(
     steps: List[Optional[RegistrationResult]] = [None]
     guesses: List[Optional[np.ndarray]] = [None]
     origins = tuple(frame_point(p) for p in points)
+    settings = config.register  # for the sweeps registered from a guess
+    if settings.max_rotation is None and config.guess_max_rotation is not None:
+        settings = replace(settings, max_rotation=config.guess_max_rotation)
     for k in range(1, len(points)):
         kept = _kept(steps, guesses, origins, k)
         local_map = _local_map(points, poses, kept, k, config.map_sweeps)
@@ -188,7 +200,13 @@ def odometry(
         # Before any motion is known the guess is only "where the last sweep was": the first
         # step is registered as any pair is (ICP from the identity slid a room view 1.1 m off, trusted).
         step = register(
-            points[k], local_map, config.register, model=model, source_name=names[k], target_name=f"the map before {names[k]}", init=guess if k > 1 else None
+            points[k],
+            local_map,
+            settings if k > 1 else config.register,
+            model=model,
+            source_name=names[k],
+            target_name=f"the map before {names[k]}",
+            init=guess if k > 1 else None,
         )
         poses.append(poses[-1] @ step.transformation)
         steps.append(step)

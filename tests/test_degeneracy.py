@@ -251,3 +251,22 @@ def test_probe_starts_move_along_the_motion_about_its_centre(seed):
     shift = np.r_[0.0, 0.0, 0.0, 1.0, 0.0, 0.0]
     for start, step in zip(degeneracy.probe_starts(T, shift, centre, scale, (0.25,)), (0.25, -0.25)):
         assert np.allclose((start @ np.linalg.inv(T))[:3, 3], [step * scale, 0.0, 0.0])  # a share of the scale
+
+
+def test_what_a_wall_holds_of_a_motion_never_turns_the_source_further():
+    """The held part of a motion is a linear projection: on a wall, a turn with a long slide
+    along it was traded for a larger turn (25 -> 165 degrees in an odometry step). Where it
+    would be, the guess (the identity) stands instead. (Random turns up to 40 degrees and slides
+    up to 1.5 units on a 2 x 2 wall; two of these 60 turned further before.)"""
+    from scipy.spatial.transform import Rotation
+
+    from o3dsoft.transforms import rotation_angle_deg
+
+    rng = np.random.default_rng(0)
+    for _ in range(60):
+        wall = np.column_stack([rng.uniform(-1, 1, size=(2000, 2)), 0.002 * rng.standard_normal(2000)])
+        source = wall + rng.normal(scale=0.001, size=wall.shape)
+        R = Rotation.from_rotvec(rng.normal(size=3) / np.sqrt(3) * np.radians(rng.uniform(0, 40))).as_matrix()
+        T = rigid(R, rng.uniform(-1.5, 1.5, size=3) * [1, 1, 0.05])
+        held = degeneracy.held_motion(source, wall, T, 0.2)
+        assert rotation_angle_deg(held[:3, :3]) <= rotation_angle_deg(R) + degeneracy.HELD_MAX_EXTRA_TURN + 1e-9

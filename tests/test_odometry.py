@@ -62,6 +62,33 @@ def test_the_first_step_is_registered_without_a_guess_and_the_later_ones_from_th
     assert all(o3dsoft.pair_errors(p, t).translation < 0.05 for p, t in zip(result.poses, truth))
 
 
+@pytest.mark.parametrize(
+    "config, bounds",
+    [
+        (OdometryConfig(map_sweeps=2), [None, 45.0, 45.0]),
+        (OdometryConfig(map_sweeps=2, guess_max_rotation=10.0), [None, 10.0, 10.0]),
+        (OdometryConfig(map_sweeps=2, guess_max_rotation=None), [None, None, None]),
+        (OdometryConfig(map_sweeps=2, register=o3dsoft.RegisterConfig(max_rotation=20.0)), [20.0, 20.0, 20.0]),
+    ],
+)
+def test_sweeps_registered_from_a_guess_are_held_near_it(monkeypatch, config, bounds):
+    """A frame that shows too little to fix its pose (a flat wall) was searched, and a turn of 165
+    degrees from the guess was kept: the steps from a guess are held within 45 degrees of it,
+    unless the registration's own max_rotation says otherwise."""
+    sweeps, truth = _sequence(4)
+    module = importlib.import_module("o3dsoft.odometry")
+    seen = []
+
+    def recorded(source, target, settings, **kwargs):
+        seen.append(settings.max_rotation)
+        return o3dsoft.register(source, target, settings, **kwargs)
+
+    monkeypatch.setattr(module, "register", recorded)
+    result = odometry(sweeps, config)
+    assert seen == bounds
+    assert all(o3dsoft.pair_errors(p, t).translation < 0.05 for p, t in zip(result.poses, truth))
+
+
 def _map(points, poses, steps, guesses, k, size, origins=None):
     """The local map before sweep k, of the sweeps :func:`_kept` keeps."""
     return _local_map(points, poses, _kept(steps, guesses, origins or [np.zeros(3)] * len(steps), k), k, size)
@@ -182,6 +209,9 @@ def test_odometry_refuses_what_it_cannot_use(monkeypatch):
         odometry(sweeps, OdometryConfig(map_sweeps=True))
     with pytest.raises(UsageError, match="constant_velocity must be True or False, got 'no'"):
         odometry(sweeps, OdometryConfig(constant_velocity="no"))  # type: ignore[arg-type]
+    for bound in (0, 200.0, True, "45"):
+        with pytest.raises(UsageError, match=r"guess_max_rotation must be in \(0, 180\] degrees or None"):
+            odometry(sweeps, OdometryConfig(guess_max_rotation=bound))  # type: ignore[arg-type]
     OdometryConfig(map_sweeps=np.int64(3)).validate()
     # A bad sweep anywhere fails before the first is registered.
     registered = []
