@@ -27,7 +27,7 @@ from .config import RegisterConfig
 from .errors import UsageError
 from .metrics import PairErrors, pair_errors
 from .pair import CloudLike, as_points, named_clouds
-from .pipeline import RegistrationResult, register
+from .pipeline import SIZE_NOTE_END, SIZE_NOTE_START, SIZE_RATIO_NOTE, RegistrationResult, register
 from .preprocess import clean_points, local_origin, scene_size
 from .transforms import apply_transform, in_frame_at
 
@@ -208,6 +208,7 @@ def odometry(
             target_name=f"the map before {names[k]}",
             init=guess if k > 1 else None,
         )
+        step = _without_size_note(step, points[k], points[k - 1])
         poses.append(poses[-1] @ step.transformation)
         steps.append(step)
         guesses.append(guess)
@@ -303,6 +304,21 @@ def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], kept: 
     that pose is)."""
     into = np.linalg.inv(poses[k - 1])
     return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in kept[-size:]])
+
+
+def _without_size_note(step: RegistrationResult, sweep: np.ndarray, previous: np.ndarray) -> RegistrationResult:
+    """`step` without the note that opens a flagged result's reason where the clouds' sizes
+    differ (are they in the same units?), unless the (N, 3) `sweep` and the (M, 3) `previous`
+    sweep differ over :data:`~o3dsoft.pipeline.SIZE_RATIO_NOTE` times, as scans in other units
+    do: the frames of one sensor differ in size with what they see, and the local map is larger
+    than one (a depth camera's frame of a wall close up, 0.7 m across, against its map: 4.4-fold)."""
+    reason = step.failure_reason
+    if not reason or not reason.startswith(SIZE_NOTE_START):
+        return step
+    sizes = sorted(scene_size(p[np.isfinite(p).all(axis=1)]) for p in (sweep, previous))
+    if sizes[1] > SIZE_RATIO_NOTE * sizes[0]:
+        return step
+    return replace(step, failure_reason=reason[reason.index(SIZE_NOTE_END) + len(SIZE_NOTE_END) :])
 
 
 def _guess(poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], kept: Sequence[int], k: int, constant_velocity: bool) -> np.ndarray:

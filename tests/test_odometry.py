@@ -189,6 +189,7 @@ def test_a_sweep_in_other_units_is_flagged_and_the_next_ones_stay_right(size):
     result = o3dsoft.odometry(sweeps, o3dsoft.OdometryConfig(map_sweeps=size))
     assert result.flagged == (False, False, False, True, False, False)
     assert result.mapped == (True, True, True, False, True, True)
+    assert result.steps[3].failure_reason.startswith("the clouds' sizes differ")  # are they in the same units?
     assert [entry.get("in_map") for entry in result.to_dict()["sweeps"]] == [None, True, True, False, True, True]
     for k in (4, 5):
         e = o3dsoft.pair_errors(result.poses[k], truth[k])
@@ -281,3 +282,21 @@ def test_odometry_command_names_a_pattern_that_matched_no_file(tmp_path):
     r = CliRunner().invoke(main, ["odometry", str(tmp_path / "frame_*.ply"), "--out", str(tmp_path / "odo"), "--no-progress"])
     assert r.exit_code == 2 and "frame_*.ply: no such file (a pattern that matched no file)" in r.output, r.output
     assert not (tmp_path / "odo").exists()
+
+
+def test_a_flagged_step_names_different_sizes_only_where_the_sweep_and_the_one_before_differ():
+    """Frames of one sensor differ in size with what they see, and the local map is larger than
+    one (a depth camera close up to a wall: 4.4 times): "are they in the same units?" misled
+    there; scans in other units differ 1000-fold."""
+    from dataclasses import replace
+
+    from o3dsoft.odometry import _without_size_note
+    from o3dsoft.pipeline import SIZE_NOTE_END
+
+    sweeps, _ = _sequence(2)
+    step = o3dsoft.register(sweeps[1], sweeps[0])
+    noted = replace(step, likely_failed=True, failure_reason="the clouds' sizes differ 4.4-fold " + SIZE_NOTE_END + "the clouds can slide")
+    assert _without_size_note(noted, sweeps[1], sweeps[0]).failure_reason == "the clouds can slide"
+    assert _without_size_note(noted, 5.0 * sweeps[1], sweeps[0]).failure_reason == "the clouds can slide"
+    assert _without_size_note(noted, 1000.0 * sweeps[1], sweeps[0]).failure_reason == noted.failure_reason
+    assert _without_size_note(step, sweeps[1], sweeps[0]) is step
