@@ -785,7 +785,7 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     """The poses of SWEEPS (files in the order they were taken, e.g. a LiDAR's or a depth camera's
     frames; a shell glob sorts them by name) in the frame of the first: each sweep registered onto
     the last --map-sweeps sweeps from a constant-velocity guess, and held within 45 degrees of it
-    (--max-rotation sets another bound).
+    (--max-rotation sets another bound, for every step, the first included).
 
     Writes OUT/poses.json (world_T_sweep per sweep, each step's confidence) and OUT/poses.txt (one
     3x4 pose per line, as KITTI's files; multiway --init reads either to close loops). A flagged

@@ -32,8 +32,8 @@ from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, input_chamfer_distance, modified_chamfer_distance, pair_errors, summarise, within
 from .pair import SCAN_POINTS, icp_for_pair, registration_grid
 from .pipeline import RegisterConfig, register
-from .preprocess import local_origin, normalisation_for, scene_size
-from .transforms import apply_transform, random_rotation, rigid, rotation_angle_deg
+from .preprocess import clean_points, local_origin, normalisation_for, scene_size, voxel_downsample
+from .transforms import apply_transform, in_frame_at, random_rotation, rigid, rotation_angle_deg
 
 METHODS: Dict[str, str] = {
     "oracle": "Open3D ICP started at the ground truth (the floor the sampling sets)",
@@ -454,16 +454,31 @@ class MethodResult(NamedTuple):
 
 def peer_settings(source: np.ndarray, target: np.ndarray, config: BenchConfig, scale: float) -> Tuple[refine_stage.ICPConfig, baselines.GlobalConfig]:
     """How the oracle and the peers run on one pair of (N, 3) and (M, 3) clouds of `scale` (the
-    larger radius, cloud units): the ICP that ``register`` runs on such a pair (its method decided
-    as for the pipeline: point-to-plane on scans), on the clouds as given; and the FPFH settings,
-    on scans on the grid ``register`` would use (Open3D's tutorial takes 5 cm on RGB-D fragments in
-    metres, where that grid is 3.7 cm and 0.05 of the scale 9-10 cm), else 0.05 of the scale."""
-    finite = (source[np.isfinite(source).all(axis=1)], target[np.isfinite(target).all(axis=1)])
-    grid = registration_grid(finite, config.register)
-    scans = grid is not None or max(map(len, finite)) > SCAN_POINTS
-    icp = icp_for_pair(config.register.icp, finite[1], None, scans)
+    larger radius, cloud units): the ICP method ``register`` decides for such a pair
+    (point-to-plane on scans, :func:`o3dsoft.pair.icp_for_pair`), run on the clouds as given
+    (normals from the nearest points, as off a grid); and the FPFH settings, on scans on the grid
+    ``register`` would use (Open3D's tutorial takes 5 cm on RGB-D fragments in metres, where that
+    grid is 3.7 cm and 0.05 of the scale 9-10 cm), else 0.05 of the scale.
+
+    Raises:
+        InputError: a cloud ``register`` would refuse (fewer than two distinct finite points, ...).
+    """
+    cleaned = (clean_points(source, "source", min_points=2).points, clean_points(target, "target", min_points=2).points)
+    grid = registration_grid(cleaned, config.register)
+    scans = grid is not None or max(map(len, cleaned)) > SCAN_POINTS
+    target = cleaned[1] if grid is None else voxel_downsample(cleaned[1], grid, "target")  # flat or not, as register sees it
+    icp = icp_for_pair(config.register.icp, target, None, scans)
     global_ = replace(config.global_, voxel=grid / scale) if scans and grid is not None else config.global_
     return icp, global_
+
+
+def peer_icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, distance: float, config: refine_stage.ICPConfig) -> np.ndarray:
+    """(4, 4) T_target_source: ICP from `init` on (N, 3) and (M, 3), both moved by the target's
+    :func:`~o3dsoft.preprocess.local_origin` first as ``register`` moves them: point-to-plane ICP
+    linearises the rotation about the origin, and on georeferenced clouds that lies far off."""
+    origin = local_origin(target)
+    T = refine_stage.icp(source - origin, target - origin, in_frame_at(init, origin), distance, config).transformation
+    return in_frame_at(T, -origin)
 
 
 def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseModel], search_model: Optional[CoarseModel] = None) -> List[MethodResult]:
@@ -473,7 +488,6 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
     src, tgt = pair.source.astype(np.float64), pair.target.astype(np.float64)
     scale = normalisation_for(src, tgt).scale
     icp_distance = config.register.icp.distance_for(scale)
-    icp_config, global_config = peer_settings(src, tgt, config, scale)
     out: Dict[str, MethodResult] = {}
 
     def clock() -> float:
@@ -509,7 +523,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
 
     def oracle() -> None:
         t0 = clock()
-        T = refine_stage.icp(src, tgt, pair.transform, icp_distance, icp_config).transformation
+        T = peer_icp(src, tgt, pair.transform, icp_distance, peer_settings(src, tgt, config, scale)[0])
         out["oracle"] = MethodResult("oracle", T, {"icp": clock() - t0, "total": clock() - t0})
 
     def icp() -> None:
@@ -518,6 +532,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         out["icp"] = MethodResult("icp", T, {"icp": clock() - t0, "total": clock() - t0})
 
     def feature_methods() -> None:
+        icp_config, global_config = peer_settings(src, tgt, config, scale)
         t0 = clock()
         fs = baselines.fpfh_features(src, scale, global_config)
         ft = baselines.fpfh_features(tgt, scale, global_config)
@@ -535,7 +550,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
             out[name] = MethodResult(name, T, {"features": features_ms, stage: solve_ms, "total": features_ms + solve_ms})
             if f"{name}+icp" in methods:
                 t0 = clock()
-                T_fine = refine_stage.icp(src, tgt, T, icp_distance, icp_config).transformation
+                T_fine = peer_icp(src, tgt, T, icp_distance, icp_config)
                 icp_ms = clock() - t0
                 out[f"{name}+icp"] = MethodResult(
                     f"{name}+icp", T_fine, {"features": features_ms, stage: solve_ms, "icp": icp_ms, "total": features_ms + solve_ms + icp_ms}

@@ -277,9 +277,9 @@ def held_motion(
     motion = np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec() * scale, centre - start])  # about that point
     kept = held @ (held.T @ motion)
     if np.linalg.norm(kept[:3]) / scale > np.linalg.norm(motion[:3]) / scale + math.radians(HELD_MAX_EXTRA_TURN):
-        # The projection is linear: on a motion far from small (a turn and a long slide) it can
-        # trade the slide for a turn larger than the motion's own (a wall: 25 -> 165 degrees).
-        # Undone along the free directions, such a motion leaves only the guess.
+        # The projection is linear: on a motion far from small (a turn and a long slide along a
+        # wall) it can trade the slide for a turn larger than the motion's own, up to a half turn.
+        # No part of such a motion can be kept apart: the guess stands.
         return np.eye(4)
     R = Rotation.from_rotvec(kept[:3] / scale).as_matrix()
     return rigid(R, start + kept[3:] - R @ start)

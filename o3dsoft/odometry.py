@@ -208,7 +208,7 @@ def odometry(
             target_name=f"the map before {names[k]}",
             init=guess if k > 1 else None,
         )
-        step = _without_size_note(step, points[k], points[k - 1])
+        step = _without_size_note(step, points[k], points[kept[-1]])
         poses.append(poses[-1] @ step.transformation)
         steps.append(step)
         guesses.append(guess)
@@ -309,9 +309,10 @@ def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], kept: 
 def _without_size_note(step: RegistrationResult, sweep: np.ndarray, previous: np.ndarray) -> RegistrationResult:
     """`step` without the note that opens a flagged result's reason where the clouds' sizes
     differ (are they in the same units?), unless the (N, 3) `sweep` and the (M, 3) `previous`
-    sweep differ over :data:`~o3dsoft.pipeline.SIZE_RATIO_NOTE` times, as scans in other units
-    do: the frames of one sensor differ in size with what they see, and the local map is larger
-    than one (a depth camera's frame of a wall close up, 0.7 m across, against its map: 4.4-fold)."""
+    sweep of its map differ over :data:`~o3dsoft.pipeline.SIZE_RATIO_NOTE` times (millimetres
+    and metres or centimetres; feet and metres go unnamed): the frames of one sensor differ in
+    size with what they see, and the local map is larger than one frame (a depth camera's frame
+    of a wall close up, 0.7 m across, against its map: 4.4-fold)."""
     reason = step.failure_reason
     if not reason or not reason.startswith(SIZE_NOTE_START):
         return step

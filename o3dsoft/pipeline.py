@@ -502,7 +502,12 @@ def _register(
     if guess and settings.held_from > 0 and geometry.constraint is not None and geometry.constraint < settings.min_constraint:
         # Along what the surfaces leave free (a corridor's length), ICP slides on noise: the guess is the better answer there.
         best = _held_by_surfaces(pair, best, level)
-        geometry = geometry._replace(reason=f"{geometry.reason}; along the motions the surfaces leave free, the initial guess is kept")
+        kept = (
+            "the initial guess is kept"
+            if np.array_equal(best.fine.transformation, np.eye(4))
+            else "along the motions the surfaces leave free, the initial guess is kept"
+        )
+        geometry = geometry._replace(reason=f"{geometry.reason}; {kept}")
         clock.lap("degeneracy")
     # Whether a symmetric copy fits as closely: nothing measured on the clouds tells the two apart.
     copy = _probe_symmetry(pair, verifier, best, geometry)

@@ -340,7 +340,7 @@ def two_scans(tmp_path):
     return folder
 
 
-@pytest.mark.parametrize("kind", ["scans", "modelnet40"])
+@pytest.mark.parametrize("kind", ["scans", "scans on the data's grid", "modelnet40"])
 def test_the_peers_and_the_oracle_refine_with_the_icp_register_runs_and_match_on_its_grid(kind, two_scans, modelnet_root, monkeypatch):
     """On scans the oracle and the '+icp' peers refine point-to-plane, as register does there, and
     FPFH is computed on register's grid (here a given one); on ModelNet40's shapes point-to-point,
@@ -349,7 +349,7 @@ def test_the_peers_and_the_oracle_refine_with_the_icp_register_runs_and_match_on
     from o3dsoft import refine as refine_stage
     from o3dsoft.pair import PreparedPair
 
-    if kind == "scans":
+    if kind.startswith("scans"):
         pair = bench.scan_folder(two_scans, 0.3).pairs[0]
     else:
         _, pairs = bench.modelnet_pairs(str(modelnet_root), ["dcp"], 1, seed=0)
@@ -358,14 +358,38 @@ def test_the_peers_and_the_oracle_refine_with_the_icp_register_runs_and_match_on
     real_icp, real_features = refine_stage.icp, baselines.fpfh_features
     monkeypatch.setattr(refine_stage, "icp", lambda *a, **k: methods.append(a[4].method) or real_icp(*a, **k))
     monkeypatch.setattr(baselines, "fpfh_features", lambda points, scale, config: voxels.append(config.voxel * scale) or real_features(points, scale, config))
-    config = bench.BenchConfig(methods=("oracle", "fpfh-ransac+icp"), register=RegisterConfig(voxel=0.003 if kind == "scans" else None))
+    register = {"scans": RegisterConfig(voxel=0.003), "scans on the data's grid": RegisterConfig(attempt_points=1000, data_voxel=0.05)}.get(
+        kind, RegisterConfig()
+    )
+    config = bench.BenchConfig(methods=("oracle", "fpfh-ransac+icp"), register=register)
     results = {r.method: r for r in bench.run_methods(pair, config, None)}
     prepared = PreparedPair(pair.source.astype(np.float64), pair.target.astype(np.float64), config.register, 20)
     scale = bench.normalisation_for(pair.source, pair.target).scale
-    assert methods == [prepared.config.icp.method] * 2 == (["plane"] * 2 if kind == "scans" else ["point"] * 2)
-    assert voxels == pytest.approx([0.003 if kind == "scans" else 0.05 * scale] * 2)
-    assert prepared.voxel == (0.003 if kind == "scans" else None)
+    assert methods == [prepared.config.icp.method] * 2 == (["point"] * 2 if kind == "modelnet40" else ["plane"] * 2)
+    assert voxels == pytest.approx([0.05 * scale if kind == "modelnet40" else prepared.voxel] * 2)
+    assert (prepared.voxel is None) == (kind == "modelnet40")
     assert pair_errors(results["oracle"].transform, pair.transform, pair.origin).rotation_deg < 1.0
+
+
+def test_the_peers_refine_georeferenced_scans_as_they_refine_them_near_the_origin():
+    """Point-to-plane ICP linearises the rotation about the origin: the peers' ICP runs about the
+    target's median, as register's does."""
+    from .conftest import ring_sweep
+
+    rng = np.random.default_rng(0)
+    rings = tuple(np.arange(-15.0, 8.0, 1.5))
+    T = rigid(euler_to_matrix([0.0, 0.0, 1.5]), np.array([0.6, 0.1, 0.0]))
+    start = rigid(np.eye(3), np.array([-8.0, -4.0, 0.0]))
+    target, source = ring_sweep(start, rng, rings), ring_sweep(start @ T, rng, rings)
+    config, errors = bench.BenchConfig(), []
+    for shift in (np.zeros(3), np.array([5e5, 1e6, 30.0])):
+        moved = rigid(np.eye(3), shift) @ T @ rigid(np.eye(3), -shift)
+        scale = bench.normalisation_for(source, target).scale
+        icp, _ = bench.peer_settings(source + shift, target + shift, config, scale)
+        refined = bench.peer_icp(source + shift, target + shift, moved, config.register.icp.distance_for(scale), icp)
+        errors.append(pair_errors(refined, moved, source.mean(axis=0) + shift))
+        assert icp.method == "plane"
+    assert errors[1].rotation_deg < 0.2 and abs(errors[1].rotation_deg - errors[0].rotation_deg) < 0.01
 
 
 def test_scan_pairs_from_a_conf(two_scans):

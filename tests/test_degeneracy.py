@@ -255,9 +255,9 @@ def test_probe_starts_move_along_the_motion_about_its_centre(seed):
 
 def test_what_a_wall_holds_of_a_motion_never_turns_the_source_further():
     """The held part of a motion is a linear projection: on a wall, a turn with a long slide
-    along it was traded for a larger turn (25 -> 165 degrees in an odometry step). Where it
-    would be, the guess (the identity) stands instead. (Random turns up to 40 degrees and slides
-    up to 1.5 units on a 2 x 2 wall; two of these 60 turned further before.)"""
+    along it can be traded for a larger turn, up to a half turn. Where it would be, the guess (the
+    identity) stands instead (random turns up to 40 degrees and slides up to 1.5 units on a 2 x 2
+    wall, two of which a bare projection turns further); a small motion keeps its held part."""
     from scipy.spatial.transform import Rotation
 
     from o3dsoft.transforms import rotation_angle_deg
@@ -270,3 +270,7 @@ def test_what_a_wall_holds_of_a_motion_never_turns_the_source_further():
         T = rigid(R, rng.uniform(-1.5, 1.5, size=3) * [1, 1, 0.05])
         held = degeneracy.held_motion(source, wall, T, 0.2)
         assert rotation_angle_deg(held[:3, :3]) <= rotation_angle_deg(R) + degeneracy.HELD_MAX_EXTRA_TURN + 1e-9
+    # A tilt of 2 degrees (held by the wall) with a slide of 0.3 along it (free): the tilt stays, the slide goes.
+    T = rigid(euler_to_matrix([2.0, 0.0, 0.0]), np.array([0.3, 0.0, 0.01]))
+    held = degeneracy.held_motion(source, wall, T, 0.2)
+    assert rotation_angle_deg(held[:3, :3]) == pytest.approx(2.0, abs=0.2) and abs(held[0, 3]) < 0.05

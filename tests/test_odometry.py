@@ -72,9 +72,9 @@ def test_the_first_step_is_registered_without_a_guess_and_the_later_ones_from_th
     ],
 )
 def test_sweeps_registered_from_a_guess_are_held_near_it(monkeypatch, config, bounds):
-    """A frame that shows too little to fix its pose (a flat wall) was searched, and a turn of 165
-    degrees from the guess was kept: the steps from a guess are held within 45 degrees of it,
-    unless the registration's own max_rotation says otherwise."""
+    """A frame that shows too little to fix its pose (a flat wall) is searched, and the search can
+    trust a pose turned far from the guess: the steps from a guess are held within 45 degrees of
+    it, unless the registration's own max_rotation says otherwise (then for every step)."""
     sweeps, truth = _sequence(4)
     module = importlib.import_module("o3dsoft.odometry")
     seen = []
@@ -196,6 +196,16 @@ def test_a_sweep_in_other_units_is_flagged_and_the_next_ones_stay_right(size):
         assert e.rotation_deg < 0.3 and e.translation < 0.05, (k, e)
 
 
+def test_two_sweeps_in_other_units_in_a_row_are_both_named():
+    """The second is compared with the sweeps of its map (in metres), not with the first (in
+    millimetres too)."""
+    sweeps, _ = _sequence(6, seed=2)
+    sweeps[3], sweeps[4] = 1000.0 * sweeps[3], 1000.0 * sweeps[4]
+    result = o3dsoft.odometry(sweeps, o3dsoft.OdometryConfig(map_sweeps=3))
+    for k in (3, 4):
+        assert result.flagged[k] and result.steps[k].failure_reason.startswith("the clouds' sizes differ"), k
+
+
 def test_odometry_refuses_what_it_cannot_use(monkeypatch):
     sweeps, _ = _sequence(2)
     with pytest.raises(UsageError, match="map_sweeps must be a whole number of at least 1"):
@@ -286,8 +296,8 @@ def test_odometry_command_names_a_pattern_that_matched_no_file(tmp_path):
 
 def test_a_flagged_step_names_different_sizes_only_where_the_sweep_and_the_one_before_differ():
     """Frames of one sensor differ in size with what they see, and the local map is larger than
-    one (a depth camera close up to a wall: 4.4 times): "are they in the same units?" misled
-    there; scans in other units differ 1000-fold."""
+    one (a depth camera close up to a wall: 4.4 times): "are they in the same units?" belongs to
+    sweeps that differ as units do (1000-fold) from the sweeps of their map."""
     from dataclasses import replace
 
     from o3dsoft.odometry import _without_size_note
