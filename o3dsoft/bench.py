@@ -11,6 +11,7 @@ JSON summary, the config, versions, plots).
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import os
 import platform
@@ -30,7 +31,7 @@ from .data import DEFAULT_POINTS_PER_SHAPE, get_protocol, load_pairs
 from .errors import InputError, O3dsoftError, UsageError, counted, first_line, release_interrupt, spawn_context, terminate_as_interrupt
 from .io import atomic_output, make_folder
 from .metrics import MODELNET_RECALL, PairErrors, input_chamfer_distance, modified_chamfer_distance, pair_errors, summarise, within
-from .pair import SCAN_POINTS, icp_for_pair, registration_grid
+from .pair import are_scans, icp_for_pair, registration_grid
 from .pipeline import RegisterConfig, register
 from .preprocess import clean_points, local_origin, normalisation_for, scene_size, voxel_downsample
 from .transforms import apply_transform, in_frame_at, random_rotation, rigid, rotation_angle_deg
@@ -465,7 +466,7 @@ def peer_settings(source: np.ndarray, target: np.ndarray, config: BenchConfig, s
     """
     cleaned = (clean_points(source, "source", min_points=2).points, clean_points(target, "target", min_points=2).points)
     grid = registration_grid(cleaned, config.register)
-    scans = grid is not None or max(map(len, cleaned)) > SCAN_POINTS
+    scans = are_scans(cleaned, grid)
     target = cleaned[1] if grid is None else voxel_downsample(cleaned[1], grid, "target")  # flat or not, as register sees it
     icp = icp_for_pair(config.register.icp, target, None, scans)
     global_ = replace(config.global_, voxel=grid / scale) if scans and grid is not None else config.global_
@@ -521,9 +522,16 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
             "o3dsoft", result.transformation, {**coarse_ms, "icp": fine_ms, "total": wall_ms}, result.confidence, result.searched, result.search_reason
         )
 
+    @functools.cache
+    def peer() -> Tuple[refine_stage.ICPConfig, baselines.GlobalConfig]:
+        """The oracle's and the peers' settings on this pair, found once, outside their timings
+        (called within :func:`each`, which reports a pair it refuses)."""
+        return peer_settings(src, tgt, config, scale)
+
     def oracle() -> None:
+        icp_config = peer()[0]
         t0 = clock()
-        T = peer_icp(src, tgt, pair.transform, icp_distance, peer_settings(src, tgt, config, scale)[0])
+        T = peer_icp(src, tgt, pair.transform, icp_distance, icp_config)
         out["oracle"] = MethodResult("oracle", T, {"icp": clock() - t0, "total": clock() - t0})
 
     def icp() -> None:
@@ -532,7 +540,7 @@ def run_methods(pair: BenchPair, config: BenchConfig, model: Optional[CoarseMode
         out["icp"] = MethodResult("icp", T, {"icp": clock() - t0, "total": clock() - t0})
 
     def feature_methods() -> None:
-        icp_config, global_config = peer_settings(src, tgt, config, scale)
+        icp_config, global_config = peer()
         t0 = clock()
         fs = baselines.fpfh_features(src, scale, global_config)
         ft = baselines.fpfh_features(tgt, scale, global_config)

@@ -114,6 +114,13 @@ def registration_grid(clouds: Clouds, config: RegisterConfig) -> Optional[float]
     return None
 
 
+def are_scans(clouds: Clouds, voxel: Optional[float]) -> bool:
+    """Whether the (N, 3) and (M, 3) clouds are scans: registered on the grid `voxel` (None:
+    none), or with more points than any ModelNet40 shape has (clouds a user downsampled already:
+    the data's grid leaves them as they are)."""
+    return voxel is not None or max(map(len, clouds)) > SCAN_POINTS
+
+
 def icp_for_pair(icp: refine_stage.ICPConfig, target: np.ndarray, voxel: Optional[float], scans: bool) -> refine_stage.ICPConfig:
     """ICP's settings for one pair: normals within a few point spacings only where the grid
     `voxel` (None: none) spaced the points evenly, and method "auto" decided: point-to-plane on
@@ -185,9 +192,7 @@ class PreparedPair:
                     for grid, report in zip(self.full, self.cleaned)
                 )
                 self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
-        # Scans: on a voxel grid, or more points than any ModelNet40 shape has (clouds a user
-        # downsampled already: the data's grid leaves them as they are).
-        self.scans = self.voxel is not None or max(map(len, self.full)) > SCAN_POINTS
+        self.scans = are_scans(self.full, self.voxel)
         if self.scans and self.voxel is None and config.voxel is None and config.isolated_spacings > 0:
             # Scans off a grid: isolated by each cloud's own spacing; where more than
             # ISOLATED_MAX_SHARE_OFF_GRID of a cloud is, or they lie out (ISOLATED_FAR_OUT), it is
