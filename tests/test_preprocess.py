@@ -32,6 +32,19 @@ def test_isolated_points_have_fewer_than_two_others_within_the_radius():
     assert not isolated[: len(grid)].any() and isolated[len(grid) : len(grid) + 5].all() and not isolated[-3:].any()
 
 
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 400), st.floats(0.02, 0.5))
+def test_isolated_points_are_those_open3d_radius_outlier_removal_drops(seed, n, radius):
+    from o3dsoft.refine import to_open3d
+
+    rng = np.random.default_rng(seed)
+    points = np.vstack([rng.uniform(0.0, 1.0, (n, 3)), rng.uniform(0.0, 1.0, (2, 3)) * [1.0, 1.0, 0.0]])
+    _, kept = to_open3d(points).remove_radius_outlier(nb_points=2, radius=radius)
+    expected = np.ones(len(points), dtype=bool)
+    expected[np.asarray(kept, dtype=np.int64)] = False
+    assert np.array_equal(isolated_points(points, radius), expected)
+
+
 def test_clean_drops_non_finite_and_duplicates_in_order():
     pts = np.array([[0, 0, 0], [1, 0, 0], [np.nan, 0, 0], [0, 1, 0], [1, 0, 0], [0, 0, np.inf], [0, 0, 1]], float)
     rep = clean_points(pts)
