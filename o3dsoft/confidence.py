@@ -120,6 +120,11 @@ class ConfidenceConfig:
         agree_deg, agree_shift: two estimates agree (reach one pose) when their rotations lie
             within `agree_deg` degrees and they put the source's centre within `agree_shift` x
             the pair's scale of each other.
+        size_note_ratio: a flagged result's reason opens by naming the clouds' sizes (are they
+            in the same units?) where the larger cleaned cloud is over this many times the
+            smaller (:func:`~o3dsoft.preprocess.scene_size`): feet and metres differ 3.3-fold,
+            inches and centimetres 2.5, where two scans of one scene differ at most 1.2-fold and
+            the literature's crops of a ModelNet40 shape 2.1.
     """
 
     distance: float = 0.1
@@ -139,6 +144,7 @@ class ConfidenceConfig:
     partial_coefficients: Optional[Tuple[float, ...]] = (-3.52, 0.94)
     agree_deg: float = 5.0
     agree_shift: float = 0.05
+    size_note_ratio: float = 2.2
 
     def validate(self) -> None:
         for name, coefficients, names in (
@@ -161,6 +167,8 @@ class ConfidenceConfig:
             raise ValueError(f"agree_deg and agree_shift must be positive, got {self.agree_deg} and {self.agree_shift}")
         if not 0 < self.likely_failed_below < 1:
             raise ValueError(f"likely_failed_below must be in (0, 1), got {self.likely_failed_below}")
+        if not self.size_note_ratio >= 1:
+            raise ValueError(f"size_note_ratio must be at least 1, got {self.size_note_ratio}")
 
 
 class Features(NamedTuple):

@@ -27,7 +27,7 @@ from .config import RegisterConfig
 from .errors import UsageError
 from .metrics import PairErrors, pair_errors
 from .pair import CloudLike, as_points, named_clouds
-from .pipeline import SIZE_NOTE_END, SIZE_NOTE_START, SIZE_RATIO_NOTE, RegistrationResult, register
+from .pipeline import SIZE_RATIO_NOTE, RegistrationResult, register
 from .preprocess import clean_points, local_origin, scene_size
 from .transforms import apply_transform, in_frame_at
 
@@ -190,7 +190,8 @@ def odometry(
     steps: List[Optional[RegistrationResult]] = [None]
     guesses: List[Optional[np.ndarray]] = [None]
     origins = tuple(frame_point(p) for p in points)
-    settings = config.register  # for the sweeps registered from a guess
+    first = _onto_a_map(config.register)
+    settings = first  # for the sweeps registered from a guess
     if settings.max_rotation is None and config.guess_max_rotation is not None:
         settings = replace(settings, max_rotation=config.guess_max_rotation)
     for k in range(1, len(points)):
@@ -202,13 +203,12 @@ def odometry(
         step = register(
             points[k],
             local_map,
-            settings if k > 1 else config.register,
+            settings if k > 1 else first,
             model=model,
             source_name=names[k],
             target_name=f"the map before {names[k]}",
             init=guess if k > 1 else None,
         )
-        step = _without_size_note(step, points[k], points[kept[-1]])
         poses.append(poses[-1] @ step.transformation)
         steps.append(step)
         guesses.append(guess)
@@ -306,20 +306,14 @@ def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], kept: 
     return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in kept[-size:]])
 
 
-def _without_size_note(step: RegistrationResult, sweep: np.ndarray, previous: np.ndarray) -> RegistrationResult:
-    """`step` without the note that opens a flagged result's reason where the clouds' sizes
-    differ (are they in the same units?), unless the (N, 3) `sweep` and the (M, 3) `previous`
-    sweep of its map differ over :data:`~o3dsoft.pipeline.SIZE_RATIO_NOTE` times (millimetres
-    and metres or centimetres; feet and metres go unnamed): the frames of one sensor differ in
-    size with what they see, and the local map is larger than one frame (a depth camera's frame
-    of a wall close up, 0.7 m across, against its map: 4.4-fold)."""
-    reason = step.failure_reason
-    if not reason or not reason.startswith(SIZE_NOTE_START):
-        return step
-    sizes = sorted(scene_size(p[np.isfinite(p).all(axis=1)]) for p in (sweep, previous))
-    if sizes[1] > SIZE_RATIO_NOTE * sizes[0]:
-        return step
-    return replace(step, failure_reason=reason[reason.index(SIZE_NOTE_END) + len(SIZE_NOTE_END) :])
+def _onto_a_map(config: RegisterConfig) -> RegisterConfig:
+    """`config` for registering a sweep onto its local map: a flagged step names the sizes of the
+    sweep and the map (are they in the same units?) only where they differ over
+    :data:`~o3dsoft.pipeline.SIZE_RATIO_NOTE` times (millimetres among metres; feet among metres
+    go unnamed), as the map holds several sweeps and the frames of one sensor differ in size with
+    what they see (a depth camera's frame of a wall close up against its map: 4.4-fold)."""
+    confidence = config.confidence
+    return replace(config, confidence=replace(confidence, size_note_ratio=max(confidence.size_note_ratio, SIZE_RATIO_NOTE)))
 
 
 def _guess(poses: Sequence[np.ndarray], steps: Sequence[Optional[RegistrationResult]], kept: Sequence[int], k: int, constant_velocity: bool) -> np.ndarray:

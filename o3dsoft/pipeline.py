@@ -63,13 +63,6 @@ from .verify import Attempt, Verifier, choice_applies
 # Scenes whose sizes differ more than this are named in a warning (multiway): most often one is in
 # millimetres and the other in metres.
 SIZE_RATIO_NOTE = 20.0
-# ... and a flagged result names sizes that differ more than this: feet and metres (3.3-fold),
-# inches and centimetres (2.5), where two scans of one scene differ at most 1.2-fold and the
-# literature's crops of a ModelNet40 shape 2.1.
-FLAGGED_SIZE_RATIO_NOTE = 2.2
-# That note opens the reason: SIZE_NOTE_START, the ratio ("4.4-fold"), SIZE_NOTE_END.
-SIZE_NOTE_START = "the clouds' sizes differ"
-SIZE_NOTE_END = "(are they in the same units? o3dsoft does not search a large scene for a small part of it); "
 
 __all__ = ["register", "RegisterConfig", "RegistrationResult", "SEARCH_MODES", "as_points"]
 
@@ -882,9 +875,9 @@ def _result(
             reason = f"{few}; also, {reason}" if reason else few
     if reason and search_reason is not None and pair.scans and config.search.kiss and not kiss_available():
         reason += "; KISS-Matcher, which the search tries first on scans, is not installed: pip install 'o3dsoft[peers]'"
-    if reason and pair.size_ratio > FLAGGED_SIZE_RATIO_NOTE:
+    if reason and pair.size_ratio > config.confidence.size_note_ratio:
         fold = f"{pair.size_ratio:.1f}" if pair.size_ratio < 10 else f"{pair.size_ratio:.0f}"
-        reason = f"{SIZE_NOTE_START} {fold}-fold {SIZE_NOTE_END}{reason}"
+        reason = f"the clouds' sizes differ {fold}-fold (are they in the same units? o3dsoft does not search a large scene for a small part of it); {reason}"
     return RegistrationResult(
         transformation=best.fine.transformation,
         fitness=best.fine.fitness,

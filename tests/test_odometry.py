@@ -11,6 +11,7 @@ import o3dsoft
 from o3dsoft.cli.main import main
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.odometry import OdometryConfig, _guess, _kept, _local_map, errors_against, odometry
+from o3dsoft.pipeline import SIZE_RATIO_NOTE
 from o3dsoft.transforms import euler_to_matrix, rigid
 
 from .conftest import ring_sweep
@@ -81,11 +82,14 @@ def test_sweeps_registered_from_a_guess_are_held_near_it(monkeypatch, config, bo
 
     def recorded(source, target, settings, **kwargs):
         seen.append(settings.max_rotation)
+        notes.append(settings.confidence.size_note_ratio)
         return o3dsoft.register(source, target, settings, **kwargs)
 
+    notes = []
     monkeypatch.setattr(module, "register", recorded)
     result = odometry(sweeps, config)
     assert seen == bounds
+    assert notes == [SIZE_RATIO_NOTE] * 3  # every step onto a map (first included) names sizes as units differ
     assert all(o3dsoft.pair_errors(p, t).translation < 0.05 for p, t in zip(result.poses, truth))
 
 
@@ -294,19 +298,17 @@ def test_odometry_command_names_a_pattern_that_matched_no_file(tmp_path):
     assert not (tmp_path / "odo").exists()
 
 
-def test_a_flagged_step_names_different_sizes_only_where_the_sweep_and_the_one_before_differ():
+def test_a_flagged_step_names_different_sizes_only_where_the_sweep_and_its_map_differ_as_units_do():
     """Frames of one sensor differ in size with what they see, and the local map is larger than
     one (a depth camera close up to a wall: 4.4 times): "are they in the same units?" belongs to
-    sweeps that differ as units do (1000-fold) from the sweeps of their map."""
-    from dataclasses import replace
+    sweeps that differ from their map as units do (1000-fold; feet among metres go unnamed)."""
+    from o3dsoft.confidence import ConfidenceConfig
+    from o3dsoft.odometry import _onto_a_map
 
-    from o3dsoft.odometry import _without_size_note
-    from o3dsoft.pipeline import SIZE_NOTE_END
-
+    assert _onto_a_map(o3dsoft.RegisterConfig()).confidence.size_note_ratio == SIZE_RATIO_NOTE
+    wider = o3dsoft.RegisterConfig(confidence=ConfidenceConfig(size_note_ratio=50.0), voxel=0.5)
+    assert _onto_a_map(wider) == wider  # a user's wider bound stands, and nothing else changes
     sweeps, _ = _sequence(2)
-    step = o3dsoft.register(sweeps[1], sweeps[0])
-    noted = replace(step, likely_failed=True, failure_reason="the clouds' sizes differ 4.4-fold " + SIZE_NOTE_END + "the clouds can slide")
-    assert _without_size_note(noted, sweeps[1], sweeps[0]).failure_reason == "the clouds can slide"
-    assert _without_size_note(noted, 5.0 * sweeps[1], sweeps[0]).failure_reason == "the clouds can slide"
-    assert _without_size_note(noted, 1000.0 * sweeps[1], sweeps[0]).failure_reason == noted.failure_reason
-    assert _without_size_note(step, sweeps[1], sweeps[0]) is step
+    for factor, named in ((4.4, False), (1000.0, True)):
+        step = o3dsoft.register(factor * sweeps[1], sweeps[0], _onto_a_map(o3dsoft.RegisterConfig()))
+        assert step.likely_failed and step.failure_reason.startswith("the clouds' sizes differ") == named, (factor, step.failure_reason)

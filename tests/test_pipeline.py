@@ -822,6 +822,8 @@ def test_scans_with_a_stray_far_point_or_in_other_units_are_right_or_flagged():
     assert res.likely_failed and res.failure_reason.startswith("the clouds' sizes differ 1021-fold (are they in the same units? ")
     res = register(3.2808 * src, tgt)  # feet against metres
     assert res.likely_failed and res.failure_reason.startswith("the clouds' sizes differ 3.4-fold (are they in the same units? ")
+    quiet = register(3.2808 * src, tgt, RegisterConfig(confidence=ConfidenceConfig(size_note_ratio=5.0)))  # sizes named over 5-fold only
+    assert quiet.likely_failed and "sizes differ" not in quiet.failure_reason and res.failure_reason.endswith(quiet.failure_reason)
 
 
 def test_a_low_overlap_rgbd_pair_in_millimetres_as_in_metres(real_scans_root):
