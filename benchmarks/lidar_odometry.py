@@ -39,7 +39,7 @@ def scene(folder: Path):
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack([target, o3dsoft.transforms.apply_transform(truth, source)])))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=1.0, max_nn=30))
     cloud.orient_normals_towards_camera_location(np.zeros(3))
-    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=10)
+    mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=10, n_threads=1)
     density = np.asarray(density)
     mesh.remove_vertices_by_mask(density < np.quantile(density, 0.15))
     from scipy.spatial import cKDTree
