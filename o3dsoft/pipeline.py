@@ -60,8 +60,8 @@ from .strategies import (
 from .transforms import apply_transform, in_frame_at, nearest_rigid, rotation_angle_deg
 from .verify import Attempt, Verifier, choice_applies
 
-# Scenes whose sizes differ more than this are named in a warning (multiway): most often one is in
-# millimetres and the other in metres.
+# Scenes whose sizes differ more than this are named in a warning (multiway) and in a flagged
+# odometry step's reason: most often one is in millimetres and the other in metres.
 SIZE_RATIO_NOTE = 20.0
 
 __all__ = ["register", "RegisterConfig", "RegistrationResult", "SEARCH_MODES", "as_points"]

@@ -209,13 +209,18 @@ def voxel_downsample(points: np.ndarray, voxel: float, name: str = "cloud", min_
 
 
 def isolated_points(points: np.ndarray, radius: float) -> np.ndarray:
-    """(N,) True for the points of (N, 3) `points` with fewer than two other points within
-    `radius` (cloud units): Open3D's radius outlier removal, asked of each point's three nearest
-    points (itself among them) instead of all within the radius (a third of the time on a scan's
-    grid, where some thirty lie within it)."""
+    """(N,) True for the points of (N, 3) finite `points` with fewer than two other points within
+    `radius` (cloud units, > 0): Open3D's radius outlier removal, found from each point's three
+    nearest points (itself among them), which stay few where many lie within the radius.
+
+    Raises:
+        ValueError: `radius` is not positive.
+    """
     from scipy.spatial import cKDTree
 
-    third, _ = cKDTree(points).query(points, k=[3], distance_upper_bound=radius, workers=-1)
+    if not radius > 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    third, _ = cKDTree(points).query(points, k=[3], distance_upper_bound=radius)
     return ~np.isfinite(third[:, 0])
 
 

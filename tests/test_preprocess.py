@@ -30,6 +30,9 @@ def test_isolated_points_have_fewer_than_two_others_within_the_radius():
     three = np.array([[0.0, 50.0, 50.0], [1.0, 50.0, 50.0], [2.0, 50.0, 50.0]])  # two others each: a thin structure
     isolated = isolated_points(np.vstack([grid, lone, pair, three]), 3.0)
     assert not isolated[: len(grid)].any() and isolated[len(grid) : len(grid) + 5].all() and not isolated[-3:].any()
+    for radius in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="radius must be positive"):
+            isolated_points(grid, radius)
 
 
 @settings(max_examples=25, deadline=None)
