@@ -78,14 +78,13 @@ def test_sweeps_registered_from_a_guess_are_held_near_it(monkeypatch, config, bo
     it, unless the registration's own max_rotation says otherwise (then for every step)."""
     sweeps, truth = _sequence(4)
     module = importlib.import_module("o3dsoft.odometry")
-    seen = []
+    seen, notes = [], []
 
     def recorded(source, target, settings, **kwargs):
         seen.append(settings.max_rotation)
         notes.append(settings.confidence.size_note_ratio)
         return o3dsoft.register(source, target, settings, **kwargs)
 
-    notes = []
     monkeypatch.setattr(module, "register", recorded)
     result = odometry(sweeps, config)
     assert seen == bounds
