@@ -8,7 +8,7 @@ import math
 import os
 from dataclasses import replace
 from functools import cached_property
-from typing import TYPE_CHECKING, Dict, Iterable, List, Optional, Sequence, Tuple, Union
+from typing import TYPE_CHECKING, Dict, Iterable, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from .config import RegisterConfig
 from .errors import InputError
 from .io import host_array
 from .preprocess import (
+    CleanReport,
     clean_points,
     data_grid,
     flat_normal,
@@ -32,6 +33,7 @@ from .preprocess import (
     voxel_downsample,
 )
 from .search import FeatureMatch
+from .transforms import apply_transform
 
 if TYPE_CHECKING:
     import open3d
@@ -133,6 +135,63 @@ def icp_for_pair(icp: refine_stage.ICPConfig, target: np.ndarray, voxel: Optiona
     return icp
 
 
+class GridCloud(NamedTuple):
+    """One cloud cleaned and on a voxel grid as :class:`PreparedPair` registers it (:func:`on_grid`),
+    for a caller that registers the same cloud many times (odometry: each sweep once as the
+    source, then in the maps of the sweeps after it).
+
+    Attributes:
+        points: (N, 3) the grid's points, without the isolated ones (cloud units).
+        cleaned: what cleaning removed from the cloud (its points: `points`, whose size stands
+            for the cleaned cloud's).
+        isolated: how many grid points were left out as scattered outliers.
+        voxel: the grid's cell size (cloud units).
+    """
+
+    points: np.ndarray
+    cleaned: CleanReport
+    isolated: int
+    voxel: float
+
+    def moved(self, transformation: np.ndarray) -> "GridCloud":
+        """The cloud moved by the (4, 4) `transformation`."""
+        points = apply_transform(transformation, self.points)
+        return self._replace(points=points, cleaned=self.cleaned._replace(points=points))
+
+
+def on_grid(report: CleanReport, voxel: float, config: RegisterConfig, k: int, name: str) -> GridCloud:
+    """The cleaned cloud of `report` on the grid `voxel` (cloud units), without its isolated points
+    (at ``config.isolated_radius`` cells) only where the grid merged its points: there a scattered
+    point keeps a cell of its own while a surface shares its cells (a sparse cloud's points are no
+    outliers).
+
+    Raises:
+        InputError: the grid leaves fewer than `k` points.
+    """
+    grid = voxel_downsample(report.points, voxel, name, min_points=k)
+    isolated = 0
+    if config.isolated_radius > 0 and len(grid) <= len(report.points) // 2:
+        grid, isolated = _without_isolated(grid, config.isolated_radius * voxel, k)
+    return GridCloud(grid, report._replace(points=grid), isolated, voxel)
+
+
+def _without_isolated(cloud: np.ndarray, radius: float, k: int, most: float = 0.5, far_out: float = math.inf) -> Tuple[np.ndarray, int]:
+    """(N', 3) `cloud` without its :func:`~o3dsoft.preprocess.isolated_points` at `radius`
+    (cloud units) where they are at least :data:`ISOLATED_MIN_SHARE` of it, unless they are
+    more than the share `most` of it, would leave it fewer than `k` points, or lie out from
+    its median point over `far_out` times as far as the cloud does (medians; then it is
+    sparse, not scattered); and how many points it lost."""
+    isolated = isolated_points(cloud, radius)
+    n = int(isolated.sum())
+    if n < ISOLATED_MIN_SHARE * len(cloud) or n > math.ceil(most * len(cloud)) or len(cloud) - n < k:
+        return cloud, 0
+    if math.isfinite(far_out):
+        out = np.linalg.norm(cloud - np.median(cloud, axis=0), axis=1)
+        if np.median(out[isolated]) > far_out * np.median(out):
+            return cloud, 0
+    return cloud[~isolated], n
+
+
 class PreparedPair:
     """Both clouds at every resolution the pipeline uses, in their original frames:
 
@@ -156,7 +215,9 @@ class PreparedPair:
     points, however far: a cloud not on a grid is spaced unevenly).
 
     Args:
-        source: (N, 3) array or Open3D PointCloud; target: (M, 3), in the same units.
+        source: (N, 3) array or Open3D PointCloud; target: (M, 3), in the same units. Or two
+            :class:`GridCloud` on one grid, cleaned and gridded already (the config's grid and
+            isolated-point settings are then not read).
         config: the pipeline's settings.
         k: the network's neighbourhood size (the fewest points a cloud may have).
         names: how to call the clouds in error messages.
@@ -167,39 +228,39 @@ class PreparedPair:
 
     def __init__(
         self,
-        source: CloudLike,
-        target: CloudLike,
+        source: Union[CloudLike, GridCloud],
+        target: Union[CloudLike, GridCloud],
         config: RegisterConfig,
         k: int,
         names: Tuple[str, str] = ("source", "target"),
         clock: Optional[StageClock] = None,
     ) -> None:
         clock = clock or StageClock()
-        # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds; even out the density.
-        self.cleaned = (clean_points(as_points(source, names[0]), names[0], min_points=k), clean_points(as_points(target, names[1]), names[1], min_points=k))
-        self.full: Clouds = (self.cleaned[0].points, self.cleaned[1].points)
-        self.voxel = registration_grid(self.full, config)
-        self.isolated = (0, 0)  # points left out as scattered outliers, per cloud
-        if self.voxel is not None:
-            self.full = self._grid(self.full, self.voxel, names, k)
-            if config.isolated_radius > 0:
-                # Only where the grid merged the cloud's points: there a scattered point keeps a
-                # cell of its own while a surface shares its cells (a sparse cloud's points are
-                # no outliers).
-                radius = config.isolated_radius * self.voxel
-                src, tgt = (
-                    self._without_isolated(grid, radius, k) if len(grid) <= len(report.points) // 2 else (grid, 0)
-                    for grid, report in zip(self.full, self.cleaned)
-                )
-                self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
+        if isinstance(source, GridCloud) or isinstance(target, GridCloud):  # prepared by the caller
+            if not (isinstance(source, GridCloud) and isinstance(target, GridCloud) and source.voxel == target.voxel):
+                raise ValueError("prepared clouds come in pairs on one grid: two GridClouds of the same voxel")
+            self.cleaned: Tuple[CleanReport, CleanReport] = (source.cleaned, target.cleaned)
+            self.voxel: Optional[float] = source.voxel
+            self.full: Clouds = (source.points, target.points)
+            self.isolated: Tuple[int, int] = (source.isolated, target.isolated)
+        else:
+            # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds; even out the density.
+            self.cleaned = (
+                clean_points(as_points(source, names[0]), names[0], min_points=k),
+                clean_points(as_points(target, names[1]), names[1], min_points=k),
+            )
+            self.full = (self.cleaned[0].points, self.cleaned[1].points)
+            self.voxel = registration_grid(self.full, config)
+            self.isolated = (0, 0)  # points left out as scattered outliers, per cloud
+            if self.voxel is not None:
+                grids = [on_grid(report, self.voxel, config, k, name) for report, name in zip(self.cleaned, names)]
+                self.full, self.isolated = (grids[0].points, grids[1].points), (grids[0].isolated, grids[1].isolated)
         self.scans = are_scans(self.full, self.voxel)
         if self.scans and self.voxel is None and config.voxel is None and config.isolated_spacings > 0:
             # Scans off a grid: isolated by each cloud's own spacing; where more than
             # ISOLATED_MAX_SHARE_OFF_GRID of a cloud is, or they lie out (ISOLATED_FAR_OUT), it is
             # sparse in places, not scattered.
-            src, tgt = (
-                self._without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID, ISOLATED_FAR_OUT) for c in self.full
-            )
+            src, tgt = (_without_isolated(c, config.isolated_spacings * point_spacing(c), k, ISOLATED_MAX_SHARE_OFF_GRID, ISOLATED_FAR_OUT) for c in self.full)
             self.full, self.isolated = (src[0], tgt[0]), (src[1], tgt[1])
         self.config = config = replace(config, icp=icp_for_pair(config.icp, self.full[1], self.voxel, self.scans))
         clock.lap("clean")
@@ -223,27 +284,6 @@ class PreparedPair:
         far from 1 for clouds in different units, or unrelated ones."""
         sizes = [scene_size(report.points) for report in self.cleaned]
         return max(sizes) / max(min(sizes), 1e-300)
-
-    @staticmethod
-    def _grid(clouds: Clouds, voxel: float, names: Tuple[str, str], k: int) -> Clouds:
-        return (voxel_downsample(clouds[0], voxel, names[0], min_points=k), voxel_downsample(clouds[1], voxel, names[1], min_points=k))
-
-    @staticmethod
-    def _without_isolated(cloud: np.ndarray, radius: float, k: int, most: float = 0.5, far_out: float = math.inf) -> Tuple[np.ndarray, int]:
-        """(N', 3) `cloud` without its :func:`~o3dsoft.preprocess.isolated_points` at `radius`
-        (cloud units) where they are at least :data:`ISOLATED_MIN_SHARE` of it, unless they are
-        more than the share `most` of it, would leave it fewer than `k` points, or lie out from
-        its median point over `far_out` times as far as the cloud does (medians; then it is
-        sparse, not scattered); and how many points it lost."""
-        isolated = isolated_points(cloud, radius)
-        n = int(isolated.sum())
-        if n < ISOLATED_MIN_SHARE * len(cloud) or n > math.ceil(most * len(cloud)) or len(cloud) - n < k:
-            return cloud, 0
-        if math.isfinite(far_out):
-            out = np.linalg.norm(cloud - np.median(cloud, axis=0), axis=1)
-            if np.median(out[isolated]) > far_out * np.median(out):
-                return cloud, 0
-        return cloud[~isolated], n
 
     @property
     def reduced(self) -> bool:

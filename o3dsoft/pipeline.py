@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Optional, Tuple, Union
 
 import numpy as np
 
@@ -44,8 +44,8 @@ from .config import SEARCH_MODES, RegisterConfig, check_settings
 from .errors import InputError, UsageError
 from .io import as_rigid, check_rigid
 from .metrics import input_chamfer_distance
-from .pair import CloudLike, Clouds, PreparedPair, as_points
-from .preprocess import local_origin, point_spacing, sample_median, scene_size
+from .pair import CloudLike, Clouds, GridCloud, PreparedPair, as_points, on_grid
+from .preprocess import CleanReport, local_origin, point_spacing, sample_median, scene_size
 from .strategies import (
     FeatureMatchProposals,
     InitialGuess,
@@ -345,8 +345,47 @@ def register(
         result = _inverted(swapped, fixed, moved)
     else:
         result = _register(src, tgt, config, model, search_model, source_name, target_name, guess)[0]
-    # Rotations made of float32 network passes are orthonormal to about 1e-7: made rigid to float64
-    # precision, each transform taking the source's middle point where it did.
+    return _as_given(result, origin, init, centre)
+
+
+def register_on_grid(
+    source: CleanReport,
+    target: GridCloud,
+    config: RegisterConfig,
+    model: coarse_stage.CoarseModel,
+    source_name: str = "source",
+    target_name: str = "target",
+    init: Optional[np.ndarray] = None,
+) -> RegistrationResult:
+    """:func:`register` for a source the caller cleaned already (:func:`o3dsoft.preprocess.clean_points`)
+    onto a target it cleaned and put on a grid (:func:`o3dsoft.pair.on_grid`): odometry prepares
+    each sweep once, not once per map it is in. The source is put on the target's grid where
+    `init` (None: the identity; else a rigid (4, 4) transform) moves it, as :func:`register` grids
+    both clouds in the target's frame: grids of one orientation leave their cells' centroids in
+    the same pattern on a surface, turned grids in two (on depth frames, 0.50 against 0.73 cm of
+    step error). On one grid neither cloud is sparser: the source always moves. `config` is
+    checked by the caller.
+
+    Raises:
+        InputError: the grid leaves the source fewer points than the network's K.
+    """
+    centre = sample_median(source.points)
+    moved = source.points if init is None else apply_transform(init, source.points)
+    origin = local_origin(target.points)  # as register: far from the origin, about the target's median
+    if origin.any():
+        shift = np.eye(4)
+        shift[:3, 3] = -origin
+        moved, target = moved - origin, target.moved(shift)
+    grid = on_grid(source._replace(points=moved), target.voxel, config, model.config.k, source_name)
+    result = _register(grid, target, config, model, None, source_name, target_name, init is not None)[0]
+    return _as_given(result, origin, init, centre)
+
+
+def _as_given(result: RegistrationResult, origin: np.ndarray, init: Optional[np.ndarray], centre: np.ndarray) -> RegistrationResult:
+    """A result registered about the (3,) `origin` from the (4, 4) `init` (None: none) turned into
+    the result for the clouds as given. Rotations made of float32 network passes are orthonormal
+    to about 1e-7: made rigid to float64 precision, each transform taking the source's (3,)
+    middle point `centre` where it did."""
     result = _started_at(_moved_back(result, origin), init)
     return _each_transform(result, lambda T: nearest_rigid(T, centre))
 
@@ -386,8 +425,8 @@ def _moved_back(result: RegistrationResult, origin: np.ndarray) -> RegistrationR
 
 
 def _register(
-    source: np.ndarray,
-    target: np.ndarray,
+    source: Union[np.ndarray, GridCloud],
+    target: Union[np.ndarray, GridCloud],
     config: RegisterConfig,
     model: Optional[coarse_stage.CoarseModel],
     search_model: Optional[coarse_stage.CoarseModel],

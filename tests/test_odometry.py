@@ -11,8 +11,8 @@ import o3dsoft
 from o3dsoft.cli.main import main
 from o3dsoft.errors import InputError, UsageError
 from o3dsoft.odometry import OdometryConfig, _guess, _kept, _local_map, errors_against, odometry
-from o3dsoft.pipeline import SIZE_RATIO_NOTE
-from o3dsoft.transforms import euler_to_matrix, rigid
+from o3dsoft.pipeline import SIZE_RATIO_NOTE, register_on_grid
+from o3dsoft.transforms import apply_transform, euler_to_matrix, rigid
 
 from .conftest import ring_sweep
 
@@ -45,19 +45,35 @@ def test_odometry_follows_a_sequence_of_sweeps():
     assert doc["world"] == "sweep0" and len(doc["sweeps"]) == 6 and "confidence" in doc["sweeps"][1] and "confidence" not in doc["sweeps"][0]
 
 
+def _record_steps(monkeypatch):
+    """Record the settings and the initial guess (None: none) of each step's registration, on the
+    raw clouds (``register``) or on the sequence's grid (``register_on_grid``), in order (those
+    that returned a result)."""
+    module = importlib.import_module("o3dsoft.odometry")
+    steps = []
+
+    def raw(source, target, settings, **kwargs):
+        result = o3dsoft.register(source, target, settings, **kwargs)
+        steps.append(SimpleNamespace(settings=settings, init=kwargs.get("init"), on_grid=False))
+        return result
+
+    def on_grid(source, target, settings, model, source_name, target_name, init):
+        result = register_on_grid(source, target, settings, model, source_name, target_name, init)  # raises where the grid leaves too few points
+        steps.append(SimpleNamespace(settings=settings, init=init, on_grid=True))
+        return result
+
+    monkeypatch.setattr(module, "register", raw)
+    monkeypatch.setattr(module, "register_on_grid", on_grid)
+    return steps
+
+
 def test_the_first_step_is_registered_without_a_guess_and_the_later_ones_from_the_motion(monkeypatch):
     """Before any motion is known, "where the last sweep was" is no guess: ICP from the identity
     slid a room view 1.1 m off and was trusted, and every later pose kept the slide."""
     sweeps, truth = _sequence(4)
-    module = importlib.import_module("o3dsoft.odometry")
-    inits = []
-
-    def recorded(*args, **kwargs):
-        inits.append(kwargs.get("init"))
-        return o3dsoft.register(*args, **kwargs)
-
-    monkeypatch.setattr(module, "register", recorded)
+    recorded = _record_steps(monkeypatch)
     result = odometry(sweeps, OdometryConfig(map_sweeps=2))
+    inits = [step.init for step in recorded]
     assert inits[0] is None and all(init is not None for init in inits[1:])
     assert o3dsoft.pair_errors(inits[2], result.steps[2].transformation).rotation_deg < 0.5  # the motion repeated
     assert all(o3dsoft.pair_errors(p, t).translation < 0.05 for p, t in zip(result.poses, truth))
@@ -77,18 +93,12 @@ def test_sweeps_registered_from_a_guess_are_held_near_it(monkeypatch, config, bo
     trust a pose turned far from the guess: the steps from a guess are held within 45 degrees of
     it, unless the registration's own max_rotation says otherwise (then for every step)."""
     sweeps, truth = _sequence(4)
-    module = importlib.import_module("o3dsoft.odometry")
-    seen, notes = [], []
-
-    def recorded(source, target, settings, **kwargs):
-        seen.append(settings.max_rotation)
-        notes.append(settings.confidence.size_note_ratio)
-        return o3dsoft.register(source, target, settings, **kwargs)
-
-    monkeypatch.setattr(module, "register", recorded)
+    recorded = _record_steps(monkeypatch)
     result = odometry(sweeps, config)
-    assert seen == bounds
-    assert notes == [SIZE_RATIO_NOTE] * 3  # every step onto a map (first included) names sizes as units differ
+    assert [step.settings.max_rotation for step in recorded] == bounds
+    assert [step.settings.confidence.size_note_ratio for step in recorded] == [
+        SIZE_RATIO_NOTE
+    ] * 3  # every step onto a map (first included) names sizes as units differ
     assert all(o3dsoft.pair_errors(p, t).translation < 0.05 for p, t in zip(result.poses, truth))
 
 
@@ -184,6 +194,69 @@ def test_the_odometry_command_measures_georeferenced_sweeps_against_a_rounded_re
     assert float(errors[1]) < 0.3 and float(errors[2]) < 0.05 and float(errors[3]) < 5.0, r.output
 
 
+def test_after_the_first_step_each_sweep_is_registered_on_that_steps_grid(monkeypatch):
+    """Each sweep is cleaned and gridded once, not once per map it is in: the steps after the
+    first register on the first step's grid, and end where the steps on their own grids do."""
+    sweeps, truth = _sequence(5)
+    recorded = _record_steps(monkeypatch)
+    result = odometry(sweeps, OdometryConfig(map_sweeps=3))
+    assert [step.on_grid for step in recorded] == [False, True, True, True]
+    assert len({step.voxel for step in result.steps[1:]}) == 1 and result.steps[1].voxel is not None
+    recorded.clear()
+    each = odometry(sweeps, OdometryConfig(map_sweeps=3, one_grid=False))
+    assert [step.on_grid for step in recorded] == [False] * 4
+    for pose, other, true in zip(result.poses, each.poses, truth):
+        assert o3dsoft.pair_errors(pose, true).translation < 0.05 and o3dsoft.pair_errors(pose, other).translation < 0.02
+    assert not any(result.flagged)
+
+
+def test_a_sweep_the_grid_leaves_too_few_points_is_registered_on_a_grid_of_its_own(monkeypatch):
+    # In kilometres among metres: the sequence's grid leaves a handful of its points.
+    sweeps, truth = _sequence(6, seed=2)
+    sweeps[3] = sweeps[3] / 1000.0
+    recorded = _record_steps(monkeypatch)
+    result = odometry(sweeps, OdometryConfig(map_sweeps=3))
+    assert [step.on_grid for step in recorded] == [False, True, False, True, True]
+    assert result.flagged == (False, False, False, True, False, False)
+    assert result.steps[3].failure_reason.startswith("the clouds' sizes differ")
+    for k in (4, 5):
+        assert o3dsoft.pair_errors(result.poses[k], truth[k]).translation < 0.05, k
+
+
+def test_registering_a_cleaned_sweep_onto_a_gridded_map_is_registering_the_clouds_on_that_grid():
+    """``register_on_grid`` grids the source where the guess moves it, as ``register`` grids both
+    clouds in the target's frame; far from the origin it registers about the target's median."""
+    from o3dsoft.coarse import cached_model
+    from o3dsoft.pair import PreparedPair, on_grid
+    from o3dsoft.preprocess import clean_points
+
+    sweeps, truth = _sequence(2)
+    config, model = o3dsoft.RegisterConfig(voxel=0.4), cached_model(None, "cpu")
+    guess = rigid(euler_to_matrix([0.0, 0.0, 1.0]), np.array([0.5, 0.0, 0.0]))
+    plain = o3dsoft.register(sweeps[1], sweeps[0], config, model=model, init=guess)
+    for shift in (np.zeros(3), np.array([5e5, 4e6, 300.0])):  # georeferenced: UTM metres
+        moved = rigid(np.eye(3), shift)
+        target = on_grid(clean_points(sweeps[0] + shift), 0.4, config, model.config.k, "map")
+        result = register_on_grid(clean_points(sweeps[1] + shift), target, config, model, init=moved @ guess @ np.linalg.inv(moved))
+        assert result.voxel == 0.4 and not result.likely_failed and result.estimate_from == plain.estimate_from == "initial guess"
+        back = np.linalg.inv(moved) @ result.transformation @ moved
+        assert o3dsoft.pair_errors(back, truth[1]).translation < 0.05
+        assert o3dsoft.pair_errors(back, plain.transformation).translation < 0.005, shift
+        assert abs(result.num_source - plain.num_source) <= 0.02 * plain.num_source
+    # The map's frame turned 30 degrees: the sweep is gridded where the guess puts it, in the
+    # map's axes (its own axes give other cells).
+    turned = rigid(euler_to_matrix([0.0, 0.0, 30.0]), np.zeros(3))
+    target = on_grid(clean_points(apply_transform(turned, sweeps[0])), 0.4, config, model.config.k, "map")
+    result = register_on_grid(clean_points(sweeps[1]), target, config, model, init=turned @ guess)
+    assert o3dsoft.pair_errors(np.linalg.inv(turned) @ result.transformation, truth[1]).translation < 0.05
+    where_guessed, own = (on_grid(clean_points(c), 0.4, config, model.config.k, "s").points for c in (apply_transform(turned @ guess, sweeps[1]), sweeps[1]))
+    assert result.num_source == len(where_guessed) != len(own)
+    with pytest.raises(ValueError, match="two GridClouds of the same voxel"):
+        PreparedPair(target, target._replace(voxel=0.5), config, model.config.k)
+    with pytest.raises(ValueError, match="two GridClouds of the same voxel"):
+        PreparedPair(target, sweeps[1], config, model.config.k)
+
+
 @pytest.mark.parametrize("size", [1, 3])
 def test_a_sweep_in_other_units_is_flagged_and_the_next_ones_stay_right(size):
     # Its step flagged and off the map, it stays out of the next map and its motion out of the next guess.
@@ -223,6 +296,8 @@ def test_odometry_refuses_what_it_cannot_use(monkeypatch):
         odometry(sweeps, OdometryConfig(map_sweeps=True))
     with pytest.raises(UsageError, match="constant_velocity must be True or False, got 'no'"):
         odometry(sweeps, OdometryConfig(constant_velocity="no"))  # type: ignore[arg-type]
+    with pytest.raises(UsageError, match="one_grid must be True or False, got 1"):
+        odometry(sweeps, OdometryConfig(one_grid=1))  # type: ignore[arg-type]
     for bound in (0, 200.0, True, "45"):
         with pytest.raises(UsageError, match=r"guess_max_rotation must be in \(0, 180\] degrees or None"):
             odometry(sweeps, OdometryConfig(guess_max_rotation=bound))  # type: ignore[arg-type]
