@@ -54,12 +54,13 @@ class OdometryConfig:
             (:data:`MAP_MAX_TURN`, :data:`MAP_MAX_SHIFT`) is left out of it (it reaches back past).
         constant_velocity: start each sweep at the last motion repeated (else where the previous
             sweep is); after a step left out of the map, from the last kept sweep's pose and motion.
-        one_grid: after the first step, each sweep is cleaned and put on that step's voxel grid
-            once, and the local maps are made of these grids (re-gridded on it), instead of every
-            step cleaning and gridding its raw sweep and raw map again (ten sweeps cleaned ten
-            times over): a step's time falls to a fraction, and the grid stays the same along the
-            sequence, as in KISS-ICP. Where the first step used no grid, or a sweep leaves too few
-            points on it, steps register the raw clouds as with False.
+        one_grid: every sweep is cleaned once, and the steps after the first register on that
+            step's voxel grid (:func:`~o3dsoft.pipeline.register_on_grid`): each map is made of
+            its sweeps on half the grid, each made once, instead of every step cleaning and
+            gridding its raw sweep and ten raw sweeps again. Steps take about half the time, and
+            the grid stays the same along the sequence, as in KISS-ICP. Where the first step used
+            no grid, or the grid leaves a cloud too few points, steps register the raw clouds as
+            with False.
         guess_max_rotation: a sweep registered from its guess (every sweep after the second) is
             held within this many degrees of it (``RegisterConfig.max_rotation``, where `register`
             sets none), as multiway holds pairs near their initial poses: a sensor seldom turns
@@ -191,7 +192,7 @@ def odometry(
     check_loaded(model, "model", "OdometryConfig(register=RegisterConfig(weights=...))")
     sweeps, names = named_clouds(sweeps, names, "sweep", "odometry")
     model = model if model is not None else cached_model(config.register.weights, config.register.device)
-    points, reports = _checked_sweeps(sweeps, names, model.config.k)
+    points, cleaning = _checked_sweeps(sweeps, names, model.config.k)
     if progress is not None:
         progress(1, len(points))
     start = time.perf_counter()
@@ -203,27 +204,27 @@ def odometry(
     settings = first  # for the sweeps registered from a guess
     if settings.max_rotation is None and config.guess_max_rotation is not None:
         settings = replace(settings, max_rotation=config.guess_max_rotation)
-    grids = _SweepGrids(reports, config.register, model.config.k)
+    grids: Optional[_SweepGrids] = None  # from the first step's grid on (one_grid)
     for k in range(1, len(points)):
         kept = _kept(steps, guesses, origins, k)
         guess = _guess(poses, steps, kept, k, config.constant_velocity)
         map_name = f"the map before {names[k]}"
-        step = None
-        if grids.voxel is not None:
-            try:
-                local_grid = grids.local_map(poses, kept[-config.map_sweeps :], k, map_name)
-                step = register_on_grid(reports[k], local_grid, settings, model, names[k], map_name, guess)
-            except InputError:  # a cloud with too few points on the grid: registered raw, on a grid of its own
-                pass
-        if step is None:
+        built = time.perf_counter()
+        on_grid = None if grids is None else grids.pair(poses, kept[-config.map_sweeps :], k, guess, map_name)
+        if on_grid is not None:
+            map_ms = 1000.0 * (time.perf_counter() - built)
+            step = register_on_grid(*on_grid, settings, model, names[k], map_name, guess)
+        else:
+            local_map = _local_map(points, poses, kept, k, config.map_sweeps)
+            map_ms = 1000.0 * (time.perf_counter() - built)
             # Before any motion is known the guess is only "where the last sweep was": the first
             # step is registered as any pair is (ICP from the identity slid a room view 1.1 m off, trusted).
-            local_map = _local_map(points, poses, kept, k, config.map_sweeps)
             step = register(
                 points[k], local_map, settings if k > 1 else first, model=model, source_name=names[k], target_name=map_name, init=guess if k > 1 else None
             )
-            if k == 1 and config.one_grid:
-                grids.voxel = step.voxel
+            if k == 1 and config.one_grid and step.voxel is not None:
+                grids = _SweepGrids(points, cleaning, step.voxel, config.register, model.config.k)
+        step = replace(step, timings_ms={**step.timings_ms, "map": map_ms, "total": step.timings_ms["total"] + map_ms})
         poses.append(poses[-1] @ step.transformation)
         steps.append(step)
         guesses.append(guess)
@@ -285,37 +286,70 @@ def frame_point(points: np.ndarray) -> np.ndarray:
     return centre if np.linalg.norm(centre) > GEOREFERENCED_BEYOND * scene_size(points[np.isfinite(points).all(axis=1)]) else np.zeros(3)
 
 
-def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> Tuple[List[np.ndarray], List[CleanReport]]:
-    """The (N_i, 3) points of each sweep, and each cleaned (:func:`o3dsoft.preprocess.clean_points`):
-    checked to hold `min_points` distinct finite points and not to be degenerate, so that a bad
-    sweep late in a long sequence fails before the first is registered."""
+class _Cleaning(NamedTuple):
+    """What cleaning (:func:`o3dsoft.preprocess.clean_points`) keeps of a sweep, without a copy of
+    its points: the rows kept (None: every row) and how many it removed of each kind."""
+
+    rows: Optional[np.ndarray]
+    non_finite: int
+    duplicates: int
+    strays: int
+
+    def of(self, points: np.ndarray) -> CleanReport:
+        """The cleaned sweep of the (N, 3) `points` cleaning saw."""
+        return CleanReport(points if self.rows is None else points[self.rows], self.non_finite, self.duplicates, self.strays)
+
+
+def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> Tuple[List[np.ndarray], List[_Cleaning]]:
+    """The (N_i, 3) points of each sweep, and what cleaning keeps of each: every sweep is checked
+    to hold `min_points` distinct finite points and not to be degenerate, so that a bad sweep late
+    in a long sequence fails before the first is registered."""
     points = [as_points(s, str(n)) for s, n in zip(sweeps, names)]
-    return points, [clean_points(p, str(n), min_points=min_points) for p, n in zip(points, names)]
+    cleaning = []
+    for p, n in zip(points, names):
+        report = clean_points(p, str(n), min_points=min_points)
+        every = report.rows is None or len(report.rows) == len(p)  # then they are the rows in order
+        cleaning.append(_Cleaning(None if every else report.rows, report.non_finite, report.duplicates, report.strays))
+    return points, cleaning
 
 
 class _SweepGrids:
-    """The local maps of ``OdometryConfig.one_grid``: each sweep on half the grid, made once, when
-    a map first needs it; a map is its sweeps' half grids put on the grid, whose cells average
-    about what the sweeps' raw points would give (the sweeps' own grids, put on another grid,
-    merge neighbouring cells and blur it)."""
+    """The clouds of the steps on one grid (``OdometryConfig.one_grid``): each sweep, cleaned, on
+    the grid where its guess puts it; each map made of its sweeps on half the grid (made once per
+    sweep, kept while the sweep is in a map), put on the grid. Its cells average about what the
+    sweeps' raw points would give; the sweeps' own grids, put on another grid, merge neighbouring
+    cells and blur it."""
 
-    def __init__(self, reports: Sequence[CleanReport], config: RegisterConfig, min_points: int) -> None:
-        self.reports, self.config, self.min_points = reports, config, min_points
-        self.voxel: Optional[float] = None  # the grid's cell (sweep units); None: steps register raw clouds
+    def __init__(self, points: Sequence[np.ndarray], cleaning: Sequence[_Cleaning], voxel: float, config: RegisterConfig, min_points: int) -> None:
+        self.points, self.cleaning, self.voxel, self.config, self.min_points = points, cleaning, voxel, config, min_points
         self._halves: Dict[int, np.ndarray] = {}
 
-    def local_map(self, poses: Sequence[np.ndarray], in_map: Sequence[int], k: int, name: str) -> GridCloud:
-        """The map of the sweeps `in_map` for sweep k, in sweep k-1's frame (at their `poses`), on
-        the grid (``voxel``, not None)."""
+    def pair(self, poses: Sequence[np.ndarray], in_map: Sequence[int], k: int, guess: np.ndarray, map_name: str) -> Optional[Tuple[GridCloud, GridCloud]]:
+        """Sweep k moved by the (4, 4) `guess` and its map of the sweeps `in_map` at their `poses`,
+        both on the grid in sweep k-1's frame; None where the grid leaves one of them fewer points
+        than the network's K (the step registers the raw clouds)."""
+        cleaned = self.cleaning[k].of(self.points[k])
+        try:
+            source = on_grid(cleaned._replace(points=apply_transform(guess, cleaned.points)), self.voxel, self.config, self.min_points, f"sweep {k}")
+            local_map = self._local_map(poses, in_map, k, map_name)
+        except InputError:
+            return None
+        self._halves[k] = voxel_downsample(cleaned.points, 0.5 * self.voxel)  # for the maps after it
+        return source, local_map
+
+    def _local_map(self, poses: Sequence[np.ndarray], in_map: Sequence[int], k: int, name: str) -> GridCloud:
         into = np.linalg.inv(poses[k - 1])
         points = np.concatenate([apply_transform(into @ poses[j], self._half(j)) for j in in_map])
         self._halves = {j: self._halves[j] for j in in_map}  # a sweep out of this map is in no later one
-        removed = (sum(getattr(self.reports[j], f) for j in in_map) for f in ("non_finite", "duplicates", "strays"))
-        return on_grid(CleanReport(points, *removed), self.voxel, self.config, self.min_points, name)  # type: ignore[arg-type]
+        counts = [self.cleaning[j] for j in in_map]
+        removed = CleanReport(
+            points, non_finite=sum(c.non_finite for c in counts), duplicates=sum(c.duplicates for c in counts), strays=sum(c.strays for c in counts)
+        )
+        return on_grid(removed, self.voxel, self.config, self.min_points, name)
 
     def _half(self, j: int) -> np.ndarray:
-        if j not in self._halves:
-            self._halves[j] = voxel_downsample(self.reports[j].points, 0.5 * self.voxel)  # type: ignore[operator]
+        if j not in self._halves:  # a sweep registered raw, or the first
+            self._halves[j] = voxel_downsample(self.cleaning[j].of(self.points[j]).points, 0.5 * self.voxel)
         return self._halves[j]
 
 

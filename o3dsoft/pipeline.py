@@ -44,8 +44,8 @@ from .config import SEARCH_MODES, RegisterConfig, check_settings
 from .errors import InputError, UsageError
 from .io import as_rigid, check_rigid
 from .metrics import input_chamfer_distance
-from .pair import CloudLike, Clouds, GridCloud, PreparedPair, as_points, on_grid
-from .preprocess import CleanReport, local_origin, point_spacing, sample_median, scene_size
+from .pair import CloudLike, Clouds, GridCloud, PreparedPair, as_points
+from .preprocess import local_origin, point_spacing, sample_median, scene_size
 from .strategies import (
     FeatureMatchProposals,
     InitialGuess,
@@ -348,8 +348,9 @@ def register(
     return _as_given(result, origin, init, centre)
 
 
+@quietly
 def register_on_grid(
-    source: CleanReport,
+    source: GridCloud,
     target: GridCloud,
     config: RegisterConfig,
     model: coarse_stage.CoarseModel,
@@ -357,27 +358,30 @@ def register_on_grid(
     target_name: str = "target",
     init: Optional[np.ndarray] = None,
 ) -> RegistrationResult:
-    """:func:`register` for a source the caller cleaned already (:func:`o3dsoft.preprocess.clean_points`)
-    onto a target it cleaned and put on a grid (:func:`o3dsoft.pair.on_grid`): odometry prepares
-    each sweep once, not once per map it is in. The source is put on the target's grid where
-    `init` (None: the identity; else a rigid (4, 4) transform) moves it, as :func:`register` grids
-    both clouds in the target's frame: grids of one orientation leave their cells' centroids in
-    the same pattern on a surface, turned grids in two (on depth frames, 0.50 against 0.73 cm of
-    step error). On one grid neither cloud is sparser: the source always moves. `config` is
-    checked by the caller.
+    """:func:`register` for two clouds the caller cleaned and put on one grid
+    (:func:`o3dsoft.pair.on_grid`): odometry prepares each sweep once, not once per map it is in.
 
-    Raises:
-        InputError: the grid leaves the source fewer points than the network's K.
+    Args:
+        source: (N, 3) on the grid where `init` moves it (gridded in the target's frame, as
+            ``register`` grids both clouds: two grids turned against each other leave the
+            centroids of one surface in two patterns, and ICP ends further off; docs/multiway.md).
+        target: (M, 3) on the same grid.
+        init: (4, 4) the rigid transform that moved the source (None: none); the result is
+            T_target_source of the source before it, as ``register``'s from an initial guess.
+        config: checked by the caller.
+    As ``register``, but: a flagged reason's size ratio is the grids'; ``removed`` counts what
+    the caller's cleaning removed; the sparser cloud is never the one moved (on one grid both are
+    spaced alike down to a cell).
     """
     centre = sample_median(source.points)
-    moved = source.points if init is None else apply_transform(init, source.points)
+    if init is not None:  # a point in the middle of the source as given
+        centre = apply_transform(np.linalg.inv(init), centre[None])[0]
     origin = local_origin(target.points)  # as register: far from the origin, about the target's median
     if origin.any():
         shift = np.eye(4)
         shift[:3, 3] = -origin
-        moved, target = moved - origin, target.moved(shift)
-    grid = on_grid(source._replace(points=moved), target.voxel, config, model.config.k, source_name)
-    result = _register(grid, target, config, model, None, source_name, target_name, init is not None)[0]
+        source, target = source.moved(shift), target.moved(shift)
+    result = _register(source, target, config, model, None, source_name, target_name, init is not None)[0]
     return _as_given(result, origin, init, centre)
 
 
@@ -434,9 +438,9 @@ def _register(
     target_name: str,
     guess: bool = False,
 ) -> Tuple[RegistrationResult, Clouds]:
-    """:func:`register` with the roles as given; also the (source, target) clouds the result was
-    registered on (cleaned, on the grid). `guess`: the pose as given is the caller's initial
-    guess, tried first."""
+    """:func:`register` with the roles as given (raw clouds, or two :class:`~o3dsoft.pair.GridCloud`
+    prepared already); also the (source, target) clouds the result was registered on (cleaned, on
+    the grid). `guess`: the pose as given is the caller's initial guess, tried first."""
     clock = StageClock()
     if model is None:  # loaded once per process; callers may pass it in
         model = coarse_stage.cached_model(config.weights, config.device)

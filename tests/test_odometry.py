@@ -205,6 +205,9 @@ def test_after_the_first_step_each_sweep_is_registered_on_that_steps_grid(monkey
     recorded.clear()
     each = odometry(sweeps, OdometryConfig(map_sweeps=3, one_grid=False))
     assert [step.on_grid for step in recorded] == [False] * 4
+    recorded.clear()
+    odometry(sweeps, OdometryConfig(map_sweeps=3, register=o3dsoft.RegisterConfig(voxel=0)))  # no grid: every step raw
+    assert [step.on_grid for step in recorded] == [False] * 4
     for pose, other, true in zip(result.poses, each.poses, truth):
         assert o3dsoft.pair_errors(pose, true).translation < 0.05 and o3dsoft.pair_errors(pose, other).translation < 0.02
     assert not any(result.flagged)
@@ -223,9 +226,9 @@ def test_a_sweep_the_grid_leaves_too_few_points_is_registered_on_a_grid_of_its_o
         assert o3dsoft.pair_errors(result.poses[k], truth[k]).translation < 0.05, k
 
 
-def test_registering_a_cleaned_sweep_onto_a_gridded_map_is_registering_the_clouds_on_that_grid():
-    """``register_on_grid`` grids the source where the guess moves it, as ``register`` grids both
-    clouds in the target's frame; far from the origin it registers about the target's median."""
+def test_registering_on_one_grid_is_registering_the_clouds_on_that_grid():
+    """``register_on_grid`` ends where ``register`` does on the same grid, from the same guess;
+    far from the origin it registers about the target's median."""
     from o3dsoft.coarse import cached_model
     from o3dsoft.pair import PreparedPair, on_grid
     from o3dsoft.preprocess import clean_points
@@ -236,25 +239,55 @@ def test_registering_a_cleaned_sweep_onto_a_gridded_map_is_registering_the_cloud
     plain = o3dsoft.register(sweeps[1], sweeps[0], config, model=model, init=guess)
     for shift in (np.zeros(3), np.array([5e5, 4e6, 300.0])):  # georeferenced: UTM metres
         moved = rigid(np.eye(3), shift)
-        target = on_grid(clean_points(sweeps[0] + shift), 0.4, config, model.config.k, "map")
-        result = register_on_grid(clean_points(sweeps[1] + shift), target, config, model, init=moved @ guess @ np.linalg.inv(moved))
+        init = moved @ guess @ np.linalg.inv(moved)
+        source, target = (
+            on_grid(clean_points(c), 0.4, config, model.config.k, n)
+            for c, n in ((apply_transform(init, sweeps[1] + shift), "sweep"), (sweeps[0] + shift, "map"))
+        )
+        result = register_on_grid(source, target, config, model, init=init)
         assert result.voxel == 0.4 and not result.likely_failed and result.estimate_from == plain.estimate_from == "initial guess"
         back = np.linalg.inv(moved) @ result.transformation @ moved
         assert o3dsoft.pair_errors(back, truth[1]).translation < 0.05
         assert o3dsoft.pair_errors(back, plain.transformation).translation < 0.005, shift
         assert abs(result.num_source - plain.num_source) <= 0.02 * plain.num_source
-    # The map's frame turned 30 degrees: the sweep is gridded where the guess puts it, in the
-    # map's axes (its own axes give other cells).
-    turned = rigid(euler_to_matrix([0.0, 0.0, 30.0]), np.zeros(3))
-    target = on_grid(clean_points(apply_transform(turned, sweeps[0])), 0.4, config, model.config.k, "map")
-    result = register_on_grid(clean_points(sweeps[1]), target, config, model, init=turned @ guess)
-    assert o3dsoft.pair_errors(np.linalg.inv(turned) @ result.transformation, truth[1]).translation < 0.05
-    where_guessed, own = (on_grid(clean_points(c), 0.4, config, model.config.k, "s").points for c in (apply_transform(turned @ guess, sweeps[1]), sweeps[1]))
-    assert result.num_source == len(where_guessed) != len(own)
     with pytest.raises(ValueError, match="two GridClouds of the same voxel"):
         PreparedPair(target, target._replace(voxel=0.5), config, model.config.k)
     with pytest.raises(ValueError, match="two GridClouds of the same voxel"):
         PreparedPair(target, sweeps[1], config, model.config.k)
+
+
+def test_a_step_on_the_grid_grids_the_sweep_where_its_guess_puts_it_and_the_map_from_half_grids():
+    """The sweep is gridded in the map's axes (its own give other cells, whose centroids lie in
+    another pattern on each surface), the map is its sweeps' half grids on the grid, and the
+    counts of what cleaning removed are the map's sweeps' together."""
+    from o3dsoft.odometry import _checked_sweeps, _SweepGrids
+    from o3dsoft.pair import on_grid
+    from o3dsoft.preprocess import CleanReport, clean_points, voxel_downsample
+
+    sweeps, poses = _sequence(4)
+    sweeps[0] = np.vstack([sweeps[0], np.full((3, 3), np.nan)])  # 3 rows of NaN
+    sweeps[1] = np.vstack([sweeps[1], sweeps[1][:5]])  # 5 duplicates
+    config, k = o3dsoft.RegisterConfig(), 16
+    grids = _SweepGrids(*_checked_sweeps(sweeps, ["a", "b", "c", "d"], k), 0.4, config, k)
+    turned = rigid(euler_to_matrix([0.0, 0.0, 30.0]), np.array([0.5, 0.0, 0.0]))
+    clean = [clean_points(c).points for c in sweeps]
+
+    def fresh_map(in_map, at):
+        into = np.linalg.inv(poses[at - 1])
+        halves = np.concatenate([apply_transform(into @ poses[j], voxel_downsample(clean[j], 0.2)) for j in in_map])
+        return on_grid(CleanReport(halves, 0, 0), 0.4, config, k, "map").points
+
+    source, local_map = grids.pair(poses, [0, 1], 2, turned, "map")
+    where_guessed, own = (on_grid(clean_points(c), 0.4, config, k, "s").points for c in (apply_transform(turned, sweeps[2]), sweeps[2]))
+    assert np.array_equal(source.points, where_guessed) and len(own) != len(where_guessed)
+    assert np.array_equal(local_map.points, fresh_map([0, 1], 2))
+    assert (local_map.cleaned.non_finite, local_map.cleaned.duplicates) == (3, 5)
+    _, later = grids.pair(poses, [1, 2], 3, turned, "map")  # sweep 0 out of the window: never needed again
+    assert np.array_equal(later.points, fresh_map([1, 2], 3)) and (later.cleaned.non_finite, later.cleaned.duplicates) == (0, 5)
+    assert sorted(grids._halves) == [1, 2, 3]
+    result = odometry(sweeps, OdometryConfig(map_sweeps=2))
+    assert result.steps[2].removed["target_non_finite"] == 3 and result.steps[2].removed["target_duplicates"] == 5
+    assert result.steps[2].timings_ms["map"] > 0 and result.steps[2].timings_ms["total"] >= result.steps[2].timings_ms["map"]
 
 
 @pytest.mark.parametrize("size", [1, 3])
