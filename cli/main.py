@@ -776,12 +776,18 @@ def _each_once(paths: Sequence[Path], what: str) -> None:
     type=click.Path(path_type=Path),
     help="Reference poses world_T_sweep (a poses.json, or text with one pose per sweep, 12 numbers (KITTI's 3x4) or 16): print the steps' errors and the drift.",
 )
+@click.option(
+    "--grid-per-step",
+    is_flag=True,
+    help="Register every step on a voxel grid of its own, cleaning the raw sweep and map each time (about twice as slow), instead of every sweep "
+    "cleaned once and every step on the first step's grid: for a sequence whose scale changes much (a room, then a close-up).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the result (poses, each step's confidence) as JSON instead of a summary.")
 @click.option("--strict", is_flag=True, help="Exit with status 3 when a step is flagged likely failed.")
 @click.option("--no-progress", is_flag=True, help="No progress bar.")
 @_pipeline_options
 @_friendly_errors
-def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress, **pipeline):
+def odometry(sweeps, out_dir, map_sweeps, gt_path, grid_per_step, as_json, strict, no_progress, **pipeline):
     """The poses of SWEEPS (files in the order they were taken, e.g. a LiDAR's or a depth camera's
     frames; a shell glob sorts them by name) in the frame of the first: each sweep registered onto
     the last --map-sweeps sweeps from a constant-velocity guess, and held within 45 degrees of it
@@ -817,7 +823,7 @@ def odometry(sweeps, out_dir, map_sweeps, gt_path, as_json, strict, no_progress,
     io.check_outputs_apart(
         {"--out's poses": out_dir / "poses.json", "--out's KITTI poses": out_dir / "poses.txt"}, {**{f"the sweep {p}": p for p in sweeps}, "--gt": gt_path}
     )
-    config = OdometryConfig(map_sweeps=map_sweeps, register=_register_config(**pipeline))
+    config = OdometryConfig(map_sweeps=map_sweeps, one_grid=not grid_per_step, register=_register_config(**pipeline))
     bar = tqdm(total=len(clouds), unit="sweep", disable=True if no_progress else None, dynamic_ncols=True)
 
     def progress(done: int, total: int) -> None:

@@ -384,6 +384,21 @@ def test_odometry_command_writes_poses_multiway_reads(tmp_path):
     assert r.exit_code == 1 and "gt.txt: 3 poses for 4 sweeps" in r.output and "Traceback" not in r.output and not (tmp_path / "bad").exists()
 
 
+def test_the_odometry_command_registers_every_step_on_a_grid_of_its_own_where_asked(tmp_path, monkeypatch):
+    files = []
+    for k, sweep in enumerate(_sequence(3)[0]):
+        files.append(tmp_path / f"frame_{k}.ply")
+        o3dsoft.write_points(files[-1], sweep)
+    seen = []
+    module = importlib.import_module("o3dsoft.odometry")
+    real = module.odometry
+    monkeypatch.setattr(module, "odometry", lambda clouds, config, **kwargs: seen.append(config.one_grid) or real(clouds, config, **kwargs))
+    for flags in ([], ["--grid-per-step"]):
+        r = CliRunner().invoke(main, ["odometry", *map(str, files), "--out", str(tmp_path / "odo"), "--no-progress", *flags])
+        assert r.exit_code == 0, r.output
+    assert seen == [True, False]
+
+
 def test_the_odometry_warning_says_whether_a_flagged_step_stayed_in_the_map(tmp_path):
     sweeps, _ = _sequence(4, seed=2)
     sweeps[2] = 1000.0 * sweeps[2]  # millimetres among metres: flagged, and off the map
