@@ -210,10 +210,10 @@ def odometry(
         guess = _guess(poses, steps, kept, k, config.constant_velocity)
         map_name = f"the map before {names[k]}"
         built = time.perf_counter()
-        on_grid = None if grids is None else grids.pair(poses, kept[-config.map_sweeps :], k, guess, map_name)
-        if on_grid is not None:
+        gridded = None if grids is None else grids.pair(poses, kept[-config.map_sweeps :], k, guess, map_name)
+        if gridded is not None:
             map_ms = 1000.0 * (time.perf_counter() - built)
-            step = register_on_grid(*on_grid, settings, model, names[k], map_name, guess)
+            step = register_on_grid(*gridded, settings, model, names[k], map_name, guess)
         else:
             local_map = _local_map(points, poses, kept, k, config.map_sweeps)
             map_ms = 1000.0 * (time.perf_counter() - built)

@@ -366,9 +366,9 @@ def register_on_grid(
             ``register`` grids both clouds: two grids turned against each other leave the
             centroids of one surface in two patterns, and ICP ends further off; docs/multiway.md).
         target: (M, 3) on the same grid.
+        config: the pipeline's settings, checked by the caller.
         init: (4, 4) the rigid transform that moved the source (None: none); the result is
             T_target_source of the source before it, as ``register``'s from an initial guess.
-        config: checked by the caller.
     As ``register``, but: a flagged reason's size ratio is the grids'; ``removed`` counts what
     the caller's cleaning removed; the sparser cloud is never the one moved (on one grid both are
     spaced alike down to a cell).
