@@ -633,7 +633,7 @@ def _format_result(source, target, result, errors, model_info, config, read=None
     "--init",
     "init_path",
     type=click.Path(path_type=Path),
-    help="Initial poses world_T_scan (odometry, an earlier run): a poses.json as multiway writes, or text with one pose per scan, in order, 12 numbers (KITTI's 3x4) or 16. "
+    help="Initial poses world_T_scan (odometry, an earlier run): a poses.json as multiway writes, a Stanford .conf, or text with one pose per scan, in order, 12 numbers (KITTI's 3x4) or 16. "
     "Each pair is then held within 45 degrees of the turn between its poses (--max-rotation sets another bound).",
 )
 @click.option("--render", "render_path", type=click.Path(path_type=Path), help="Write a PNG of the merged cloud, one colour per scan.")
@@ -774,7 +774,7 @@ def _each_once(paths: Sequence[Path], what: str) -> None:
     "--gt",
     "gt_path",
     type=click.Path(path_type=Path),
-    help="Reference poses world_T_sweep (a poses.json, or text with one pose per sweep, 12 numbers (KITTI's 3x4) or 16): print the steps' errors and the drift.",
+    help="Reference poses world_T_sweep (a poses.json, a Stanford .conf, or text with one pose per sweep, 12 numbers (KITTI's 3x4) or 16): print the steps' errors and the drift.",
 )
 @click.option(
     "--grid-per-step",

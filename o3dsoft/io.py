@@ -1283,11 +1283,13 @@ def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np
     """Initial poses (4, 4) world_T_scan of the scans `names`, None where the file has none
     (`what`: what the clouds are called in messages, plural).
 
-    Two layouts:
+    Three layouts:
         ``.json``: ``{"scans": [{"name": ..., "world_T_scan": 4x4 or null}, ...]}``, the
             poses.json that ``o3dsoft multiway`` writes, or ``{"sweeps": [{"name": ...,
             "world_T_sweep": 4x4}, ...]}``, that of ``o3dsoft odometry``; a scan is found by its
             name, else by its file name.
+        ``.conf``: the Stanford 3D Scanning Repository's ``bmesh NAME tx ty tz qx qy qz qw``
+            lines (:func:`o3dsoft.scans.read_conf`), found by name as a poses.json's.
         text (any other extension): one pose per line in the scans' order, 12 numbers (a 3x4
             [R | t] row by row, as KITTI's pose files) or 16 (4x4 row by row).
     Rotations within 1e-3 of orthonormal are replaced by the nearest rotation (kept within
@@ -1301,7 +1303,11 @@ def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np
     path = Path(path)
     check_readable(path)
     if path.suffix.lower() == ".json":
-        found = _poses_by_name(path, names)
+        found = _poses_by_name(path, _json_entries(path), names)
+    elif path.suffix.lower() == ".conf":
+        from .scans import read_conf  # a Stanford 3D Scanning Repository's poses
+
+        found = _poses_by_name(path, [{"name": name, "world_T_scan": T} for name, T in read_conf(path).items()], names)
     else:
         lines = _number_lines(path, (12, 16), "one pose per line, 12 or 16 numbers")
         if len(lines) != len(names):
@@ -1313,9 +1319,9 @@ def read_poses(path: PathLike, names: Sequence[str], about: Optional[Sequence[np
     return poses
 
 
-def _poses_by_name(path: Path, names: Sequence[str]) -> Dict[int, Tuple[str, np.ndarray]]:
-    """{index of the scan in `names`: (where, (4, 4) pose)} from a poses.json: each entry with a
-    pose goes to the scan of its name, else to the one scan of its file name that no entry named."""
+def _json_entries(path: Path) -> List[dict]:
+    """The entries {"name": ..., "world_T_scan": ...} of a poses.json (multiway's, or odometry's
+    "sweeps")."""
     try:
         record = json.loads(path.read_text(encoding="utf-8-sig"))
     except (UnicodeDecodeError, ValueError, RecursionError) as e:
@@ -1328,6 +1334,13 @@ def _poses_by_name(path: Path, names: Sequence[str]) -> Dict[int, Tuple[str, np.
             f'{path}: expected {{"scans": [{{"name": ..., "world_T_scan": ...}}, ...]}}, as o3dsoft multiway writes, '
             f'or {{"sweeps": [{{"name": ..., "world_T_sweep": ...}}, ...]}}, as o3dsoft odometry writes'
         )
+    return entries
+
+
+def _poses_by_name(path: Path, entries: List[dict], names: Sequence[str]) -> Dict[int, Tuple[str, np.ndarray]]:
+    """{index of the scan in `names`: (where, (4, 4) pose)} from the `entries` {"name": ...,
+    "world_T_scan": ...} of the file at `path`: each entry with a pose goes to the scan of its
+    name, else to the one scan of its file name that no entry named."""
     entries = [e for e in entries if e.get("world_T_scan") is not None]
     index = {name: k for k, name in enumerate(names)}
     exact = [e for e in entries if e["name"] in index]

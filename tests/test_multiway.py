@@ -252,6 +252,23 @@ def test_poses_files(tmp_path):
     assert read_poses(kitti, names)[2][3].tolist() == [0.0, 0.0, 0.0, 1.0]
 
 
+def test_poses_from_a_stanford_conf(tmp_path):
+    """The Stanford 3D Scanning Repository's .conf (``bmesh NAME tx ty tz qx qy qz qw``): its scans
+    are found by name, as a poses.json's, for odometry --gt and multiway --init."""
+    from o3dsoft.scans import read_conf
+
+    conf = tmp_path / "bun.conf"
+    conf.write_text("camera 0 0 0 0 0 0 1\nbmesh s0.ply 0 0 0 0 0 0 1\nbmesh s2.ply 0.1 -0.2 0.3 0 0.3826834 0 0.9238795\n")
+    poses = read_poses(conf, ["a/s0.ply", "a/s1.ply", "a/s2.ply"])
+    assert np.allclose(poses[0], np.eye(4)) and poses[1] is None and np.array_equal(poses[2], read_conf(conf)["s2.ply"])
+    assert o3dsoft.pair_errors(poses[2], np.eye(4)).rotation_deg == pytest.approx(45.0)
+    with pytest.raises(InputError, match="bun.conf: none of its scans with a pose is among the scans given"):
+        read_poses(conf, ["c.ply", "d.ply"])
+    conf.write_text("bmesh s0.ply 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="bun.conf, line 1: expected 'bmesh NAME tx ty tz qx qy qz qw'"):
+        read_poses(conf, ["s0.ply"])
+
+
 def test_a_scan_that_overlaps_none_is_left_out(scans, model):
     clouds, _ = scans
     stray = blob(np.random.default_rng(1), 3000) * 0.05 + [5.0, 0.0, 0.0]
