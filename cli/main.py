@@ -678,7 +678,7 @@ def multiway(scans, out_dir, neighbours, window, near, merge_voxel, init_path, r
     units = units_note(clouds, names)
     if units:
         click.echo(f"Warning: {units}.", err=True)
-    if init_path is not None and init_path.suffix.lower() != ".json":  # its lines are taken in the scans' order
+    if init_path is not None and init_path.suffix.lower() not in (".json", ".conf"):  # its lines are taken in the scans' order
         _warn_name_order([str(p) for p in scans], "scans", f"{init_path}'s lines are read in the order the scans are given; give them in its order")
     init_poses = io.read_poses(init_path, names, [local_origin(c) for c in clouds]) if init_path is not None else None
     without = [n for n, pose in zip(names, init_poses or ()) if pose is None]

@@ -155,7 +155,11 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
     path = Path(path)
     poses: Dict[str, np.ndarray] = {}
     lines: Dict[str, int] = {}  # the line of each scan's pose
-    for lineno, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), start=1):
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file; expected lines 'bmesh NAME tx ty tz qx qy qz qw'") from None
+    for lineno, line in enumerate(text.splitlines(), start=1):
         parts = line.split()
         if not parts or parts[0] != "bmesh":
             continue
@@ -164,7 +168,8 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
         try:
             tx, ty, tz, qx, qy, qz, qw = (float(v) for v in parts[2:])
         except ValueError:
-            raise InputError(f"{path}, line {lineno}: non-numeric pose values") from None
+            bad = next(v for v in parts[2:] if not _is_number(v))
+            raise InputError(f"{path}, line {lineno}: {bad!r} is not a number; expected 'bmesh NAME tx ty tz qx qy qz qw'") from None
         if not all(np.isfinite([tx, ty, tz, qx, qy, qz, qw])) or np.linalg.norm([qx, qy, qz, qw]) == 0:
             raise InputError(f"{path}, line {lineno}: expected finite numbers and a quaternion of non-zero length, got {' '.join(parts[2:])}")
         if parts[1] in lines:
@@ -172,8 +177,16 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
         lines[parts[1]] = lineno
         poses[parts[1]] = rigid(quaternion_to_matrix(qx, qy, qz, qw).T, np.array([tx, ty, tz]))
     if not poses:
-        raise InputError(f"{path}: no 'bmesh' lines")
+        raise InputError(f"{path}: no 'bmesh' lines; expected lines 'bmesh NAME tx ty tz qx qy qz qw'")
     return poses
+
+
+def _is_number(value: str) -> bool:
+    try:
+        float(value)
+        return True
+    except ValueError:
+        return False
 
 
 def relative_pose(poses: Dict[str, np.ndarray], source: str, target: str) -> np.ndarray:

@@ -261,11 +261,21 @@ def test_poses_from_a_stanford_conf(tmp_path):
     conf.write_text("camera 0 0 0 0 0 0 1\nbmesh s0.ply 0 0 0 0 0 0 1\nbmesh s2.ply 0.1 -0.2 0.3 0 0.3826834 0 0.9238795\n")
     poses = read_poses(conf, ["a/s0.ply", "a/s1.ply", "a/s2.ply"])
     assert np.allclose(poses[0], np.eye(4)) and poses[1] is None and np.array_equal(poses[2], read_conf(conf)["s2.ply"])
-    assert o3dsoft.pair_errors(poses[2], np.eye(4)).rotation_deg == pytest.approx(45.0)
-    with pytest.raises(InputError, match="bun.conf: none of its scans with a pose is among the scans given"):
-        read_poses(conf, ["c.ply", "d.ply"])
-    conf.write_text("bmesh s0.ply 0 0 0 0 0 1\n")
-    with pytest.raises(InputError, match="bun.conf, line 1: expected 'bmesh NAME tx ty tz qx qy qz qw'"):
+    # T_world_scan: the translation as written, the quaternion's rotation transposed (the repository's convention)
+    assert np.allclose(poses[2][:3, 3], [0.1, -0.2, 0.3]) and np.allclose(poses[2][:3, :3] @ [0.0, 0.0, 1.0], [-np.sqrt(0.5), 0.0, np.sqrt(0.5)])
+    assert read_poses(conf.rename(tmp_path / "BUN.CONF"), ["s2.ply"])[0] is not None
+    with pytest.raises(InputError, match="BUN.CONF: none of its scans with a pose is among the scans given"):
+        read_poses(tmp_path / "BUN.CONF", ["c.ply", "d.ply"])
+    for text, match in [
+        ("bmesh s0.ply 0 0 0 0 0 1\n", "line 1: expected 'bmesh NAME tx ty tz qx qy qz qw', got 8 fields"),
+        ("bmesh s0.ply 0 0 x 0 0 0 1\n", "line 1: 'x' is not a number; expected 'bmesh NAME tx ty tz qx qy qz qw'"),
+        ("camera 0 0 0 0 0 0 1\n", "no 'bmesh' lines; expected lines 'bmesh NAME tx ty tz qx qy qz qw'"),
+    ]:
+        conf.write_text(text)
+        with pytest.raises(InputError, match=match):
+            read_poses(conf, ["s0.ply"])
+    conf.write_bytes(b"\xff\xfe\x00bmesh")
+    with pytest.raises(InputError, match="bun.conf: not a text file"):
         read_poses(conf, ["s0.ply"])
 
 
@@ -410,6 +420,19 @@ def test_cli_starts_from_initial_poses(tmp_path, scans):
         dst.write_bytes(src.read_bytes())
     glob = CliRunner().invoke(main, ["multiway", *map(str, named), "--out", str(tmp_path / "o4"), "--init", str(guesses)])
     assert f"so {named[1]} comes before {named[2]}: {guesses}'s lines are read in the order the scans are given" in glob.output
+    # A Stanford .conf names its scans: their order does not matter.
+    from scipy.spatial.transform import Rotation
+
+    conf = tmp_path / "scans.conf"
+    lines = []
+    for path, P in zip(named, poses[:3]):  # each line's quaternion is of the rotation's transpose
+        lines.append(" ".join(["bmesh", path.name, *map(str, P[:3, 3]), *map(str, Rotation.from_matrix(P[:3, :3].T).as_quat())]))
+    conf.write_text("\n".join(lines) + "\n")
+    stanford = CliRunner().invoke(main, ["multiway", *map(str, named), "--out", str(tmp_path / "o5"), "--init", str(conf), "--no-progress"])
+    assert stanford.exit_code == 0 and "comes before" not in stanford.output, stanford.output
+    record = json.loads((tmp_path / "o5" / "poses.json").read_text())
+    for k, scan in enumerate(record["scans"]):
+        assert pair_errors(np.array(scan["world_T_scan"]), poses[k]).rotation_deg < 1.0
 
 
 def test_cli_refuses_one_file_twice_and_reports_a_stray_scan(tmp_path, scans):
