@@ -165,11 +165,13 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
             continue
         if len(parts) != 9:
             raise InputError(f"{path}, line {lineno}: expected 'bmesh NAME tx ty tz qx qy qz qw', got {len(parts)} fields")
-        try:
-            tx, ty, tz, qx, qy, qz, qw = (float(v) for v in parts[2:])
-        except ValueError:
-            bad = next(v for v in parts[2:] if not _is_number(v))
-            raise InputError(f"{path}, line {lineno}: {bad!r} is not a number; expected 'bmesh NAME tx ty tz qx qy qz qw'") from None
+        values = []
+        for value in parts[2:]:
+            try:
+                values.append(float(value))
+            except ValueError:
+                raise InputError(f"{path}, line {lineno}: {value!r} is not a number; expected 'bmesh NAME tx ty tz qx qy qz qw'") from None
+        tx, ty, tz, qx, qy, qz, qw = values
         if not all(np.isfinite([tx, ty, tz, qx, qy, qz, qw])) or np.linalg.norm([qx, qy, qz, qw]) == 0:
             raise InputError(f"{path}, line {lineno}: expected finite numbers and a quaternion of non-zero length, got {' '.join(parts[2:])}")
         if parts[1] in lines:
@@ -179,14 +181,6 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
     if not poses:
         raise InputError(f"{path}: no 'bmesh' lines; expected lines 'bmesh NAME tx ty tz qx qy qz qw'")
     return poses
-
-
-def _is_number(value: str) -> bool:
-    try:
-        float(value)
-        return True
-    except ValueError:
-        return False
 
 
 def relative_pose(poses: Dict[str, np.ndarray], source: str, target: str) -> np.ndarray:
