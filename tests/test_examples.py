@@ -77,6 +77,17 @@ def test_multiway_sequence_example_corrects_the_odometry():
         assert joined_deg < odometry_deg and joined_mm < odometry_mm
 
 
+def test_odometry_example_follows_its_sensor():
+    r = subprocess.run([sys.executable, str(REPO / "examples" / "odometry_lidar.py")], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    steps = [l.split() for l in r.stdout.splitlines() if l.strip().startswith("sweep")]
+    assert len(steps) == 14 and not any("(flagged)" in " ".join(row) for row in steps)
+    for row in steps:  # "sweepK: A deg, B cm, confidence C"
+        assert float(row[1]) < 0.2 and float(row[3]) < 5.0, row
+    drift = r.stdout.split("the last sweep ends ")[1].split()
+    assert float(drift[0]) < 10.0 and float(drift[3]) < 0.5  # cm and degrees over an 11 m path
+
+
 def test_model_file_runs_with_torch_alone(tmp_path):
     # No o3dsoft import in the child: the TorchScript file must carry everything it runs.
     code = (
