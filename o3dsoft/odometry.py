@@ -19,7 +19,7 @@ from __future__ import annotations
 import numbers
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -334,22 +334,25 @@ class _SweepGrids:
             local_map = self._local_map(poses, in_map, k, map_name)
         except InputError:
             return None
-        self._halves[k] = voxel_downsample(cleaned.points, 0.5 * self.voxel)  # for the maps after it
+        self._half(k, cleaned.points)  # for the maps after it, while its cleaned points are at hand
         return source, local_map
 
     def _local_map(self, poses: Sequence[np.ndarray], in_map: Sequence[int], k: int, name: str) -> GridCloud:
-        into = np.linalg.inv(poses[k - 1])
-        points = np.concatenate([apply_transform(into @ poses[j], self._half(j)) for j in in_map])
-        self._halves = {j: self._halves[j] for j in in_map}  # a sweep out of this map is in no later one
+        halves = {j: self._half(j) for j in in_map}
+        points = _local_map(halves, poses, in_map, k, len(in_map))
+        self._halves = halves  # a sweep out of this map is in no later one
         counts = [self.cleaning[j] for j in in_map]
         removed = CleanReport(
             points, non_finite=sum(c.non_finite for c in counts), duplicates=sum(c.duplicates for c in counts), strays=sum(c.strays for c in counts)
         )
         return on_grid(removed, self.voxel, self.config, self.min_points, name)
 
-    def _half(self, j: int) -> np.ndarray:
-        if j not in self._halves:  # a sweep registered raw, or the first
-            self._halves[j] = voxel_downsample(self.cleaning[j].of(self.points[j]).points, 0.5 * self.voxel)
+    def _half(self, j: int, cleaned: Optional[np.ndarray] = None) -> np.ndarray:
+        """(N, 3) sweep j on half the grid, in its own frame, made once (from its `cleaned` points
+        where the caller has them)."""
+        if j not in self._halves:
+            points = self.cleaning[j].of(self.points[j]).points if cleaned is None else cleaned
+            self._halves[j] = voxel_downsample(points, 0.5 * self.voxel)
         return self._halves[j]
 
 
@@ -371,10 +374,12 @@ def _kept(steps: Sequence[Optional[RegistrationResult]], guesses: Sequence[Optio
     return [j for j in range(k) if keeps(steps[j], guesses[j], origins[j])]
 
 
-def _local_map(points: Sequence[np.ndarray], poses: Sequence[np.ndarray], kept: Sequence[int], k: int, size: int) -> np.ndarray:
+def _local_map(
+    points: Union[Mapping[int, np.ndarray], Sequence[np.ndarray]], poses: Sequence[np.ndarray], kept: Sequence[int], k: int, size: int
+) -> np.ndarray:
     """(M, 3) the last `size` of the sweeps `kept` before sweep k (:func:`_kept`), in sweep k-1's
     frame (its pose's: the motion found from there composes back to the right pose whatever
-    that pose is)."""
+    that pose is); `points[j]`: sweep j's (N_j, 3) points in its own frame (raw, or on a grid)."""
     into = np.linalg.inv(poses[k - 1])
     return np.concatenate([apply_transform(into @ poses[j], points[j]) for j in kept[-size:]])
 

@@ -145,6 +145,10 @@ def read_pairs_file(path: Union[str, Path]) -> List[PairEntry]:
     return entries
 
 
+# What a pose line of a .conf holds, for the messages that refuse one.
+_CONF_LINE = "'bmesh NAME tx ty tz qx qy qz qw'"
+
+
 def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
     """Scan name -> (4, 4) T_world_scan from a ``.conf`` file.
 
@@ -158,19 +162,19 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file; expected lines 'bmesh NAME tx ty tz qx qy qz qw'") from None
+        raise InputError(f"{path}: not a text file; expected lines {_CONF_LINE}") from None
     for lineno, line in enumerate(text.splitlines(), start=1):
         parts = line.split()
         if not parts or parts[0] != "bmesh":
             continue
         if len(parts) != 9:
-            raise InputError(f"{path}, line {lineno}: expected 'bmesh NAME tx ty tz qx qy qz qw', got {len(parts)} fields")
+            raise InputError(f"{path}, line {lineno}: expected {_CONF_LINE}, got {len(parts)} fields")
         values = []
         for value in parts[2:]:
             try:
                 values.append(float(value))
             except ValueError:
-                raise InputError(f"{path}, line {lineno}: {value!r} is not a number; expected 'bmesh NAME tx ty tz qx qy qz qw'") from None
+                raise InputError(f"{path}, line {lineno}: {value!r} is not a number; expected {_CONF_LINE}") from None
         tx, ty, tz, qx, qy, qz, qw = values
         if not all(np.isfinite([tx, ty, tz, qx, qy, qz, qw])) or np.linalg.norm([qx, qy, qz, qw]) == 0:
             raise InputError(f"{path}, line {lineno}: expected finite numbers and a quaternion of non-zero length, got {' '.join(parts[2:])}")
@@ -179,7 +183,7 @@ def read_conf(path: Union[str, Path]) -> Dict[str, np.ndarray]:
         lines[parts[1]] = lineno
         poses[parts[1]] = rigid(quaternion_to_matrix(qx, qy, qz, qw).T, np.array([tx, ty, tz]))
     if not poses:
-        raise InputError(f"{path}: no 'bmesh' lines; expected lines 'bmesh NAME tx ty tz qx qy qz qw'")
+        raise InputError(f"{path}: no 'bmesh' lines; expected lines {_CONF_LINE}")
     return poses
 
 
