@@ -29,8 +29,8 @@ from .config import RegisterConfig, check_settings
 from .errors import InputError, UsageError
 from .io import as_rigid
 from .pair import CloudLike, as_points, named_clouds
-from .pipeline import SIZE_RATIO_NOTE, RegistrationResult, register
-from .preprocess import clean_points, scene_size, voxel_downsample
+from .pipeline import SIZE_RATIO_NOTE, RegistrationResult, register_cleaned
+from .preprocess import Cleaning, clean_each, clean_points, scene_size, voxel_downsample
 from .transforms import apply_transform
 
 NEIGHBOUR_RULES = ("auto", "all", "sequence", "near")
@@ -155,7 +155,8 @@ class MultiwayResult:
         world: index of the scan that fixes the world frame: the first of the largest group of
             scans joined by trusted alignments (the first scan when none is).
         edges: every registered pair.
-        timings_s: "pairs" (all pairwise registrations), "optimise", "total" (s, lower is better).
+        timings_s: "clean" (each scan cleaned once), "pairs" (all pairwise registrations),
+            "optimise", "total" (s, lower is better).
         voxel: the grid the information matrices were computed on, and the merged cloud's
             default (scan units); None: every point.
     """
@@ -281,6 +282,9 @@ def multiway(
     guesses = _checked_poses(init_poses, names)
     model = model if model is not None else load_model(config.register.weights, config.register.device)
     t_start = time.perf_counter()
+    # Each scan cleaned once, and every one checked before the first pair is registered.
+    cleaning = clean_each(points, names, model.config.k)
+    t_clean = time.perf_counter()
 
     # Register the pairs that may overlap (T_i_j maps scan j onto scan i), first with the quick
     # search (the feature match on pairs that look like a partial overlap, then the network):
@@ -292,7 +296,7 @@ def multiway(
         quick = replace(quick, search=replace(quick.search, mode="quick"), refine_flagged=False)
     found: Dict[Tuple[int, int], Tuple[Edge, RegistrationResult]] = {}
     for done, (i, j) in enumerate(pairs, start=1):
-        found[i, j] = _register_edge(points, names, i, j, quick, model, guesses, config.init_max_rotation)
+        found[i, j] = _register_edge(points, cleaning, names, i, j, quick, model, guesses, config.init_max_rotation)
         if progress is not None:
             progress(done, len(pairs))
     # Then the search, only on the pairs of scans that no trusted edge reaches yet, until each joins.
@@ -302,7 +306,7 @@ def multiway(
         # trusted search joins it (docs/multiway.md).
         for i, j in sorted(pairs, key=lambda pair: (pair[1] - pair[0], pair)):
             if group_of[i] != group_of[j] and found[i, j][0].likely_failed:
-                found[i, j] = _register_edge(points, names, i, j, config.register, model, guesses, config.init_max_rotation)
+                found[i, j] = _register_edge(points, cleaning, names, i, j, config.register, model, guesses, config.init_max_rotation)
                 if not found[i, j][0].likely_failed:  # two groups joined
                     group_of = _group_of(len(points), [e for e, _ in found.values()])
     edges = [e for e, _ in found.values()]
@@ -333,9 +337,8 @@ def multiway(
         placed = {root: root_pose}
         if tree:
             if not info_clouds:
-                info_clouds = [
-                    voxel_downsample(clean_points(p, name).points, grid, name) if grid else clean_points(p, name).points for p, name in zip(points, names)
-                ]
+                cleaned = (c.of(p).points for c, p in zip(cleaning, points))
+                info_clouds = [voxel_downsample(c, grid, name) if grid else c for c, name in zip(cleaned, names)]
             placed, cut = _optimise(info_clouds, edges, root, root_pose, tree, distance, config)
             tree_edges.update((e.source, e.target) for _, e in tree.values())
             pruned.update(cut)
@@ -343,7 +346,7 @@ def multiway(
             poses[k], placed_by[k] = pose, "registration" if g == 0 else "initial pose"
     edges = [replace(e, used=not e.likely_failed, in_tree=(e.source, e.target) in tree_edges, pruned=(e.source, e.target) in pruned) for e in edges]
     t_end = time.perf_counter()
-    timings = {"pairs": t_pairs - t_start, "optimise": t_end - t_pairs, "total": t_end - t_start}
+    timings = {"clean": t_clean - t_start, "pairs": t_pairs - t_clean, "optimise": t_end - t_pairs, "total": t_end - t_start}
     return MultiwayResult(names, tuple(poses), tuple(placed_by), world, tuple(edges), timings, grid)
 
 
@@ -395,15 +398,25 @@ def _checked_poses(init_poses: Optional[Sequence[Optional[np.ndarray]]], names: 
     return poses
 
 
-def _register_edge(points, names, i: int, j: int, config: RegisterConfig, model, guesses, bound: Optional[float]) -> Tuple[Edge, RegistrationResult]:
-    """Register scan j onto scan i (from T_i_j = inv(world_T_i) @ world_T_j where both have an
-    initial pose, then within `bound` degrees of it where `config` sets no rotation prior): the
-    edge j -> i and the full result."""
+def _register_edge(
+    points: Sequence[np.ndarray],
+    cleaning: Sequence[Cleaning],
+    names: Sequence[str],
+    i: int,
+    j: int,
+    config: RegisterConfig,
+    model,
+    guesses: Sequence[Optional[np.ndarray]],
+    bound: Optional[float],
+) -> Tuple[Edge, RegistrationResult]:
+    """Register scan j onto scan i, each as its `cleaning` keeps it (from T_i_j = inv(world_T_i)
+    @ world_T_j where both have an initial pose, then within `bound` degrees of it where `config`
+    sets no rotation prior): the edge j -> i and the full result."""
     t0 = time.perf_counter()
     init = np.linalg.inv(guesses[i]) @ guesses[j] if guesses[i] is not None and guesses[j] is not None else None
     if init is not None and config.max_rotation is None and bound is not None:
         config = replace(config, max_rotation=bound)
-    r = register(points[j], points[i], config, model=model, source_name=names[j], target_name=names[i], init=init)
+    r = register_cleaned(cleaning[j].of(points[j]), cleaning[i].of(points[i]), config, model, names[j], names[i], init)
     return Edge(j, i, r.transformation, r.confidence, r.fitness, r.likely_failed, r.failure_reason, time.perf_counter() - t0, r.searched), r
 
 

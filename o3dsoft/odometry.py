@@ -29,7 +29,7 @@ from .errors import InputError, UsageError
 from .metrics import PairErrors, pair_errors
 from .pair import CloudLike, GridCloud, as_points, named_clouds, on_grid
 from .pipeline import SIZE_RATIO_NOTE, RegistrationResult, register, register_on_grid
-from .preprocess import CleanReport, clean_points, local_origin, scene_size, voxel_downsample
+from .preprocess import Cleaning, CleanReport, clean_each, local_origin, scene_size, voxel_downsample
 from .transforms import apply_transform, in_frame_at
 
 # A flagged step whose sweep has at least this share of its points within ICP's distance of the
@@ -286,31 +286,11 @@ def frame_point(points: np.ndarray) -> np.ndarray:
     return centre if np.linalg.norm(centre) > GEOREFERENCED_BEYOND * scene_size(points[np.isfinite(points).all(axis=1)]) else np.zeros(3)
 
 
-class _Cleaning(NamedTuple):
-    """What cleaning (:func:`o3dsoft.preprocess.clean_points`) keeps of a sweep, without a copy of
-    its points: the rows kept (None: every row) and how many it removed of each kind."""
-
-    rows: Optional[np.ndarray]
-    non_finite: int
-    duplicates: int
-    strays: int
-
-    def of(self, points: np.ndarray) -> CleanReport:
-        """The cleaned sweep of the (N, 3) `points` cleaning saw."""
-        return CleanReport(points if self.rows is None else points[self.rows], self.non_finite, self.duplicates, self.strays)
-
-
-def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> Tuple[List[np.ndarray], List[_Cleaning]]:
-    """The (N_i, 3) points of each sweep, and what cleaning keeps of each: every sweep is checked
-    to hold `min_points` distinct finite points and not to be degenerate, so that a bad sweep late
-    in a long sequence fails before the first is registered."""
+def _checked_sweeps(sweeps: Sequence[CloudLike], names: Sequence[str], min_points: int) -> Tuple[List[np.ndarray], List[Cleaning]]:
+    """The (N_i, 3) points of each sweep, and what cleaning keeps of each (:func:`o3dsoft.preprocess.clean_each`:
+    a bad sweep late in a long sequence fails before the first is registered)."""
     points = [as_points(s, str(n)) for s, n in zip(sweeps, names)]
-    cleaning = []
-    for p, n in zip(points, names):
-        report = clean_points(p, str(n), min_points=min_points)
-        every = report.rows is None or len(report.rows) == len(p)  # then they are the rows in order
-        cleaning.append(_Cleaning(None if every else report.rows, report.non_finite, report.duplicates, report.strays))
-    return points, cleaning
+    return points, clean_each(points, names, min_points)
 
 
 class _SweepGrids:
@@ -320,7 +300,7 @@ class _SweepGrids:
     sweeps' raw points would give; the sweeps' own grids, put on another grid, merge neighbouring
     cells and blur it."""
 
-    def __init__(self, points: Sequence[np.ndarray], cleaning: Sequence[_Cleaning], voxel: float, config: RegisterConfig, min_points: int) -> None:
+    def __init__(self, points: Sequence[np.ndarray], cleaning: Sequence[Cleaning], voxel: float, config: RegisterConfig, min_points: int) -> None:
         self.points, self.cleaning, self.voxel, self.config, self.min_points = points, cleaning, voxel, config, min_points
         self._halves: Dict[int, np.ndarray] = {}
 

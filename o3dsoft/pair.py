@@ -216,6 +216,7 @@ class PreparedPair:
 
     Args:
         source: (N, 3) array or Open3D PointCloud; target: (M, 3), in the same units. Or two
+            :class:`~o3dsoft.preprocess.CleanReport` of clouds cleaned already; or two
             :class:`GridCloud` on one grid, cleaned and gridded already (the config's grid and
             isolated-point settings are then not read).
         config: the pipeline's settings.
@@ -228,8 +229,8 @@ class PreparedPair:
 
     def __init__(
         self,
-        source: Union[CloudLike, GridCloud],
-        target: Union[CloudLike, GridCloud],
+        source: Union[CloudLike, CleanReport, GridCloud],
+        target: Union[CloudLike, CleanReport, GridCloud],
         config: RegisterConfig,
         k: int,
         names: Tuple[str, str] = ("source", "target"),
@@ -244,11 +245,16 @@ class PreparedPair:
             self.full: Clouds = (source.points, target.points)
             self.isolated: Tuple[int, int] = (source.isolated, target.isolated)
         else:
-            # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds; even out the density.
-            self.cleaned = (
-                clean_points(as_points(source, names[0]), names[0], min_points=k),
-                clean_points(as_points(target, names[1]), names[1], min_points=k),
-            )
+            if isinstance(source, CleanReport) and isinstance(target, CleanReport):  # cleaned by the caller
+                self.cleaned = (source, target)
+            elif isinstance(source, CleanReport) or isinstance(target, CleanReport):
+                raise ValueError("cleaned clouds come in pairs: two CleanReports")
+            else:
+                # Clean: drop NaN/inf rows and duplicates; reject degenerate clouds; even out the density.
+                self.cleaned = (
+                    clean_points(as_points(source, names[0]), names[0], min_points=k),
+                    clean_points(as_points(target, names[1]), names[1], min_points=k),
+                )
             self.full = (self.cleaned[0].points, self.cleaned[1].points)
             self.voxel = registration_grid(self.full, config)
             self.isolated = (0, 0)  # points left out as scattered outliers, per cloud

@@ -45,7 +45,7 @@ from .errors import InputError, UsageError
 from .io import as_rigid, check_rigid
 from .metrics import input_chamfer_distance
 from .pair import CloudLike, Clouds, GridCloud, PreparedPair, as_points
-from .preprocess import local_origin, point_spacing, sample_median, scene_size
+from .preprocess import CleanReport, local_origin, point_spacing, sample_median, scene_size
 from .strategies import (
     FeatureMatchProposals,
     InitialGuess,
@@ -319,33 +319,86 @@ def register(
             ``num_points`` below the network's neighbourhood size. Both are
             :class:`o3dsoft.O3dsoftError` (and ``ValueError``).
     """
+    config = _checked(config, model, search_model)
+    src, tgt = as_points(source, source_name), as_points(target, target_name)
+    return _register_as_given(src, tgt, config, model, search_model, source_name, target_name, init)
+
+
+@quietly
+def register_cleaned(
+    source: CleanReport,
+    target: CleanReport,
+    config: RegisterConfig,
+    model: coarse_stage.CoarseModel,
+    source_name: str = "source",
+    target_name: str = "target",
+    init: Optional[np.ndarray] = None,
+) -> RegistrationResult:
+    """:func:`register` for two clouds the caller cleaned (:func:`o3dsoft.preprocess.clean_each`):
+    multiway cleans each scan once, not once per pair it is in.
+
+    Args:
+        source: the (N, 3) cleaned source and what cleaning removed of it; target: the (M, 3) same.
+        config, model, init: as ``register``'s (the model loaded already).
+    As ``register``, with ``removed`` counting what the caller's cleaning removed.
+    """
+    return _register_as_given(source, target, _checked(config, model, None), model, None, source_name, target_name, init)
+
+
+def _checked(config: Optional[RegisterConfig], model: Optional[coarse_stage.CoarseModel], search_model: Optional[coarse_stage.CoarseModel]) -> RegisterConfig:
+    """`config` (None: the defaults) once every setting, the networks passed in and the weights
+    files to be loaded are checked, before any stage reads them (the network's own limits:
+    ``config.validate``)."""
     config = RegisterConfig() if config is None else config
     if not isinstance(config, RegisterConfig):
         raise UsageError(f"config must be an o3dsoft.RegisterConfig, got {type(config).__name__}")
-    check_settings(config)  # before any stage reads one (the network's own limits: config.validate)
+    check_settings(config)
     coarse_stage.torch_runs()
     coarse_stage.check_loaded(model, "model", "RegisterConfig(weights=...)")
     coarse_stage.check_loaded(search_model, "search_model", "RegisterConfig(search=SearchConfig(starts=StartsConfig(weights=...)))")
     _check_weights(config, model is None, search_model is None)
-    src, tgt = as_points(source, source_name), as_points(target, target_name)
-    centre = sample_median(src)  # a point in the source's middle: a stray point does not move it
+    return config
+
+
+def _register_as_given(
+    src: Union[np.ndarray, CleanReport],
+    tgt: Union[np.ndarray, CleanReport],
+    config: RegisterConfig,
+    model: Optional[coarse_stage.CoarseModel],
+    search_model: Optional[coarse_stage.CoarseModel],
+    source_name: str,
+    target_name: str,
+    init: Optional[np.ndarray],
+) -> RegistrationResult:
+    """:func:`register`'s work on the (N, 3) and (M, 3) clouds as given, raw or cleaned already."""
+    centre = sample_median(_points_of(src))  # a point in the source's middle: a stray point does not move it
     if init is not None:
         init = as_rigid(init, "init")
-        src = apply_transform(init, src)
+        src = _moved(src, lambda p: apply_transform(init, p))
     # Far from the origin (georeferenced scans), both clouds are registered about the target's
     # median: point-to-plane ICP linearises the rotation about the origin, and KISS-Matcher hashes
     # integer voxel coordinates.
-    origin = local_origin(tgt)
+    origin = local_origin(_points_of(tgt))
     if origin.any():
-        src, tgt = src - origin, tgt - origin
+        src, tgt = _moved(src, lambda p: p - origin), _moved(tgt, lambda p: p - origin)
     guess = init is not None
-    if _sparser(tgt, src, config.sparser_moves):
+    if _sparser(_points_of(tgt), _points_of(src), config.sparser_moves):
         # The sparser cloud moves: register the target onto the source, and answer the question asked.
         swapped, (moved, fixed) = _register(tgt, src, config, model, search_model, target_name, source_name, guess)
         result = _inverted(swapped, fixed, moved)
     else:
         result = _register(src, tgt, config, model, search_model, source_name, target_name, guess)[0]
     return _as_given(result, origin, init, centre)
+
+
+def _points_of(cloud: Union[np.ndarray, CleanReport]) -> np.ndarray:
+    """The (N, 3) points of a raw or a cleaned cloud."""
+    return cloud.points if isinstance(cloud, CleanReport) else cloud
+
+
+def _moved(cloud: Union[np.ndarray, CleanReport], move: Callable[[np.ndarray], np.ndarray]) -> Union[np.ndarray, CleanReport]:
+    """A raw or a cleaned cloud with its (N, 3) points moved by `move`."""
+    return cloud._replace(points=move(cloud.points)) if isinstance(cloud, CleanReport) else move(cloud)
 
 
 @quietly
@@ -429,8 +482,8 @@ def _moved_back(result: RegistrationResult, origin: np.ndarray) -> RegistrationR
 
 
 def _register(
-    source: Union[np.ndarray, GridCloud],
-    target: Union[np.ndarray, GridCloud],
+    source: Union[np.ndarray, CleanReport, GridCloud],
+    target: Union[np.ndarray, CleanReport, GridCloud],
     config: RegisterConfig,
     model: Optional[coarse_stage.CoarseModel],
     search_model: Optional[coarse_stage.CoarseModel],
@@ -438,8 +491,8 @@ def _register(
     target_name: str,
     guess: bool = False,
 ) -> Tuple[RegistrationResult, Clouds]:
-    """:func:`register` with the roles as given (raw clouds, or two :class:`~o3dsoft.pair.GridCloud`
-    prepared already); also the (source, target) clouds the result was registered on (cleaned, on
+    """:func:`register` with the roles as given (raw clouds, two cleaned already, or two
+    :class:`~o3dsoft.pair.GridCloud` prepared already); also the (source, target) clouds the result was registered on (cleaned, on
     the grid). `guess`: the pose as given is the caller's initial guess, tried first."""
     clock = StageClock()
     if model is None:  # loaded once per process; callers may pass it in
@@ -698,7 +751,7 @@ def _sparser(target: np.ndarray, source: np.ndarray, factor: float) -> bool:
     (a KD-tree per cloud) are measured only where the counts already suggest it."""
     if factor == 0:
         return False
-    target, source = (c[np.isfinite(c).all(axis=1)] for c in (target, source))
+    target, source = (_finite_rows(c) for c in (target, source))
     if min(len(target), len(source)) < 2:
         return False
     with np.errstate(all="ignore"):  # absurd coordinates are cleaning's to report, by name
@@ -709,6 +762,12 @@ def _sparser(target: np.ndarray, source: np.ndarray, factor: float) -> bool:
         if np.log(factor * len(target)) + 2 * np.log(size_s) >= np.log(len(source)) + 2 * np.log(size_t):
             return False
         return bool(point_spacing(target) > np.sqrt(factor) * point_spacing(source))
+
+
+def _finite_rows(points: np.ndarray) -> np.ndarray:
+    """The (N, 3) points' finite rows: the points themselves where all are (cleaned clouds: no copy)."""
+    finite = np.isfinite(points).all(axis=1)
+    return points if finite.all() else points[finite]
 
 
 def _inverted(result: RegistrationResult, source: np.ndarray, target: np.ndarray) -> RegistrationResult:

@@ -6,7 +6,7 @@ the convention p_target = T @ p_source (T_target_source).
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional, Tuple
+from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.stats import ks_2samp
@@ -94,6 +94,37 @@ def clean_points(points: np.ndarray, name: str = "cloud", min_points: int = 1) -
         )
     check_spread(pts, name)
     return CleanReport(pts, non_finite, duplicates, strays, rows)
+
+
+class Cleaning(NamedTuple):
+    """What :func:`clean_points` keeps of a cloud, without a copy of its points: the rows kept
+    (None: every row) and how many it removed of each kind. For callers that register one cloud
+    many times (odometry, multiway): each cloud is cleaned once."""
+
+    rows: Optional[np.ndarray]
+    non_finite: int
+    duplicates: int
+    strays: int
+
+    def of(self, points: np.ndarray) -> CleanReport:
+        """The cleaned cloud of the (N, 3) `points` cleaning saw."""
+        return CleanReport(points if self.rows is None else points[self.rows], self.non_finite, self.duplicates, self.strays)
+
+
+def clean_each(clouds: Sequence[np.ndarray], names: Sequence[str], min_points: int) -> List[Cleaning]:
+    """:func:`clean_points` of each (N_i, 3) cloud, kept as a :class:`Cleaning`: every cloud is
+    checked to hold `min_points` distinct finite points and not to be degenerate, so that a bad
+    cloud late in a long run fails before the first is registered.
+
+    Raises:
+        InputError: the first cloud that fails, by its name.
+    """
+    cleaning = []
+    for points, name in zip(clouds, names):
+        report = clean_points(points, str(name), min_points=min_points)
+        every = report.rows is None or len(report.rows) == len(points)  # then they are the rows in order
+        cleaning.append(Cleaning(None if every else report.rows, report.non_finite, report.duplicates, report.strays))
+    return cleaning
 
 
 def stray_points(points: np.ndarray) -> np.ndarray:

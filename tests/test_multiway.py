@@ -549,7 +549,7 @@ def test_scans_left_apart_are_searched_nearest_in_the_sequence_first(monkeypatch
     import o3dsoft.multiway as mw
 
     calls = []
-    monkeypatch.setattr(mw, "register", _recording_register(calls))
+    monkeypatch.setattr(mw, "register_cleaned", _recording_register(calls))
     clouds = [blob(np.random.default_rng(k), 300) for k in range(4)]
     multiway(clouds, MultiwayConfig(neighbours="all"), names=["a", "b", "c", "d"], model=AlwaysWrongModel(np.eye(3)))
     assert [mode for _, _, mode, _, _ in calls[:6]] == ["quick"] * 6  # the first pass: the feature match on partial overlaps, no more
@@ -567,7 +567,7 @@ def test_pairs_from_initial_poses_are_held_near_the_turn_between_them(monkeypatc
         (MultiwayConfig(init_max_rotation=None), None),
     ):
         calls = []
-        monkeypatch.setattr(mw, "register", _recording_register(calls))
+        monkeypatch.setattr(mw, "register_cleaned", _recording_register(calls))
         multiway(clouds, config, model=AlwaysWrongModel(np.eye(3)), init_poses=[np.eye(4), np.eye(4), None])
         assert {(s, t): (bound, given) for s, t, _, bound, given in calls}[("scan1", "scan0")] == (held, True)
         assert all(bound == config.register.max_rotation for s, t, _, bound, given in calls if not given)  # no guess, no bound
@@ -609,3 +609,43 @@ def test_cli_warns_where_many_trusted_alignments_are_pruned(tmp_path, scans, mon
     r = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(tmp_path / "b"), "--no-progress"])
     assert "trusted alignments disagreed with the others and were pruned: the scans' poses may be wrong" in r.output
     assert r.exit_code == 3 and (tmp_path / "b" / "poses.json").exists()  # written, and doubted as scans left out are
+
+
+def test_each_scan_is_cleaned_once_and_every_one_before_the_first_pair(scans, model, monkeypatch):
+    # Cleaning a dense scan costs as much as a pair's registration: once per scan, not once per pair it is in.
+    import o3dsoft.multiway as mw
+    import o3dsoft.pair as pair_module
+    import o3dsoft.preprocess as preprocess
+
+    clouds, _ = scans
+    cleaned = []
+    for module in (preprocess, pair_module):
+        real = module.clean_points
+        monkeypatch.setattr(module, "clean_points", lambda points, name="cloud", *a, _real=real, **k: cleaned.append(name) or _real(points, name, *a, **k))
+    result = multiway(clouds, MultiwayConfig(neighbours="all"), names=["a", "b", "c", "d"], model=model)
+    assert sorted(cleaned) == ["a", "b", "c", "d"] and len(result.edges) == 6
+    assert set(result.timings_s) == {"clean", "pairs", "optimise", "total"} and result.timings_s["clean"] <= result.timings_s["total"]
+    # A bad scan late in the run fails by its name before any pair is registered.
+    pairs = []
+    monkeypatch.setattr(mw, "register_cleaned", lambda *a, **k: pairs.append(a[4:6]))
+    line = np.linspace(0.0, 1.0, 200)[:, None] * [1.0, 2.0, 3.0]
+    with pytest.raises(InputError, match="d: .*one line"):
+        multiway([*clouds[:3], line], names=["a", "b", "c", "d"], model=model)
+    assert pairs == []
+
+
+def test_a_pair_of_cleaned_scans_registers_as_the_raw_pair(scans, model):
+    from o3dsoft.pipeline import register, register_cleaned
+    from o3dsoft.preprocess import clean_each
+
+    clouds, _ = scans
+    source = np.vstack([clouds[1], clouds[1][:50], np.full((3, 3), np.nan)])  # duplicates and NaN rows, cleaned out
+    target = clouds[0]
+    config = RegisterConfig()
+    raw = register(source, target, config, model=model, source_name="s", target_name="t")
+    cleaning = clean_each([source, target], ["s", "t"], model.config.k)
+    assert cleaning[0].rows is not None and cleaning[1].rows is None  # only the source lost rows
+    given = register_cleaned(cleaning[0].of(source), cleaning[1].of(target), config, model, "s", "t")
+    assert np.allclose(given.transformation, raw.transformation, atol=1e-9)
+    assert given.removed == raw.removed and given.removed["source_duplicates"] == 50 and given.removed["source_non_finite"] == 3
+    assert given.confidence == pytest.approx(raw.confidence, abs=1e-9) and given.likely_failed == raw.likely_failed

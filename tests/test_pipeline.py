@@ -1513,3 +1513,17 @@ def test_a_guess_turned_far_off_on_a_street_scan_is_searched_past(real_scans_roo
     res = register(source, target, init=rigid(turn, centre - turn @ centre) @ T)
     e = pair_errors(res.transformation, T)
     assert e.rotation_deg < 1.0 and e.translation < 0.3 and not res.likely_failed and res.searched, (e.rotation_deg, res.failure_reason)
+
+
+def test_prepared_clouds_come_in_pairs_of_one_kind():
+    from o3dsoft.pair import PreparedPair, on_grid
+    from o3dsoft.preprocess import clean_points
+
+    points = blob(np.random.default_rng(0), 400)
+    cleaned = clean_points(points)
+    gridded = on_grid(cleaned, 0.05, RegisterConfig(), 8, "blob")
+    for source, target in ((cleaned, points), (points, cleaned), (gridded, cleaned), (cleaned, gridded)):
+        with pytest.raises(ValueError, match="come in pairs"):
+            PreparedPair(source, target, RegisterConfig(), 8)
+    pair = PreparedPair(cleaned, cleaned._replace(points=points + 1.0), RegisterConfig(), 8)
+    assert pair.full[0] is cleaned.points and pair.cleaned[0] is cleaned  # cleaned by the caller: not again
