@@ -471,12 +471,23 @@ def _check_numbers(settings, prefix: str) -> None:
             raise InputError(f"{name} must be a finite number, at least 0, got {value}")
 
 
+_TYPE_HINTS: dict = {}
+
+
+def _type_hints(kind: type) -> dict:
+    """The fields' types of the dataclass `kind`, evaluated once per class (the annotations are
+    text: evaluating them on every call cost a few ms of each registration)."""
+    if kind not in _TYPE_HINTS:
+        _TYPE_HINTS[kind] = typing.get_type_hints(kind)
+    return _TYPE_HINTS[kind]
+
+
 def _check_types(settings, prefix: str) -> None:
     """Raise InputError naming the first field of the frozen dataclass `settings` (and of those
     nested in it) that holds something other than its declared type: a stage's config (not a
     dict), True or False, an integer count (not negative), a number, a string, a tuple of
     numbers; None only where the field is Optional."""
-    hints = typing.get_type_hints(type(settings))
+    hints = _type_hints(type(settings))
     for f in fields(settings):
         value, hint, name = getattr(settings, f.name), hints.get(f.name), f"{prefix}{f.name}"
         optional = typing.get_origin(hint) is Union and type(None) in typing.get_args(hint)
