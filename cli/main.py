@@ -568,8 +568,8 @@ def _format_result(source, target, result, errors, model_info, config, read=None
         + ("  LIKELY FAILED" if result.likely_failed else ""),
         *(
             [
-                f"  constraint   {result.constraint:<6.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below 0.002: not determined)",
-                f"  flatness     {result.flatness:.3f}   fit 30 degrees away over the result's (0-1, lower is better; from 0.85: not determined)",
+                f"  constraint   {result.constraint:<6.3g}   how firmly the surfaces fix the pose (0-1, higher is better; below {config.degeneracy.min_constraint:g}: not determined)",
+                f"  flatness     {result.flatness:.3f}   fit {config.degeneracy.turn_deg:g} degrees away over the result's (0-1, lower is better; from {config.degeneracy.max_flatness:g}: not determined)",
             ]
             if result.constraint is not None
             else ["  constraint   not measured: the clouds share their points, which fix the pose"]
@@ -943,7 +943,7 @@ def _format_multiway(result, out_dir: Path, merged_points: int, frame_file: Opti
     t = result.timings_s
     lines += [
         "",
-        f"Time (s, lower is better): pairs {t['pairs']:.1f}, optimisation {t['optimise']:.2f}, total {t['total']:.1f}",
+        f"Time (s, lower is better): cleaning {t['clean']:.1f}, pairs {t['pairs']:.1f}, optimisation {t['optimise']:.2f}, total {t['total']:.1f}",
         f"Wrote {out_dir / 'poses.json'} and {out_dir / 'merged.ply'} ({merged_points:,} points"
         + ("" if result.voxel is not None else ": every scan's, overlaps included; --merge-voxel thins them onto a grid")
         + ").",

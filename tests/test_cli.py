@@ -8,6 +8,7 @@ from click.testing import CliRunner
 from scipy.spatial import cKDTree
 
 from o3dsoft.cli.main import main
+from o3dsoft.degeneracy import DegeneracyConfig
 from o3dsoft.io import read_points, read_transform, write_points, write_transform
 
 from .conftest import EXAMPLES, apply, blob, georeferenced_bunny, random_transform
@@ -110,6 +111,8 @@ def test_register_says_how_many_isolated_points_it_left_out(tmp_path):
         r"isolated: source \d+, target \d+ points left out \(fewer than two other points within 3 voxels: scattered outliers, or the sparsest far returns\)",
         r.output,
     )
+    limits = DegeneracyConfig()  # the legend gives the thresholds in use
+    assert f"below {limits.min_constraint:g}: not determined" in r.output and f"from {limits.max_flatness:g}: not determined" in r.output
 
 
 def test_register_says_how_many_points_cleaning_dropped_and_why(pair_files, tiny_model_path):

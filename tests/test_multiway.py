@@ -383,6 +383,7 @@ def test_cli_writes_poses_and_the_merged_cloud(tmp_path, scans):
     result = CliRunner().invoke(main, ["multiway", *map(str, files), "--out", str(out), "--render", str(tmp_path / "merged.png"), "--no-progress"])
     assert result.exit_code == 0, result.output
     assert "3 scans" in result.output and "Picture:" in result.output
+    assert "Time (s, lower is better): cleaning " in result.output
     record = json.loads((out / "poses.json").read_text())
     for k, scan in enumerate(record["scans"]):
         assert scan["joined"]
