@@ -334,14 +334,29 @@ def register_cleaned(
     target_name: str = "target",
     init: Optional[np.ndarray] = None,
 ) -> RegistrationResult:
-    """:func:`register` for two clouds the caller cleaned (:func:`o3dsoft.preprocess.clean_each`):
+    """:func:`register` for two clouds the caller cleaned (``clean_points(points, name,
+    min_points=model.config.k)``, or :func:`o3dsoft.preprocess.clean_each` and ``Cleaning.of``):
     multiway cleans each scan once, not once per pair it is in.
 
     Args:
         source: the (N, 3) cleaned source and what cleaning removed of it; target: the (M, 3) same.
-        config, model, init: as ``register``'s (the model loaded already).
-    As ``register``, with ``removed`` counting what the caller's cleaning removed.
+        config, model, init: as ``register``'s (the model loaded already; the search network is
+            loaded from the config where the search needs it).
+    As ``register``, with ``removed`` counting what the caller's cleaning removed, and the test
+    of which cloud is sparser made on the cleaned clouds (``register`` makes it on the clouds as
+    given, where a cloud of many duplicate points reads as dense).
+
+    Raises:
+        UsageError: `source` or `target` is not a CleanReport.
+        InputError: a cloud holds fewer points than the network's K.
     """
+    for cloud, name in ((source, source_name), (target, target_name)):
+        if not isinstance(cloud, CleanReport):
+            raise UsageError(
+                f"{name}: register_cleaned takes o3dsoft.preprocess.CleanReport clouds (clean_points, or Cleaning.of(points)), got {type(cloud).__name__}"
+            )
+        if len(cloud.points) < model.config.k:
+            raise InputError(f"{name}: {len(cloud.points)} distinct finite points; at least {model.config.k} are needed")
     return _register_as_given(source, target, _checked(config, model, None), model, None, source_name, target_name, init)
 
 

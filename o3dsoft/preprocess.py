@@ -120,7 +120,7 @@ def clean_each(clouds: Sequence[np.ndarray], names: Sequence[str], min_points: i
         InputError: the first cloud that fails, by its name.
     """
     cleaning = []
-    for points, name in zip(clouds, names):
+    for points, name in zip(clouds, names, strict=True):
         report = clean_points(points, str(name), min_points=min_points)
         every = report.rows is None or len(report.rows) == len(points)  # then they are the rows in order
         cleaning.append(Cleaning(None if every else report.rows, report.non_finite, report.duplicates, report.strays))

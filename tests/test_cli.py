@@ -8,7 +8,6 @@ from click.testing import CliRunner
 from scipy.spatial import cKDTree
 
 from o3dsoft.cli.main import main
-from o3dsoft.degeneracy import DegeneracyConfig
 from o3dsoft.io import read_points, read_transform, write_points, write_transform
 
 from .conftest import EXAMPLES, apply, blob, georeferenced_bunny, random_transform
@@ -111,8 +110,18 @@ def test_register_says_how_many_isolated_points_it_left_out(tmp_path):
         r"isolated: source \d+, target \d+ points left out \(fewer than two other points within 3 voxels: scattered outliers, or the sparsest far returns\)",
         r.output,
     )
-    limits = DegeneracyConfig()  # the legend gives the thresholds in use
-    assert f"below {limits.min_constraint:g}: not determined" in r.output and f"from {limits.max_flatness:g}: not determined" in r.output
+
+    # The legend gives the thresholds of the settings in use.
+    from dataclasses import replace
+
+    import o3dsoft
+    from o3dsoft.cli.main import _format_result
+
+    config = o3dsoft.RegisterConfig()
+    config = replace(config, degeneracy=replace(config.degeneracy, min_constraint=0.0031, max_flatness=0.77))
+    result = o3dsoft.register(read_points(files[0]), read_points(files[1]), config)
+    text = _format_result("a.ply", "b.ply", result, None, {"path": "model.pt"}, config)
+    assert "below 0.0031: not determined" in text and "from 0.77: not determined" in text
 
 
 def test_register_says_how_many_points_cleaning_dropped_and_why(pair_files, tiny_model_path):

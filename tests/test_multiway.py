@@ -531,8 +531,8 @@ def test_the_module_is_callable_as_its_function():
 
 
 def _recording_register(calls):
-    """A stand-in for register that flags every pair and records (source, target, search mode,
-    max_rotation, init given)."""
+    """A stand-in for register_cleaned that flags every pair and records (source, target, search
+    mode, max_rotation, init given)."""
     from types import SimpleNamespace
 
     def fake(source, target, config, model=None, source_name="", target_name="", init=None):
@@ -620,7 +620,7 @@ def test_each_scan_is_cleaned_once_and_every_one_before_the_first_pair(scans, mo
 
     clouds, _ = scans
     cleaned = []
-    for module in (preprocess, pair_module):
+    for module in (preprocess, pair_module, mw):
         real = module.clean_points
         monkeypatch.setattr(module, "clean_points", lambda points, name="cloud", *a, _real=real, **k: cleaned.append(name) or _real(points, name, *a, **k))
     result = multiway(clouds, MultiwayConfig(neighbours="all"), names=["a", "b", "c", "d"], model=model)
@@ -650,3 +650,8 @@ def test_a_pair_of_cleaned_scans_registers_as_the_raw_pair(scans, model):
     assert np.allclose(given.transformation, raw.transformation, atol=1e-9)
     assert given.removed == raw.removed and given.removed["source_duplicates"] == 50 and given.removed["source_non_finite"] == 3
     assert given.confidence == pytest.approx(raw.confidence, abs=1e-9) and given.likely_failed == raw.likely_failed
+    with pytest.raises(o3dsoft.UsageError, match="s: register_cleaned takes o3dsoft.preprocess.CleanReport clouds"):
+        register_cleaned(cleaning[0], cleaning[1].of(target), config, model, "s", "t")  # the record, not the cleaned cloud
+    few = cleaning[1].of(target)._replace(points=target[: model.config.k - 1])
+    with pytest.raises(InputError, match=f"t: {model.config.k - 1} distinct finite points; at least {model.config.k} are needed"):
+        register_cleaned(cleaning[0].of(source), few, config, model, "s", "t")
