@@ -11,6 +11,7 @@ from functools import cached_property
 from typing import TYPE_CHECKING, Dict, Iterable, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 from . import confidence as confidence_stage
 from . import refine as refine_stage
@@ -283,6 +284,7 @@ class PreparedPair:
         self.work: Clouds = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
         self._scorers: Dict[Tuple[str, bool], confidence_stage.Scorer] = {}
         self._normals: Dict[str, np.ndarray] = {}
+        self._trees: Dict[str, KDTree] = {}
 
     @cached_property
     def size_ratio(self) -> float:
@@ -325,6 +327,13 @@ class PreparedPair:
         if level not in self._normals:
             self._normals[level] = refine_stage.normals(self.clouds(level)[1], self.config.icp.normal_neighbours, self.config.icp.normal_within)
         return self._normals[level]
+
+    def target_tree(self, level: str) -> KDTree:
+        """The target's :func:`~o3dsoft.refine.kd_tree` at `level`, for point-to-plane ICP's
+        pairs, built once."""
+        if level not in self._trees:
+            self._trees[level] = refine_stage.kd_tree(self.clouds(level)[1])
+        return self._trees[level]
 
     def scorer(self, level: str, reverse: bool = False) -> confidence_stage.Scorer:
         """The confidence's scorer of the clouds at `level`, built once; `reverse`: of the target

@@ -1,4 +1,4 @@
-"""Fine stage: Open3D ICP, and scoring of a transform.
+"""Fine stage: ICP (Open3D's point-to-point; point-to-plane in Open3D's steps, run here), and scoring of a transform.
 
 ICP (point-to-point, or point-to-plane for scans) runs coarse to fine over a distance schedule
 (by default d, 0.3 d, 0.1 d): the first stage pulls in an estimate a few degrees off; the last ones
@@ -7,7 +7,9 @@ stop biasing the result. With point-to-point ICP the last stage's distance never
 ``noise_factor`` times the residual of the stage before it (:func:`residual`), so that noisy
 clouds keep their true pairs, and ICP ends with one float64 Procrustes step on its final pairs
 (:func:`polish`), since Open3D's ICP stops about 1e-5 degrees short of the least-squares optimum.
-Clouds above ``max_points`` are voxel-downsampled first.
+Point-to-plane ICP runs Open3D's steps here (:func:`plane_steps`): Open3D sums its normal
+equations over threads in no fixed order, so that one pair gave another pose at each call where
+the surfaces hold the pose loosely. Clouds above ``max_points`` are voxel-downsampled first.
 The measurements behind these choices are in docs/pipeline.md.
 """
 
@@ -17,6 +19,7 @@ from dataclasses import dataclass, replace
 from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
 from ._open3d import open3d as o3d
@@ -210,6 +213,7 @@ def icp(
     distance: float,
     config: ICPConfig = ICPConfig(),
     target_normals: Optional[np.ndarray] = None,
+    target_tree: Optional[KDTree] = None,
 ) -> ICPResult:
     """ICP from `init`, point-to-point or point-to-plane (``config.method``), over the distance
     schedule of `config`.
@@ -222,6 +226,8 @@ def icp(
             ``config.normal_within``), when
             point-to-plane ICP runs on it often (estimated here otherwise, and when the target is
             downsampled first).
+        target_tree: the target's :func:`kd_tree`, where point-to-plane ICP runs on it often
+            (built here otherwise, and when the target is downsampled first).
     Returns:
         ICPResult with the refined transform, and the fitness and inlier RMSE at `distance`.
     """
@@ -235,15 +241,18 @@ def icp(
     T = np.asarray(init, dtype=np.float64)
     distances = [distance * factor for factor in config.schedule]
     src_points, tgt_points = np.asarray(src.points), np.asarray(tgt.points)
+    whole = len(target) <= config.max_points  # the target as given: what the caller's normals and tree are of
     tree = None if plane else cKDTree(tgt_points)  # for the noise rounds and the polish, point-to-point only
-
+    tgt_normals, plane_tree = None, None
     if plane:
-        given = target_normals is not None and len(target_normals) == len(target) and len(target) <= config.max_points
-        tgt.normals = o3d.utility.Vector3dVector(target_normals if given else normals(tgt_points, config.normal_neighbours, config.normal_within))
-    estimation = reg.TransformationEstimationPointToPlane() if plane else reg.TransformationEstimationPointToPoint()
+        given = target_normals is not None and len(target_normals) == len(target) and whole
+        tgt_normals = np.asarray(target_normals, dtype=np.float64) if given else normals(tgt_points, config.normal_neighbours, config.normal_within)
+        plane_tree = target_tree if target_tree is not None and whole and target_tree.n == len(target) else kd_tree(tgt_points)
 
     def run(T: np.ndarray, stage_distance: float, criteria) -> np.ndarray:
-        result = reg.registration_icp(src, tgt, stage_distance, T, estimation, criteria)
+        if plane:
+            return plane_steps(src_points, tgt_points, tgt_normals, T, stage_distance, criteria, plane_tree)
+        result = reg.registration_icp(src, tgt, stage_distance, T, reg.TransformationEstimationPointToPoint(), criteria)
         return np.asarray(result.transformation).copy()
 
     for stage, stage_distance in enumerate(distances):
@@ -272,6 +281,83 @@ def icp(
         if start.fitness > 0:
             return ICPResult(np.asarray(init, dtype=np.float64).copy(), float(start.fitness), float(start.inlier_rmse))
     return ICPResult(T, float(scored.fitness), float(scored.inlier_rmse))
+
+
+def kd_tree(points: np.ndarray) -> KDTree:
+    """A KD-tree of the (N, 3) points for :func:`plane_steps`' pairs (pykdtree's: its queries run
+    in OpenMP threads, each point's on its own, so the pairs are the same in any thread; about
+    three times as fast as SciPy's here)."""
+    return KDTree(np.ascontiguousarray(points, dtype=np.float64))
+
+
+def plane_steps(
+    source: np.ndarray,
+    target: np.ndarray,
+    target_normals: np.ndarray,
+    transformation: np.ndarray,
+    distance: float,
+    criteria: "o3d.pipelines.registration.ICPConvergenceCriteria",
+    tree: Optional[KDTree] = None,
+) -> np.ndarray:
+    """Point-to-plane ICP at one correspondence distance: Open3D's ``registration_icp`` with
+    ``TransformationEstimationPointToPlane``, step for step (each source point paired with its
+    nearest target point within `distance`; a Gauss-Newton step on the linearised residuals
+    (p - q) . n, its turn taken as Euler angles z-y-x; until fitness and inlier RMSE change by
+    less than the criteria's, at most its ``max_iteration`` steps), with every sum in one fixed
+    order: the same clouds give the same pose to the bit.
+
+    Args:
+        source: (N, 3); target: (M, 3); target_normals: (M, 3) unit normals of `target`.
+        transformation: (4, 4) the start, T_target_source. distance: cloud units.
+        criteria: Open3D's convergence criteria. tree: `target`'s :func:`kd_tree`, if built already.
+    Returns:
+        (4, 4) float64 T_target_source.
+    """
+    tree = tree if tree is not None else kd_tree(target)
+    T = np.array(transformation, dtype=np.float64)
+    moved = apply_transform(T, source)
+
+    def pairs(moved: np.ndarray) -> Tuple[np.ndarray, np.ndarray, Tuple[float, float]]:
+        d, j = tree.query(moved, distance_upper_bound=distance)
+        paired = np.isfinite(d)
+        n = int(paired.sum())
+        return paired, j, (n / max(len(moved), 1), float(np.sqrt(np.sum(d[paired] ** 2) / n)) if n else 0.0)
+
+    paired, j, score = pairs(moved)
+    for _ in range(criteria.max_iteration):
+        if not paired.any():
+            break  # Open3D's step is the identity here, and the scores repeat
+        p, partner = moved[paired], j[paired]
+        n = target_normals[partner]
+        J = np.empty((len(p), 6))  # d residual / d (turn about x, y, z; shift): (p x n, n)
+        J[:, 0] = p[:, 1] * n[:, 2] - p[:, 2] * n[:, 1]
+        J[:, 1] = p[:, 2] * n[:, 0] - p[:, 0] * n[:, 2]
+        J[:, 2] = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
+        J[:, 3:] = n
+        r = np.einsum("ij,ij->i", p - target[partner], n)
+        JTJ, JTr = J.T @ J, J.T @ r
+        try:
+            x = np.linalg.solve(JTJ, -JTr)
+        except np.linalg.LinAlgError:  # a motion no pair holds (a flat cloud's shifts within its plane): it stays
+            x = np.linalg.lstsq(JTJ, -JTr, rcond=None)[0]
+        step = rigid(_euler_zyx(x[:3]), x[3:])
+        T = step @ T
+        moved = apply_transform(step, moved)
+        before = score
+        paired, j, score = pairs(moved)
+        if abs(before[0] - score[0]) < criteria.relative_fitness and abs(before[1] - score[1]) < criteria.relative_rmse:
+            break
+    return T
+
+
+def _euler_zyx(angles: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation Rz(c) Ry(b) Rx(a) of `angles` (3,) = (a, b, c) in radians: Open3D's
+    reading of a point-to-plane step's turn."""
+    (ca, cb, cc), (sa, sb, sc) = np.cos(angles), np.sin(angles)
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, ca, -sa], [0.0, sa, ca]])
+    Ry = np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
+    Rz = np.array([[cc, -sc, 0.0], [sc, cc, 0.0], [0.0, 0.0, 1.0]])
+    return Rz @ Ry @ Rx
 
 
 def residual(source: np.ndarray, tree: cKDTree, transformation: np.ndarray, distance: float) -> float:

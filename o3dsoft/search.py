@@ -118,7 +118,11 @@ def select(
     kept = sorted(range(len(candidates)), key=lambda h: -fitness[h])[:keep]
     if icp is None:
         return Choice(candidates[kept[0]], candidates[kept[0]])
-    polished = [refine_stage.icp(source, target, candidates[h], distance, icp).transformation for h in kept]
+    # One target for every candidate: its normals and KD-tree once.
+    plane = icp.method == "plane"
+    normals = refine_stage.normals(target, icp.normal_neighbours, icp.normal_within) if plane else None
+    tree = refine_stage.kd_tree(target) if plane else None
+    polished = [refine_stage.icp(source, target, candidates[h], distance, icp, normals, tree).transformation for h in kept]
     scorer = confidence_stage.Scorer(source, target, distance, config=confidence)
     trust = [confidence_stage.confidence(scorer(T), confidence) for T in polished]
     best = int(np.argmax(trust))

@@ -139,28 +139,33 @@ def record_icp(monkeypatch) -> list:
     calls = []
     real_icp = refine.icp
 
-    def recording_icp(source, target, init, distance, config=refine.ICPConfig(), target_normals=None):
+    def recording_icp(source, target, init, distance, config=refine.ICPConfig(), target_normals=None, target_tree=None):
         calls.append((len(source), config.schedule))
-        return real_icp(source, target, init, distance, config, target_normals)
+        return real_icp(source, target, init, distance, config, target_normals, target_tree)
 
     monkeypatch.setattr(refine, "icp", recording_icp)
     return calls
 
 
 def record_open3d_icp(monkeypatch) -> list:
-    """Make every Open3D ICP call record (correspondence distance, relative_fitness criterion)
-    in the list returned."""
+    """Make every ICP stage (Open3D's point-to-point ICP, o3dsoft's point-to-plane steps) record
+    (correspondence distance, relative_fitness criterion) in the list returned."""
     from o3dsoft import refine
 
     calls = []
     reg = refine.o3d.pipelines.registration
-    real = reg.registration_icp
+    real, real_plane = reg.registration_icp, refine.plane_steps
 
     def recording(source, target, distance, init, estimation, criteria):
         calls.append((distance, criteria.relative_fitness))
         return real(source, target, distance, init, estimation, criteria)
 
+    def recording_plane(source, target, normals, init, distance, criteria, tree=None):
+        calls.append((distance, criteria.relative_fitness))
+        return real_plane(source, target, normals, init, distance, criteria, tree)
+
     monkeypatch.setattr(reg, "registration_icp", recording)
+    monkeypatch.setattr(refine, "plane_steps", recording_plane)
     return calls
 
 
