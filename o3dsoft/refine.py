@@ -314,6 +314,7 @@ def plane_steps(
         (4, 4) float64 T_target_source.
     """
     tree = tree if tree is not None else kd_tree(target)
+    partners = np.hstack([target, target_normals])  # (M, 6): a pair's point and normal in one gather
     T = np.array(transformation, dtype=np.float64)
     moved = apply_transform(T, source)
 
@@ -327,14 +328,15 @@ def plane_steps(
     for _ in range(criteria.max_iteration):
         if not paired.any():
             break  # Open3D's step is the identity here, and the scores repeat
-        p, partner = moved[paired], j[paired]
-        n = target_normals[partner]
+        rows = np.flatnonzero(paired)
+        p, qn = moved[rows], partners[j[rows]]
+        q, n = qn[:, :3], qn[:, 3:]
         J = np.empty((len(p), 6))  # d residual / d (turn about x, y, z; shift): (p x n, n)
         J[:, 0] = p[:, 1] * n[:, 2] - p[:, 2] * n[:, 1]
         J[:, 1] = p[:, 2] * n[:, 0] - p[:, 0] * n[:, 2]
         J[:, 2] = p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]
         J[:, 3:] = n
-        r = np.einsum("ij,ij->i", p - target[partner], n)
+        r = np.einsum("ij,ij->i", p - q, n)
         JTJ, JTr = J.T @ J, J.T @ r
         try:
             x = np.linalg.solve(JTJ, -JTr)
