@@ -314,8 +314,7 @@ class RegisterConfig:
         weights: TorchScript model file (text or a Path), or a shipped model's name; None: the shipped default.
         device: torch device of the network ("cpu", "cuda", "cuda:1"...; default "cpu").
         seed: seed of the point sampling and of the search's RANSAC: the same input and seed
-            give the same result (default 0); to the bit with point-to-point ICP, to about 1e-15
-            with point-to-plane (Open3D sums it in threads).
+            give the same result (default 0), to the bit on one machine.
         second_network: the network for clouds that share no point, when the first is flagged.
         icp: the fine stage.
         search: the global search.

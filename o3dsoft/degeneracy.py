@@ -145,7 +145,7 @@ def assess(
     if equations is None:  # a correspondence distance far below the clouds' spacing (set by hand)
         reason = f"under 6 points lie within {distance:.3g} units of the other cloud (ICP's correspondence distance): whether the surfaces fix the pose is not measured"
     elif constraint < config.min_constraint:
-        reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders), or only a few of their points hold the pose (an object on a table): it is not determined (constraint {constraint:.1e}, below {config.min_constraint:g}){free}"
+        reason = f"the clouds can slide on each other (planes, lines, spheres, cylinders), or only a few of their points hold the pose (an object on a table): the pose is not determined (constraint {constraint:.1e}, below {config.min_constraint:g}){free}"
     elif slide is not None and slide[0] >= config.max_flatness:
         # The outline's normals come from a few points each, which noise tilts: the fit itself says whether a shift keeps it.
         fit, shift, along = slide

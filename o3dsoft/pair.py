@@ -328,9 +328,12 @@ class PreparedPair:
             self._normals[level] = refine_stage.normals(self.clouds(level)[1], self.config.icp.normal_neighbours, self.config.icp.normal_within)
         return self._normals[level]
 
-    def target_tree(self, level: str) -> KDTree:
+    def target_tree(self, level: str) -> Optional[KDTree]:
         """The target's :func:`~o3dsoft.refine.kd_tree` at `level`, for point-to-plane ICP's
-        pairs, built once."""
+        pairs, built once; None when ICP is point-to-point, or downsamples the target first
+        (above ``icp.max_points``)."""
+        if self.config.icp.method != "plane" or len(self.clouds(level)[1]) > self.config.icp.max_points:
+            return None
         if level not in self._trees:
             self._trees[level] = refine_stage.kd_tree(self.clouds(level)[1])
         return self._trees[level]

@@ -15,6 +15,7 @@ The measurements behind these choices are in docs/pipeline.md.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, replace
 from typing import NamedTuple, Optional, Tuple
 
@@ -63,8 +64,7 @@ class ICPConfig:
             which pulls it towards parts with no partner.
         method: "point" (point-to-point, the paper's), "plane" (point-to-plane, against the
             target's :func:`normals`: far fewer iterations on sampled surfaces, and not limited
-            by their sampling; Open3D sums it in threads, so results repeat to about 1e-15, not
-            to the bit), or "auto": plane on scans (clouds registered on a voxel grid, or of
+            by their sampling; Open3D's steps with sums in one order, :func:`plane_steps`), or "auto": plane on scans (clouds registered on a voxel grid, or of
             more than 4,096 points), point otherwise (:class:`o3dsoft.pair.PreparedPair` decides).
         normal_neighbours, normal_within: point-to-plane ICP's normals fit the `normal_neighbours`
             nearest points within `normal_within` point spacings (:func:`normals`; 0: the
@@ -286,8 +286,26 @@ def icp(
 def kd_tree(points: np.ndarray) -> KDTree:
     """A KD-tree of the (N, 3) points for :func:`plane_steps`' pairs (pykdtree's: its queries run
     in OpenMP threads, each point's on its own, so the pairs are the same in any thread; about
-    three times as fast as SciPy's here)."""
+    three times as fast as SciPy's here). From then on, a process forked from this one runs
+    OpenMP on one thread (a fork inherits no thread of the pool)."""
+    _PAIRED[0] = True
     return KDTree(np.ascontiguousarray(points, dtype=np.float64))
+
+
+_PAIRED = [False]  # whether this process has built a pykdtree tree (and may have queried it in threads)
+
+
+def _one_openmp_thread_after_fork() -> None:
+    # A forked child inherits libgomp's thread pool without its threads: its first parallel
+    # query waits forever. With one thread the child runs each query itself (as torch's are,
+    # o3dsoft.coarse); the limit holds every OpenMP library of the child, torch's among them.
+    if _PAIRED[0]:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1, user_api="openmp")
+
+
+os.register_at_fork(after_in_child=_one_openmp_thread_after_fork)
 
 
 def plane_steps(
@@ -304,7 +322,9 @@ def plane_steps(
     nearest target point within `distance`; a Gauss-Newton step on the linearised residuals
     (p - q) . n, its turn taken as Euler angles z-y-x; until fitness and inlier RMSE change by
     less than the criteria's, at most its ``max_iteration`` steps), with every sum in one fixed
-    order: the same clouds give the same pose to the bit.
+    order: on one machine the same clouds give the same pose to the bit. Where the normal
+    equations nearly hold no motion (a flat cloud, a handful of pairs), a step follows rounding,
+    in Open3D's as in these.
 
     Args:
         source: (N, 3); target: (M, 3); target_normals: (M, 3) unit normals of `target`.
@@ -319,10 +339,10 @@ def plane_steps(
     moved = apply_transform(T, source)
 
     def pairs(moved: np.ndarray) -> Tuple[np.ndarray, np.ndarray, Tuple[float, float]]:
-        d, j = tree.query(moved, distance_upper_bound=distance)
-        paired = np.isfinite(d)
+        squared, j = tree.query(moved, distance_upper_bound=distance, sqr_dists=True)
+        paired = np.isfinite(squared)
         n = int(paired.sum())
-        return paired, j, (n / max(len(moved), 1), float(np.sqrt(np.sum(d[paired] ** 2) / n)) if n else 0.0)
+        return paired, j, (n / max(len(moved), 1), float(np.sqrt(np.sum(squared[paired]) / n)) if n else 0.0)
 
     paired, j, score = pairs(moved)
     for _ in range(criteria.max_iteration):
@@ -340,7 +360,7 @@ def plane_steps(
         JTJ, JTr = J.T @ J, J.T @ r
         try:
             x = np.linalg.solve(JTJ, -JTr)
-        except np.linalg.LinAlgError:  # a motion no pair holds (a flat cloud's shifts within its plane): it stays
+        except np.linalg.LinAlgError:  # exactly singular (normals along the axes of a flat cloud): no motion along what no pair holds
             x = np.linalg.lstsq(JTJ, -JTr, rcond=None)[0]
         step = rigid(_euler_zyx(x[:3]), x[3:])
         T = step @ T

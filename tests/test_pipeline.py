@@ -294,6 +294,29 @@ def test_a_process_forked_after_a_registration_registers_too():
     assert float(python_output(code, timeout=300)) < 1e-6  # the same pose, computed on one thread
 
 
+def test_a_process_forked_after_point_to_plane_icp_runs_it_too():
+    # Point-to-plane ICP pairs points in pykdtree's OpenMP threads; a forked child inherits
+    # libgomp's thread pool without its threads, and its first query waited forever.
+    code = (
+        "import os\n"
+        "os.environ['OMP_NUM_THREADS'] = '2'  # a pool of threads to inherit: with one, none is started\n"
+        "import multiprocessing, numpy as np\n"
+        "from o3dsoft.refine import ICPConfig, icp\n"
+        "rng = np.random.default_rng(0)\n"
+        "xy = rng.uniform(-1, 1, (20000, 2))\n"
+        "surface = np.c_[xy, 0.1 * np.sin(3 * xy[:, 0]) * np.cos(2 * xy[:, 1])]\n"
+        "start = np.eye(4)\n"
+        "start[:3, 3] = [0.02, -0.01, 0.01]\n"
+        "def run(i):\n"
+        "    return icp(surface, surface, start, 0.1, ICPConfig(method='plane')).transformation\n"
+        "first = run(0)\n"
+        "with multiprocessing.get_context('fork').Pool(2) as pool:\n"
+        "    again = pool.map_async(run, range(2)).get(timeout=60)\n"
+        "print(max(float(np.abs(T - first).max()) for T in again))\n"
+    )
+    assert float(python_output(code, timeout=300)) == 0.0  # the same pose, to the bit
+
+
 def test_large_clouds_are_downsampled_for_icp_and_still_exact(tiny_model_path):
     rng = np.random.default_rng(7)
     d = rng.normal(size=(300_000, 3))
