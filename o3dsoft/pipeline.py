@@ -687,7 +687,8 @@ def _probe_symmetry(pair: PreparedPair, verifier: Verifier, best: Attempt, geome
     if not (probed and sampled_apart and (pair.complete or _closed_objects(pair))):
         return symmetry_stage.NOT_PROBED
     work = pair.clouds("work")
-    icp = lambda T: refine_stage.icp(*work, T, pair.distance, config.icp).transformation  # noqa: E731 - ICP alone: the copies are not scored
+    normals, tree = pair.target_normals("work"), pair.target_tree("work")  # estimated once for every copy
+    icp = lambda T: refine_stage.icp(*work, T, pair.distance, config.icp, normals, tree).transformation  # noqa: E731 - ICP alone: the copies are not scored
     return symmetry_stage.probe(*work, best.fine.transformation, icp, config.symmetry, verifier.admissible)
 
 
