@@ -242,8 +242,7 @@ class Verifier:
         refine = self.config.refine if refine is None else refine
         src, tgt = self.pair.clouds(level)
         if refine:
-            tree = self.pair.target_tree(level) if icp.method == "plane" else None
-            fine = refine_stage.icp(src, tgt, start, self.pair.distance, icp, self.pair.target_normals(level), tree)
+            fine = refine_stage.icp(src, tgt, start, self.pair.distance, icp, self.pair.target_normals(level), self.pair.target_tree(level))
         else:
             fine = refine_stage.evaluate(src, tgt, start, self.pair.distance, self.config.icp.max_points)
         self.clock.lap("refine")
