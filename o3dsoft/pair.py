@@ -202,7 +202,8 @@ class PreparedPair:
       grid, ``config.isolated_spacings`` off one): what is registered, and where the kept estimate is refined
       and scored last;
     - ``work``: ``full`` voxel-downsampled to at most ``config.attempt_points`` each, where every
-      estimate is refined and scored;
+      estimate is refined and scored; ``full`` itself for two :class:`GridCloud` (odometry's
+      steps: a guess refined once, where a second grid would double the normals, ICP and scoring);
     - ``screen``: ``work`` on a grid of at most ``config.search.screen.points`` each (an even
       spacing, which the confidence relies on; smaller clouds whole, shuffled), where the
       search's estimates, and the network's on scans, are tried first on large clouds;
@@ -238,7 +239,9 @@ class PreparedPair:
         clock: Optional[StageClock] = None,
     ) -> None:
         clock = clock or StageClock()
-        if isinstance(source, GridCloud) or isinstance(target, GridCloud):  # prepared by the caller
+        prepared = False  # on the grid by the caller
+        if isinstance(source, GridCloud) or isinstance(target, GridCloud):
+            prepared = True
             if not (isinstance(source, GridCloud) and isinstance(target, GridCloud) and source.voxel == target.voxel):
                 raise ValueError("prepared clouds come in pairs on one grid: two GridClouds of the same voxel")
             self.cleaned: Tuple[CleanReport, CleanReport] = (source.cleaned, target.cleaned)
@@ -281,7 +284,9 @@ class PreparedPair:
         src_norm, tgt_norm, _ = normalise_pair(*self.net, self.norm)
         self.net_normalised: Clouds = (src_norm, tgt_norm)
         clock.lap("sample_normalise")
-        self.work: Clouds = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
+        self.work: Clouds = self.full
+        if not prepared:
+            self.work = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
         self._scorers: Dict[Tuple[str, bool], confidence_stage.Scorer] = {}
         self._normals: Dict[str, np.ndarray] = {}
         self._trees: Dict[str, KDTree] = {}

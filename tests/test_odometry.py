@@ -266,6 +266,26 @@ def test_registering_on_one_grid_is_registering_the_clouds_on_that_grid():
         PreparedPair(target, sweeps[1], config, model.config.k)
 
 
+def test_a_step_on_the_grid_is_refined_and_scored_on_its_whole_clouds_once():
+    """A pair already on its registration grid (a sweep onto its map) refines its guess on every
+    grid point: no second, coarser grid for the attempts, so no second ICP, normals and scoring
+    at full resolution after them."""
+    from o3dsoft.coarse import cached_model
+    from o3dsoft.pair import on_grid
+    from o3dsoft.preprocess import clean_points
+
+    sweeps, truth = _sequence(2)
+    model = cached_model(None, "cpu")
+    config = o3dsoft.RegisterConfig(voxel=0.2, attempt_points=500)  # fewer than either grid cloud holds
+    source, target = (on_grid(clean_points(c), 0.2, config, model.config.k, n) for c, n in ((sweeps[1], "sweep"), (sweeps[0], "map")))
+    assert min(len(source.points), len(target.points)) > 2 * config.attempt_points
+    result = register_on_grid(source, target, config, model, init=np.eye(4))
+    assert result.points_used["attempts"] == result.points_used["final"] == (len(source.points), len(target.points))
+    assert not result.likely_failed and o3dsoft.pair_errors(result.transformation, truth[1]).translation < 0.05
+    plain = o3dsoft.register(sweeps[1], sweeps[0], config, model=model, init=np.eye(4))  # clouds as given: attempts on a coarser grid
+    assert plain.points_used["attempts"][1] < plain.points_used["final"][1]
+
+
 def test_a_step_on_the_grid_grids_the_sweep_where_its_guess_puts_it_and_the_map_from_half_grids():
     """The sweep is gridded in the map's axes (its own give other cells, whose centroids lie in
     another pattern on each surface), the map is its sweeps' half grids on the grid, and the
