@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Set up o3dsoft for development in ./.venv: system library for Open3D, CPU torch, the package.
 # Safe to run again: it only installs what is missing.
-#   TORCH_SPEC   torch requirement to install (default torch==2.13.0, a CPU build here)
+#   TORCH_SPEC   torch requirement to install (default torch==2.13.0: a CPU build where pip finds
+#                one, as on the project's machines; from PyPI on Linux the CUDA build)
+#   TORCH_INDEX_URL  the index torch comes from, e.g. https://download.pytorch.org/whl/cpu (PyTorch's CPU builds)
 #   VENV         virtual environment folder (default .venv)
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -28,7 +30,7 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 PIP="$VENV/bin/python -m pip --disable-pip-version-check -q"
 # torch first and pinned: an unpinned torch pulls a multi-GB CUDA build.
-$PIP install "$TORCH_SPEC" 2>&1 | grep -v "^WARNING: Location" || true
+$PIP install ${TORCH_INDEX_URL:+--index-url "$TORCH_INDEX_URL"} "$TORCH_SPEC" 2>&1 | grep -v "^WARNING: Location" || true
 $VENV/bin/python -c "import torch" 2>/dev/null || { echo "install.sh: torch failed to install ($TORCH_SPEC)" >&2; exit 1; }
 $PIP install -e ".[test,peers,ray]" 2>&1 | grep -v "^WARNING: Location" || true
 $VENV/bin/python -c "import o3dsoft, open3d" || { echo "install.sh: o3dsoft failed to install" >&2; exit 1; }

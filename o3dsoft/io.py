@@ -370,6 +370,16 @@ def _check_obj(path: Path) -> None:
     raise InputError(f"{path}: line {line}: a '{keyword}' record with {found} field(s), expected at least {fields}; is the file damaged?")
 
 
+def _check_pts(path: Path) -> None:
+    """Raise InputError where a .pts file holds fewer point lines than the count on its first line
+    (Open3D reads the missing points as whatever its memory held)."""
+    with open(path, "rb") as f:
+        first = f.readline()
+    fields = first.split()
+    if len(fields) == 1 and fields[0].isdigit():
+        _check_whole(path, int(fields[0]), _lines_from(path, len(first)), "points")
+
+
 def _lines_from(path: Path, start: int) -> int:
     """How many non-blank lines the file holds from byte `start` on (a text body: one element a line)."""
     return sum(1 for line in path.read_bytes()[start:].splitlines() if line.strip())
@@ -383,7 +393,7 @@ def _check_whole(path: Path, declared: int, have: int, noun: str) -> None:
 
 
 # What each format's header declares, checked against what the file holds before Open3D reads it.
-_WHOLE_CHECKS = {".ply": _check_ply, ".pcd": _check_pcd, ".off": _check_off, ".stl": _check_stl, ".obj": _check_obj}
+_WHOLE_CHECKS = {".ply": _check_ply, ".pcd": _check_pcd, ".off": _check_off, ".stl": _check_stl, ".obj": _check_obj, ".pts": _check_pts}
 
 
 def sample_mesh(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:

@@ -182,6 +182,8 @@ def _without_isolated(cloud: np.ndarray, radius: float, k: int, most: float = 0.
     more than the share `most` of it, would leave it fewer than `k` points, or lie out from
     its median point over `far_out` times as far as the cloud does (medians; then it is
     sparse, not scattered); and how many points it lost."""
+    if not radius > 0:  # no spacing to measure by (coordinates so close that their distances underflow)
+        return cloud, 0
     isolated = isolated_points(cloud, radius)
     n = int(isolated.sum())
     if n < ISOLATED_MIN_SHARE * len(cloud) or n > math.ceil(most * len(cloud)) or len(cloud) - n < k:

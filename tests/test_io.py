@@ -215,6 +215,16 @@ def test_a_file_cut_short_is_refused(tmp_path, pts, ext, ascii):
         read_points(tmp_path / f"cut{ext}")
 
 
+def test_a_pts_file_cut_short_is_refused(tmp_path, pts):
+    # Open3D reads the points a .pts count declares but its lines lack from uninitialised memory.
+    rows = ["%.6f %.6f %.6f 0 10 20 30" % tuple(p) for p in pts]
+    (tmp_path / "whole.pts").write_text("200\n" + "\n".join(rows) + "\n")
+    assert np.allclose(read_points(tmp_path / "whole.pts"), pts, atol=1e-6)
+    (tmp_path / "cut.pts").write_text("200\n" + "\n".join(rows[:99]) + "\n")
+    with pytest.raises(InputError, match=r"cut.pts: the header declares 200 points, but the file ends after 99; is it complete"):
+        read_points(tmp_path / "cut.pts")
+
+
 @pytest.mark.parametrize(
     "ext, share, match",
     [

@@ -920,6 +920,16 @@ def test_scattered_outliers_off_the_grid_are_left_out(bunny_root):
     assert clean.removed["source_isolated"] == clean.removed["target_isolated"] == 0
 
 
+def test_a_scan_whose_point_spacing_underflows_is_registered_not_an_internal_error():
+    """Most points within a few subnormal steps of each other (a damaged file's): their spacing
+    is 0, and no point is left out as isolated by it."""
+    rng = np.random.default_rng(0)
+    tiny = rng.integers(1, 10**6, (6000, 3)) * 5e-324
+    spread = rng.uniform(-1.0, 1.0, (4000, 3))
+    result = register(np.vstack([tiny, spread]), np.vstack([tiny, spread + 0.01]))
+    assert result.removed["source_isolated"] == result.removed["target_isolated"] == 0
+
+
 def test_off_the_grid_only_a_few_isolated_points_are_outliers():
     """Off a grid, a cloud with more than ISOLATED_MAX_SHARE_OFF_GRID of its points isolated is
     sparse in places and kept whole; a scan that loses its outliers stays a scan."""
