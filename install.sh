@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Set up o3dsoft for development in ./.venv: system library for Open3D, CPU torch, the package.
+# Set up o3dsoft for development in ./.venv: system library for Open3D, torch, the package.
 # Safe to run again: it only installs what is missing.
 #   TORCH_SPEC   torch requirement to install (default torch==2.13.0: a CPU build where pip finds
 #                one, as on the project's machines; from PyPI on Linux the CUDA build)
@@ -29,7 +29,8 @@ if [ ! -x "$VENV/bin/python" ]; then
     "$PYTHON" -m venv "$VENV"
 fi
 PIP="$VENV/bin/python -m pip --disable-pip-version-check -q"
-# torch first and pinned: an unpinned torch pulls a multi-GB CUDA build.
+# torch first and pinned: an unpinned torch would pull whatever build is newest; TORCH_INDEX_URL picks the index
+# (PyTorch's CPU index for a CPU build where pip would find the CUDA one on PyPI).
 $PIP install ${TORCH_INDEX_URL:+--index-url "$TORCH_INDEX_URL"} "$TORCH_SPEC" 2>&1 | grep -v "^WARNING: Location" || true
 $VENV/bin/python -c "import torch" 2>/dev/null || { echo "install.sh: torch failed to install ($TORCH_SPEC)" >&2; exit 1; }
 $PIP install -e ".[test,peers,ray]" 2>&1 | grep -v "^WARNING: Location" || true

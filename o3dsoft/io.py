@@ -370,14 +370,46 @@ def _check_obj(path: Path) -> None:
     raise InputError(f"{path}: line {line}: a '{keyword}' record with {found} field(s), expected at least {fields}; is the file damaged?")
 
 
+# A .pts file's first line: the point count, as Open3D reads it (leading spaces, a "+", digits).
+_PTS_COUNT = re.compile(rb"\s*\+?(\d+)")
+
+
 def _check_pts(path: Path) -> None:
-    """Raise InputError where a .pts file holds fewer point lines than the count on its first line
-    (Open3D reads the missing points as whatever its memory held)."""
+    """Raise InputError where a .pts file starts with a point instead of its count, or where one
+    of the `count` lines after the count, which Open3D reads as points, is missing, blank or holds
+    fewer than 3 numbers: Open3D takes such a point from whatever its memory held. Read line by
+    line (such files run to gigabytes)."""
     with open(path, "rb") as f:
         first = f.readline()
-    fields = first.split()
-    if len(fields) == 1 and fields[0].isdigit():
-        _check_whole(path, int(fields[0]), _lines_from(path, len(first)), "points")
+        count = _PTS_COUNT.match(first)
+        if count is None:
+            return  # Open3D reads no point; the caller names the count line
+        if _xyz_line(first):
+            raise InputError(
+                f"{path}: its first line {first.strip()[:60]!r} is a point, not the point count a .pts file starts with; add the count, or save the file as .xyz"
+            )
+        declared = int(count.group(1))
+        for n in range(declared):
+            line = f.readline()
+            if not line:
+                _check_whole(path, declared, n, "points")
+            if not _xyz_line(line):
+                if not line.endswith(b"\n") and not f.read(1):
+                    raise InputError(f"{path}: line {n + 2}: the file ends in the middle of a point; is it complete (a copy or a download cut short)?")
+                raise InputError(f"{path}: line {n + 2}: {line.strip()[:60]!r}; expected x y z (line 1 counts {declared} points, one a line)")
+
+
+def _xyz_line(line: bytes) -> bool:
+    """The line starts with at least 3 numbers."""
+    fields = line.split()
+    if len(fields) < 3:
+        return False
+    try:
+        for v in fields[:3]:
+            float(v)
+    except ValueError:
+        return False
+    return True
 
 
 def _lines_from(path: Path, start: int) -> int:

@@ -204,8 +204,9 @@ class PreparedPair:
       grid, ``config.isolated_spacings`` off one): what is registered, and where the kept estimate is refined
       and scored last;
     - ``work``: ``full`` voxel-downsampled to at most ``config.attempt_points`` each, where every
-      estimate is refined and scored; ``full`` itself for two :class:`GridCloud` (odometry's
-      steps: a guess refined once, where a second grid would double the normals, ICP and scoring);
+      estimate is refined and scored; ``full`` itself for two :class:`GridCloud` of at most
+      ``icp.max_points`` each (odometry's steps, most of which refine one guess: a second grid
+      would double their normals, ICP and scoring);
     - ``screen``: ``work`` on a grid of at most ``config.search.screen.points`` each (an even
       spacing, which the confidence relies on; smaller clouds whole, shuffled), where the
       search's estimates, and the network's on scans, are tried first on large clouds;
@@ -287,7 +288,7 @@ class PreparedPair:
         self.net_normalised: Clouds = (src_norm, tgt_norm)
         clock.lap("sample_normalise")
         self.work: Clouds = self.full
-        if not prepared:
+        if not (prepared and max(map(len, self.full)) <= config.icp.max_points):  # above it ICP would downsample the full clouds on every call
             self.work = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
         self._scorers: Dict[Tuple[str, bool], confidence_stage.Scorer] = {}
         self._normals: Dict[str, np.ndarray] = {}

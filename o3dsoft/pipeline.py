@@ -437,9 +437,10 @@ def register_on_grid(
         config: the pipeline's settings, checked by the caller.
         init: (4, 4) the rigid transform that moved the source (None: none); the result is
             T_target_source of the source before it, as ``register``'s from an initial guess.
-    As ``register``, but: a flagged reason's size ratio is the grids'; ``removed`` counts what
-    the caller's cleaning removed; the sparser cloud is never the one moved (on one grid both are
-    spaced alike down to a cell).
+    As ``register``, but: every estimate is refined and scored on the whole grid clouds (up to
+    ``icp.max_points``; no coarser grid of ``attempt_points``); a flagged reason's size ratio is
+    the grids'; ``removed`` counts what the caller's cleaning removed; the sparser cloud is never
+    the one moved (on one grid both are spaced alike down to a cell).
     """
     centre = sample_median(source.points)
     if init is not None:  # a point in the middle of the source as given

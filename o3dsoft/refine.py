@@ -284,7 +284,7 @@ def icp(
 
 
 def kd_tree(points: np.ndarray) -> KDTree:
-    """A KD-tree of the (N, 3) points for :func:`plane_steps`' pairs (pykdtree's: its queries run
+    """A KD-tree of the (N, 3) points for :func:`plane_steps`' pairs and isolated points (pykdtree's: its queries run
     in OpenMP threads, each point's on its own, so the pairs are the same in any thread; about
     three times as fast as SciPy's here). From then on, a process forked from this one runs
     OpenMP on one thread (a fork inherits no thread of the pool)."""

@@ -223,6 +223,18 @@ def test_a_pts_file_cut_short_is_refused(tmp_path, pts):
     (tmp_path / "cut.pts").write_text("200\n" + "\n".join(rows[:99]) + "\n")
     with pytest.raises(InputError, match=r"cut.pts: the header declares 200 points, but the file ends after 99; is it complete"):
         read_points(tmp_path / "cut.pts")
+    (tmp_path / "plus.pts").write_text("+200\n" + "\n".join(rows[:99]) + "\n")  # a count Open3D reads too
+    with pytest.raises(InputError, match=r"plus.pts: the header declares 200 points, but the file ends after 99"):
+        read_points(tmp_path / "plus.pts")
+    (tmp_path / "mid.pts").write_text("200\n" + "\n".join(rows[:199]) + "\n" + rows[199][:12])  # cut inside the last point
+    with pytest.raises(InputError, match=r"mid.pts: line 201: the file ends in the middle of a point; is it complete"):
+        read_points(tmp_path / "mid.pts")
+    (tmp_path / "gap.pts").write_text("200\n" + "\n".join(rows[:150]) + "\n\n" + "\n".join(rows[150:]) + "\n")  # Open3D reads the blank line as a point
+    with pytest.raises(InputError, match=r"gap.pts: line 152: b?''; expected x y z \(line 1 counts 200 points"):
+        read_points(tmp_path / "gap.pts")
+    (tmp_path / "nocount.pts").write_text("\n".join(rows) + "\n")  # Open3D reads the first x as the count
+    with pytest.raises(InputError, match=r"nocount.pts: its first line .* is a point, not the point count"):
+        read_points(tmp_path / "nocount.pts")
 
 
 @pytest.mark.parametrize(
@@ -774,7 +786,7 @@ def test_the_colours_of_e57_scans_and_leica_pts_files_are_read(tmp_path, pts):
     assert np.allclose(read_points(tmp_path / "leica.pts"), pts, atol=1e-6)
     assert np.allclose(read_attributes(tmp_path / "leica.pts", len(pts)).colors, colours[0] / 255)
     (tmp_path / "nocount.pts").write_text(rows)
-    with pytest.raises(InputError, match="nocount.pts: parsed to 0 points; is it a valid PTS point cloud \\(its first line must be the point count\\)"):
+    with pytest.raises(InputError, match="nocount.pts: its first line .* is a point, not the point count a .pts file starts with"):
         read_points(tmp_path / "nocount.pts")
 
 

@@ -266,13 +266,18 @@ def test_registering_on_one_grid_is_registering_the_clouds_on_that_grid():
         PreparedPair(target, sweeps[1], config, model.config.k)
 
 
-def test_a_step_on_the_grid_is_refined_and_scored_on_its_whole_clouds_once():
+def test_a_step_on_the_grid_is_refined_and_scored_on_its_whole_clouds_once(monkeypatch):
     """A pair already on its registration grid (a sweep onto its map) refines its guess on every
     grid point: no second, coarser grid for the attempts, so no second ICP, normals and scoring
     at full resolution after them."""
+    import o3dsoft.pair as pair_module
     from o3dsoft.coarse import cached_model
     from o3dsoft.pair import on_grid
     from o3dsoft.preprocess import clean_points
+
+    estimated = []  # the sizes of the target clouds whose normals the pair estimates
+    normals = pair_module.refine_stage.normals
+    monkeypatch.setattr(pair_module.refine_stage, "normals", lambda points, *a, **k: estimated.append(len(points)) or normals(points, *a, **k))
 
     sweeps, truth = _sequence(2)
     model = cached_model(None, "cpu")
@@ -281,6 +286,7 @@ def test_a_step_on_the_grid_is_refined_and_scored_on_its_whole_clouds_once():
     assert min(len(source.points), len(target.points)) > 2 * config.attempt_points
     result = register_on_grid(source, target, config, model, init=np.eye(4))
     assert result.points_used["attempts"] == result.points_used["final"] == (len(source.points), len(target.points))
+    assert estimated.count(len(target.points)) == 1  # once, for every ICP and the scoring
     assert not result.likely_failed and o3dsoft.pair_errors(result.transformation, truth[1]).translation < 0.05
     plain = o3dsoft.register(sweeps[1], sweeps[0], config, model=model, init=np.eye(4))  # clouds as given: attempts on a coarser grid
     assert plain.points_used["attempts"][1] < plain.points_used["final"][1]

@@ -927,6 +927,7 @@ def test_a_scan_whose_point_spacing_underflows_is_registered_not_an_internal_err
     tiny = rng.integers(1, 10**6, (6000, 3)) * 5e-324
     spread = rng.uniform(-1.0, 1.0, (4000, 3))
     result = register(np.vstack([tiny, spread]), np.vstack([tiny, spread + 0.01]))
+    assert result.voxel is None  # off a grid: isolated points by the (zero) spacing
     assert result.removed["source_isolated"] == result.removed["target_isolated"] == 0
 
 
