@@ -298,9 +298,9 @@ class RegisterConfig:
             (``pipeline._refine_full``). Default 10,000: RGB-D fragments on the data's grid,
             5,000-9,000 points, are scored whole, so that the trust that decides whether to
             search is the full clouds'. Clouds of at most this many points get no grid from the
-            data. Odometry's steps on the sequence's grid are refined and scored whole (up to
-            ``icp.max_points``): a trusted step refines one guess, and a second grid would
-            double its normals, ICP and scoring.
+            data. Odometry's steps on the sequence's grid are refined and scored whole up to
+            three times as many points (``pair.GRID_WORK_ATTEMPTS``): a trusted step refines one
+            guess, and a second grid would double its normals, ICP and scoring.
         max_rotation: the clouds are given within this many degrees of their true relative
             rotation (a prior, e.g. from odometry): estimates beyond it get confidence 0, and the
             result lies within it; None: any rotation (default).

@@ -104,6 +104,11 @@ ISOLATED_MAX_SHARE_OFF_GRID = 0.1
 # point over this many times the cloud's own (a LiDAR sweep's far returns; scattered points in the
 # cloud's box lie about as far out as its surfaces).
 ISOLATED_FAR_OUT = 2.0
+# Two clouds on their registration grid (odometry's steps) are worked on whole up to this many
+# times ``attempt_points``: a trusted step then refines and scores once instead of twice, but a
+# searched step refines its estimates on them too (on maps of 50,000-90,000 points such steps
+# took 2-5 times as long; docs/multiway.md).
+GRID_WORK_ATTEMPTS = 3
 
 
 def registration_grid(clouds: Clouds, config: RegisterConfig) -> Optional[float]:
@@ -205,8 +210,9 @@ class PreparedPair:
       and scored last;
     - ``work``: ``full`` voxel-downsampled to at most ``config.attempt_points`` each, where every
       estimate is refined and scored; ``full`` itself for two :class:`GridCloud` of at most
-      ``icp.max_points`` each (odometry's steps, most of which refine one guess: a second grid
-      would double their normals, ICP and scoring);
+      :data:`GRID_WORK_ATTEMPTS` times as many points (and ``icp.max_points``) each: odometry's
+      steps, most of which refine one guess, where a second grid would double their normals,
+      ICP and scoring;
     - ``screen``: ``work`` on a grid of at most ``config.search.screen.points`` each (an even
       spacing, which the confidence relies on; smaller clouds whole, shuffled), where the
       search's estimates, and the network's on scans, are tried first on large clouds;
@@ -288,7 +294,7 @@ class PreparedPair:
         self.net_normalised: Clouds = (src_norm, tgt_norm)
         clock.lap("sample_normalise")
         self.work: Clouds = self.full
-        if not (prepared and max(map(len, self.full)) <= config.icp.max_points):  # above it ICP would downsample the full clouds on every call
+        if not (prepared and max(map(len, self.full)) <= min(GRID_WORK_ATTEMPTS * config.attempt_points, config.icp.max_points)):
             self.work = (refine_stage.downsample(self.full[0], config.attempt_points), refine_stage.downsample(self.full[1], config.attempt_points))
         self._scorers: Dict[Tuple[str, bool], confidence_stage.Scorer] = {}
         self._normals: Dict[str, np.ndarray] = {}

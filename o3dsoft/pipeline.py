@@ -438,7 +438,7 @@ def register_on_grid(
         init: (4, 4) the rigid transform that moved the source (None: none); the result is
             T_target_source of the source before it, as ``register``'s from an initial guess.
     As ``register``, but: every estimate is refined and scored on the whole grid clouds (up to
-    ``icp.max_points``; no coarser grid of ``attempt_points``); a flagged reason's size ratio is
+    :data:`~o3dsoft.pair.GRID_WORK_ATTEMPTS` times ``attempt_points`` each; no coarser grid); a flagged reason's size ratio is
     the grids'; ``removed`` counts what the caller's cleaning removed; the sparser cloud is never
     the one moved (on one grid both are spaced alike down to a cell).
     """

@@ -1,6 +1,7 @@
 import importlib
 import json
 import re
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -281,15 +282,19 @@ def test_a_step_on_the_grid_is_refined_and_scored_on_its_whole_clouds_once(monke
 
     sweeps, truth = _sequence(2)
     model = cached_model(None, "cpu")
-    config = o3dsoft.RegisterConfig(voxel=0.2, attempt_points=500)  # fewer than either grid cloud holds
+    config = o3dsoft.RegisterConfig(voxel=0.2, attempt_points=2500)  # fewer than either grid cloud holds
     source, target = (on_grid(clean_points(c), 0.2, config, model.config.k, n) for c, n in ((sweeps[1], "sweep"), (sweeps[0], "map")))
-    assert min(len(source.points), len(target.points)) > 2 * config.attempt_points
+    assert 2 * config.attempt_points < min(len(source.points), len(target.points)) <= max(len(source.points), len(target.points)) <= 3 * config.attempt_points
     result = register_on_grid(source, target, config, model, init=np.eye(4))
     assert result.points_used["attempts"] == result.points_used["final"] == (len(source.points), len(target.points))
     assert estimated.count(len(target.points)) == 1  # once, for every ICP and the scoring
     assert not result.likely_failed and o3dsoft.pair_errors(result.transformation, truth[1]).translation < 0.05
     plain = o3dsoft.register(sweeps[1], sweeps[0], config, model=model, init=np.eye(4))  # clouds as given: attempts on a coarser grid
     assert plain.points_used["attempts"][1] < plain.points_used["final"][1]
+    larger = register_on_grid(
+        source, target, replace(config, attempt_points=1000), model, init=np.eye(4)
+    )  # over GRID_WORK_ATTEMPTS times it: a searched step would refine every estimate on them
+    assert larger.points_used["attempts"][1] < larger.points_used["final"][1] == len(target.points)
 
 
 def test_a_step_on_the_grid_grids_the_sweep_where_its_guess_puts_it_and_the_map_from_half_grids():
