@@ -157,6 +157,9 @@ def _check_ply(path: Path) -> None:
             f"{path}: its vertices have no {', '.join(missing)} property (the header names {', '.join(sorted(properties)) or 'none'}); expected x, y and z"
         )
     if form == "ascii":  # one line per element, so faces too are counted
+        first = elements[0]
+        if first[0] == "vertex" and all(kind != "list" for kind, _, _ in first[2]):  # each vertex line: exactly its properties
+            _check_rows(path, data_start, first[1], len(first[2]), "vertices", exact=True)
         lines = _lines_from(path, data_start)
         for name, declared, _ in elements:
             _check_whole(path, declared, lines, {"vertex": "vertices", "face": "faces"}.get(name, f"'{name}' elements"))
@@ -239,6 +242,9 @@ def _check_pcd(path: Path) -> None:
         return
     count = int(count)
     if form == ["ascii"]:
+        counts = fields.get("COUNT", ["1"] * len(names))
+        if all(c.isdigit() for c in counts):  # each point line: at least its fields' values
+            _check_rows(path, data_start, count, sum(map(int, counts)), "points")
         have = _lines_from(path, data_start)
     elif form == ["binary"]:
         try:
@@ -386,7 +392,7 @@ def _check_pts(path: Path) -> None:
             return  # Open3D reads no point; the caller names the count line
         if _xyz_line(first):
             raise InputError(
-                f"{path}: its first line {first.strip()[:60]!r} is a point, not the point count a .pts file starts with; add the count, or save the file as .xyz"
+                f"{path}: its first line {_shown(first)!r} is a point, not the point count a .pts file starts with; add the count, or save the file as .xyz"
             )
         declared = int(count.group(1))
         for n in range(declared):
@@ -396,7 +402,12 @@ def _check_pts(path: Path) -> None:
             if not _xyz_line(line):
                 if not line.endswith(b"\n") and not f.read(1):
                     raise InputError(f"{path}: line {n + 2}: the file ends in the middle of a point; is it complete (a copy or a download cut short)?")
-                raise InputError(f"{path}: line {n + 2}: {line.strip()[:60]!r}; expected x y z (line 1 counts {declared} points, one a line)")
+                raise InputError(f"{path}: line {n + 2}: {_shown(line)!r}; expected x y z (line 1 counts {declared} points, one a line)")
+
+
+def _shown(line: bytes) -> str:
+    """A line of a file as an error message quotes it: stripped, at most 60 characters."""
+    return line.strip()[:60].decode("utf-8", errors="replace")
 
 
 def _xyz_line(line: bytes) -> bool:
@@ -410,6 +421,29 @@ def _xyz_line(line: bytes) -> bool:
     except ValueError:
         return False
     return True
+
+
+def _check_rows(path: Path, start: int, count: int, values: int, noun: str, exact: bool = False) -> None:
+    """Raise InputError where the text from byte `start` on holds fewer than `count` non-blank
+    lines (one element each), or where one of them holds fewer than `values` values (another
+    number where `exact`): Open3D fills such an element from whatever its memory held (a PCD
+    point) or reads the values after it shifted (a PLY vertex). Read line by line."""
+    with open(path, "rb") as f:
+        number = f.read(start).count(b"\n")  # the header's lines
+        seen = 0
+        while seen < count:
+            line = f.readline()
+            number += 1
+            if not line:
+                _check_whole(path, count, seen, noun)
+            fields = line.split()
+            if not fields:
+                continue
+            if len(fields) < values or (exact and len(fields) != values):
+                if not line.endswith(b"\n") and not f.read(1):  # the last line, cut
+                    _check_whole(path, count, seen, noun)
+                raise InputError(f"{path}: line {number}: {_shown(line)!r} holds {len(fields)} values; the header's {noun} hold {values} each")
+            seen += 1
 
 
 def _lines_from(path: Path, start: int) -> int:

@@ -215,6 +215,27 @@ def test_a_file_cut_short_is_refused(tmp_path, pts, ext, ascii):
         read_points(tmp_path / f"cut{ext}")
 
 
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
+def test_an_ascii_point_line_short_of_a_value_is_refused(tmp_path, pts, ext):
+    # Open3D fills such a PCD point from uninitialised memory, and reads a PLY's values after it shifted.
+    import open3d as o3d
+
+    o3d.io.write_point_cloud(str(tmp_path / f"whole{ext}"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)), write_ascii=True)
+    lines = (tmp_path / f"whole{ext}").read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith(("end_header", "DATA"))) + 1
+    assert np.allclose(read_points(tmp_path / f"whole{ext}"), pts, atol=1e-5)
+    short = lines[: first + 100] + [" ".join(lines[first + 100].split()[:2])] + lines[first + 101 :]
+    (tmp_path / f"short{ext}").write_text("\n".join(short) + "\n")
+    with pytest.raises(InputError, match=rf"short{ext}: line {first + 101}: '[-0-9. e]+' holds 2 values; the header's (vertices|points) hold 3 each"):
+        read_points(tmp_path / f"short{ext}")
+    (tmp_path / f"last{ext}").write_text("\n".join(lines[:-1] + [" ".join(lines[-1].split()[:2])]))  # cut inside the last point
+    with pytest.raises(InputError, match=rf"last{ext}: the header declares 200 (vertices|points), but the file ends after 199"):
+        read_points(tmp_path / f"last{ext}")
+    blank = lines[: first + 100] + [""] + lines[first + 100 :]  # a blank line: Open3D skips it
+    (tmp_path / f"blank{ext}").write_text("\n".join(blank) + "\n")
+    assert np.allclose(read_points(tmp_path / f"blank{ext}"), pts, atol=1e-5)
+
+
 def test_a_pts_file_cut_short_is_refused(tmp_path, pts):
     # Open3D reads the points a .pts count declares but its lines lack from uninitialised memory.
     rows = ["%.6f %.6f %.6f 0 10 20 30" % tuple(p) for p in pts]
@@ -243,7 +264,8 @@ def test_a_pts_file_cut_short_is_refused(tmp_path, pts):
         (".off", 0.3, "8 vertices, but the file ends after [0-7]"),
         (".off", 0.8, "12 faces, but the file ends after"),
         (".stl", 0.7, "12 triangles, but the file ends after 7"),
-        (".ply", 0.8, "12 faces, but the file ends after"),
+        (".ply", 0.8, "8 vertices, but the file ends after 7"),  # inside the last vertex's line
+        (".ply", 0.95, "12 faces, but the file ends after"),
     ],
 )
 def test_a_mesh_cut_short_is_refused(tmp_path, ext, share, match):
