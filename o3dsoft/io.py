@@ -157,11 +157,12 @@ def _check_ply(path: Path) -> None:
             f"{path}: its vertices have no {', '.join(missing)} property (the header names {', '.join(sorted(properties)) or 'none'}); expected x, y and z"
         )
     if form == "ascii":  # one line per element, so faces too are counted
+        start, rest = data_start, elements
         first = elements[0]
         if first[0] == "vertex" and all(kind != "list" for kind, _, _ in first[2]):  # each vertex line: exactly its properties
-            _check_rows(path, data_start, first[1], len(first[2]), "vertices", exact=True)
-        lines = _lines_from(path, data_start)
-        for name, declared, _ in elements:
+            start, rest = _check_rows(path, data_start, first[1], len(first[2]), "vertices", exact=True), elements[1:]
+        lines = _lines_from(path, start)
+        for name, declared, _ in rest:
             _check_whole(path, declared, lines, {"vertex": "vertices", "face": "faces"}.get(name, f"'{name}' elements"))
             lines -= declared
         return
@@ -243,8 +244,9 @@ def _check_pcd(path: Path) -> None:
     count = int(count)
     if form == ["ascii"]:
         counts = fields.get("COUNT", ["1"] * len(names))
-        if all(c.isdigit() for c in counts):  # each point line: at least its fields' values
+        if all(c.isdigit() for c in counts):  # each point line: at least its fields' values (and every one there)
             _check_rows(path, data_start, count, sum(map(int, counts)), "points")
+            return
         have = _lines_from(path, data_start)
     elif form == ["binary"]:
         try:
@@ -423,11 +425,12 @@ def _xyz_line(line: bytes) -> bool:
     return True
 
 
-def _check_rows(path: Path, start: int, count: int, values: int, noun: str, exact: bool = False) -> None:
+def _check_rows(path: Path, start: int, count: int, values: int, noun: str, exact: bool = False) -> int:
     """Raise InputError where the text from byte `start` on holds fewer than `count` non-blank
     lines (one element each), or where one of them holds fewer than `values` values (another
     number where `exact`): Open3D fills such an element from whatever its memory held (a PCD
-    point) or reads the values after it shifted (a PLY vertex). Read line by line."""
+    point) or reads the values after it shifted (a PLY vertex). Read line by line; returns the
+    offset of the byte after the last of those lines."""
     with open(path, "rb") as f:
         number = f.read(start).count(b"\n")  # the header's lines
         seen = 0
@@ -444,6 +447,7 @@ def _check_rows(path: Path, start: int, count: int, values: int, noun: str, exac
                     _check_whole(path, count, seen, noun)
                 raise InputError(f"{path}: line {number}: {_shown(line)!r} holds {len(fields)} values; the header's {noun} hold {values} each")
             seen += 1
+        return f.tell()
 
 
 def _lines_from(path: Path, start: int) -> int:

@@ -253,7 +253,8 @@ def isolated_points(points: np.ndarray, radius: float) -> np.ndarray:
         raise ValueError(f"radius must be positive, got {radius}")
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
-    nearest, _ = kd_tree(points).query(np.ascontiguousarray(points, dtype=np.float64), k=3, distance_upper_bound=radius)
+    points = np.ascontiguousarray(points, dtype=np.float64)  # as the tree holds them: one copy at most
+    nearest, _ = kd_tree(points).query(points, k=3, distance_upper_bound=radius)
     return ~np.isfinite(nearest[:, 2])
 
 
